@@ -1,0 +1,16 @@
+"""Differentiable batched environments (TorchRL ``EnvBase`` subclasses)."""
+from .base import DiffEnv
+from .cartpole import CartPoleEnv
+from .mountaincar import MountainCarEnv
+from .pendulum import PendulumEnv
+from .reacher import ReacherEnv
+from .registry import list_envs, make_env, register_env
+from .swimmer import SwimmerEnv
+
+for _cls in (CartPoleEnv, PendulumEnv, MountainCarEnv, ReacherEnv, SwimmerEnv):
+    register_env(_cls)
+
+__all__ = [
+    "DiffEnv", "CartPoleEnv", "PendulumEnv", "MountainCarEnv", "ReacherEnv", "SwimmerEnv",
+    "list_envs", "make_env", "register_env",
+]

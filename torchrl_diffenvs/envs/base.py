@@ -1,0 +1,271 @@
+"""The base class that turns a task's pure physics into a batched, differentiable TorchRL env.
+
+A task subclass only supplies physics (see :class:`DiffEnv`); everything TorchRL needs (specs,
+batch size, device, dtype, seeding, partial resets, truncation, input validation) lives here.
+
+TensorDict layout (``N = num_envs``)::
+
+    "observation"            [N, obs_dim]   what a policy sees (computed from the state)
+    ("state", <name>)        [N, ...]       the physical state; never the same tensor as "observation"
+    ("params", <name>)       [N, ...]       physical parameters, per env (randomise or differentiate)
+    "episode_step"           [N] int64      steps since the last reset (drives truncation)
+    "action"                 [N, act_dim]
+    ("next", "reward")       [N, 1]
+    ("next", "terminated" | "truncated" | "done")   [N, 1] bool
+
+Keeping the state apart from the observation matters: an ObservationNorm (or any transform) on
+"observation" can never feed its output back into the dynamics.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+__all__ = ["DiffEnv"]
+
+_FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+class DiffEnv(EnvBase):
+    """Batched differentiable environment. Subclass it with physics only.
+
+    A subclass defines:
+
+    * ``name`` (str), ``action_dim`` (int) and ``default_params`` (dict of floats or lists);
+    * ``initial_state(params, n) -> dict[str, Tensor]``: samples ``n`` start states with
+      :meth:`uniform` (so seeding works);
+    * ``transition(state, action, params) -> (next_state, reward, terminated)``: one step, pure
+      tensor code; ``reward`` is ``[N]``, ``terminated`` a ``[N]`` bool tensor or ``None``;
+    * ``observation(state, params) -> Tensor [N, obs_dim]``.
+
+    Optional class attributes: ``default_max_episode_steps`` (``None`` disables truncation),
+    ``action_low`` / ``action_high`` (the action spec) and ``clip_actions``.
+
+    Actions outside ``[action_low, action_high]``: when ``clip_actions`` is ``False`` (the
+    Ivy-style tasks) the physics is applied to the action as given, gradients included; the
+    spec bounds are what a policy should produce (e.g. with a tanh). When ``True`` (the
+    Gymnasium-compatible tasks) the action is clipped as Gymnasium does, which zeroes the
+    gradient outside the bounds.
+
+    Non-finite actions: every operation is elementwise over the batch, so a NaN/inf action of env
+    ``i`` can only make env ``i``'s state, observation and reward non-finite; the other envs of
+    the batch are never touched. That env keeps non-finite values until it is reset.
+
+    Args:
+        num_envs: number of environments simulated in one batch (``>= 1``).
+        device: torch device of every tensor.
+        dtype: ``torch.float32`` (default) or ``torch.float64`` (for gradient checks).
+        seed: seed of the env's own random generator; ``None`` draws one from torch's global RNG.
+        max_episode_steps: episodes are truncated after this many steps; ``None`` never truncates.
+        params: overrides of ``default_params``; each value a float or a tensor of shape
+            ``[num_envs, ...]`` for per-env values (domain randomisation).
+    """
+
+    name: str = ""
+    action_dim: int = 1
+    default_params: Mapping[str, float | list[float]] = {}
+    default_max_episode_steps: int | None = 100
+    action_low: float = -1.0
+    action_high: float = 1.0
+    clip_actions: bool = False
+
+    batch_locked = True
+    _supports_set_state = True
+    _USE_DEFAULT = object()
+
+    # ------------------------------------------------------------------ physics (subclasses)
+    def initial_state(self, params: Mapping[str, torch.Tensor], n: int) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def transition(self, state, action, params):
+        raise NotImplementedError
+
+    def observation(self, state, params) -> torch.Tensor:
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ construction
+    def __init__(
+        self,
+        num_envs: int = 1,
+        *,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+        seed: int | None = None,
+        max_episode_steps: int | None = _USE_DEFAULT,  # type: ignore[assignment]
+        params: Mapping[str, float | torch.Tensor] | None = None,
+    ):
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"{self.name}: num_envs must be an integer >= 1, got {num_envs!r}")
+        if dtype not in _FLOAT_DTYPES:
+            raise TypeError(f"{self.name}: dtype must be torch.float32 or torch.float64, got {dtype}")
+        if max_episode_steps is DiffEnv._USE_DEFAULT:
+            max_episode_steps = self.default_max_episode_steps
+        if max_episode_steps is not None and (
+            isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, int) or max_episode_steps < 1
+        ):
+            raise ValueError(
+                f"{self.name}: max_episode_steps must be a positive integer or None, got {max_episode_steps!r}"
+            )
+        super().__init__(device=device if device is not None else "cpu", batch_size=torch.Size([num_envs]))
+        self.num_envs = num_envs
+        self.float_dtype = dtype
+        self.max_episode_steps = max_episode_steps
+        # a throwaway generator for building specs; set_seed below installs the real one
+        self.rng = torch.Generator(device=self.device).manual_seed(0)
+        self.params = self._build_params(params or {})
+        self._make_specs()
+        if seed is None:
+            seed = int(torch.randint(0, 2**62, (), dtype=torch.int64).item())
+        self.set_seed(seed)
+
+    def _build_params(self, overrides: Mapping[str, float | torch.Tensor]) -> TensorDict:
+        unknown = sorted(set(overrides) - set(self.default_params))
+        if unknown:
+            raise KeyError(
+                f"{self.name}: unknown physical parameter(s) {unknown}; valid: {sorted(self.default_params)}"
+            )
+        n = self.num_envs
+        values = {}
+        for key, default in self.default_params.items():
+            default_t = torch.as_tensor(default, dtype=self.float_dtype, device=self.device)
+            value = torch.as_tensor(overrides.get(key, default_t), dtype=self.float_dtype, device=self.device)
+            if value.shape == default_t.shape:
+                value = value.expand(n, *default_t.shape)
+            elif value.shape != (n, *default_t.shape):
+                raise ValueError(
+                    f"{self.name}: parameter {key!r} must be a scalar shaped like its default "
+                    f"{tuple(default_t.shape)} or a per-env tensor of shape {(n, *default_t.shape)}, "
+                    f"got {tuple(value.shape)}"
+                )
+            values[key] = value.clone()
+        return TensorDict(values, batch_size=[n], device=self.device)
+
+    def _make_specs(self) -> None:
+        n, dtype = self.num_envs, self.float_dtype
+        state = self.initial_state(self.params, n)
+        obs = self.observation(state, self.params)
+        self.observation_dim = obs.shape[-1]
+
+        def unbounded_like(td: Mapping[str, torch.Tensor]) -> Composite:
+            return Composite(
+                {k: Unbounded(shape=v.shape, dtype=v.dtype, device=self.device) for k, v in td.items()},
+                shape=(n,),
+                device=self.device,
+            )
+
+        carried = dict(
+            state=unbounded_like(state),
+            params=unbounded_like(self.params),
+            episode_step=Unbounded(shape=(n,), dtype=torch.int64, device=self.device),
+        )
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(n, self.observation_dim), dtype=dtype, device=self.device),
+            **carried,
+            shape=(n,),
+            device=self.device,
+        )
+        # The env is stateless: everything needed to step it travels in the TensorDict.
+        self.state_spec = Composite(carried, shape=(n,), device=self.device).clone()
+        self.action_spec = Bounded(
+            low=self.action_low, high=self.action_high, shape=(n, self.action_dim), dtype=dtype, device=self.device
+        )
+        self.reward_spec = Unbounded(shape=(n, 1), dtype=dtype, device=self.device)
+        done = Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device)
+        self.done_spec = Composite(
+            done=done, terminated=done.clone(), truncated=done.clone(), shape=(n,), device=self.device
+        )
+
+    # ------------------------------------------------------------------ helpers for tasks
+    def uniform(self, low: float, high: float, *shape: int) -> torch.Tensor:
+        """``U[low, high]`` samples of shape ``shape`` from this env's seeded generator."""
+        sample = torch.rand(shape, generator=self.rng, device=self.device, dtype=self.float_dtype)
+        return sample * (high - low) + low
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng = torch.Generator(device=self.device).manual_seed(int(seed))
+
+    # ------------------------------------------------------------------ TorchRL plumbing
+    def _check_action(self, action: torch.Tensor | None) -> None:
+        expected = (self.num_envs, self.action_dim)
+        if action is None:
+            raise KeyError(f"{self.name}: the input TensorDict has no 'action' entry (expected shape {expected})")
+        if tuple(action.shape) != expected:
+            raise ValueError(
+                f"{self.name}: expected an action of shape {expected} ([num_envs, action_dim]), "
+                f"got {tuple(action.shape)}"
+            )
+        if action.dtype != self.float_dtype:
+            raise TypeError(f"{self.name}: expected an action of dtype {self.float_dtype}, got {action.dtype}")
+
+    def _assert_tensordict_shape(self, tensordict: TensorDictBase) -> None:
+        if tensordict.batch_size != self.batch_size:
+            raise ValueError(
+                f"{self.name}: expected a TensorDict with batch size {tuple(self.batch_size)} (num_envs), "
+                f"got {tuple(tensordict.batch_size)}"
+            )
+
+    def _output(self, state, params, episode_step, reward=None, terminated=None) -> TensorDict:
+        n = self.num_envs
+        if terminated is None:
+            terminated = torch.zeros(n, dtype=torch.bool, device=self.device)
+        if self.max_episode_steps is None:
+            truncated = torch.zeros_like(terminated)
+        else:
+            truncated = (episode_step >= self.max_episode_steps) & ~terminated
+        out = {
+            "observation": self.observation(state, params),
+            "state": TensorDict(dict(state), batch_size=[n]),
+            "params": params,
+            "episode_step": episode_step,
+            "terminated": terminated.unsqueeze(-1),
+            "truncated": truncated.unsqueeze(-1),
+            "done": (terminated | truncated).unsqueeze(-1),
+        }
+        if reward is not None:
+            out["reward"] = reward.unsqueeze(-1)
+        return TensorDict(out, batch_size=[n], device=self.device)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action", None)
+        self._check_action(action)
+        if self.clip_actions:
+            action = action.clamp(self.action_low, self.action_high)
+        params = tensordict.get("params")
+        next_state, reward, terminated = self.transition(tensordict.get("state"), action, params)
+        return self._output(next_state, params, tensordict.get("episode_step") + 1, reward, terminated)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        """Fresh start states; ``reset(td, set_state=True)`` starts from ``td["state"]`` instead.
+
+        Params come from ``td["params"]`` when given, else from ``env.params``. During auto-resets
+        TorchRL passes only the ``"_reset"`` mask, so reset envs take ``env.params``.
+        """
+        given = tensordict if tensordict is not None else TensorDict(batch_size=self.batch_size)
+        params = given.get("params", None)
+        params = self.params.clone() if params is None else params
+        if kwargs.get("set_state"):
+            if "state" not in given.keys():
+                raise KeyError(f"{self.name}: reset(set_state=True) needs a 'state' entry in the TensorDict")
+            state = given.get("state").copy()
+        else:
+            state = self.initial_state(params, self.num_envs)
+        episode_step = torch.zeros(self.num_envs, dtype=torch.int64, device=self.device)
+        return self._output(state, params, episode_step)
+
+    # ------------------------------------------------------------------ conveniences
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(name={self.name!r}, num_envs={self.num_envs}, "
+            f"action_dim={self.action_dim}, observation_dim={self.observation_dim}, "
+            f"dtype={self.float_dtype}, device={self.device}, max_episode_steps={self.max_episode_steps})"
+        )
+
+
+def angle_normalize(angle: torch.Tensor) -> torch.Tensor:
+    """Maps an angle to ``[-pi, pi)`` (gradient 1 almost everywhere)."""
+    return torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
