@@ -187,6 +187,10 @@ class DiffEnv(EnvBase):
         return sample * (high - low) + low
 
     def _set_seed(self, seed: int | None) -> None:
+        # EnvBase.set_seed(seed=None) is valid TorchRL API: like the constructor's seed=None,
+        # draw a seed from torch's global RNG (int(None) used to raise a TypeError here).
+        if seed is None:
+            seed = int(torch.randint(0, 2**62, (), dtype=torch.int64).item())
         self.rng = torch.Generator(device=self.device).manual_seed(int(seed))
 
     # ------------------------------------------------------------------ TorchRL plumbing
