@@ -1,0 +1,193 @@
+"""A collector of gradient-carrying rollout windows for BPTT and SHAC.
+
+TorchRL's own collectors run under ``torch.no_grad`` (they feed replay buffers); the
+gradient-based learners need the opposite: rollouts whose rewards and observations are
+differentiable w.r.t. the policy parameters. :class:`DiffWindowCollector` owns that.
+"""
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterator
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+__all__ = ["DiffWindowCollector"]
+
+
+class DiffWindowCollector:
+    """Yields rollout windows ``[N, H]`` with the autograd graph on.
+
+    Each window continues where the previous one stopped: the env TensorDict is carried over,
+    *detached* at the window start (the gradient of a window never reaches into the previous
+    one), and episodes are not reset at window boundaries. Envs whose episode ends inside a window
+    are reset there by TorchRL's auto-reset (``env.step_and_maybe_reset``), which cuts the graph
+    for those envs only.
+
+    A window has the layout of ``env.rollout(H, policy, break_when_any_done=False)``: root
+    entries at step ``t`` (``"observation"``, ``("state", ...)``, ``"episode_step"``, the policy
+    outputs such as ``"action"``, ``"loc"``, ``"scale"``), and under ``"next"`` the entries
+    after the step *before any reset*: ``("next", "observation")`` of a truncated step is the
+    pre-reset observation, which is what a critic must bootstrap from. The collector adds
+    ``("next", "episode_reward")``: the undiscounted return of the episode so far, detached
+    (at a done step it is the finished episode's return).
+
+    Actions are drawn under ``exploration_type`` (default ``ExplorationType.RANDOM``, so a
+    ``ProbabilisticActor`` with a ``TanhNormal`` uses ``rsample``: reparameterised, gradients
+    reach the distribution parameters).
+
+    Args:
+        env: a batched differentiable env (a :class:`~torchrl_diffenvs.DiffEnv`, possibly
+            wrapped in a ``TransformedEnv`` whose transforms keep gradients).
+        policy: a TensorDict module that writes ``"action"``.
+        horizon: window length ``H``.
+        total_windows: iteration stops after this many windows; ``None`` iterates forever.
+        exploration_type: exploration mode for the policy.
+        keep_returns: how many finished-episode returns :attr:`episode_returns` keeps.
+
+    Attributes:
+        episode_returns: the undiscounted returns of the most recently finished episodes.
+        windows: windows collected so far.
+        frames: env steps collected so far (``windows * N * H``).
+
+    Example::
+
+        env = make_env("pendulum", num_envs=64, seed=0)
+        actor = make_actor(env)
+        collector = DiffWindowCollector(env, actor, horizon=32, total_windows=100)
+        for window in collector:          # TensorDict [64, 32], graph on
+            loss = BPTTLoss(actor)(window)["loss_actor"]
+            ...
+    """
+
+    def __init__(
+        self,
+        env: EnvBase,
+        policy,
+        horizon: int,
+        total_windows: int | None = None,
+        *,
+        exploration_type: ExplorationType = ExplorationType.RANDOM,
+        keep_returns: int = 100,
+    ):
+        if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
+            raise ValueError(f"DiffWindowCollector: horizon must be a positive integer, got {horizon!r}")
+        if total_windows is not None and (not isinstance(total_windows, int) or total_windows < 0):
+            raise ValueError(f"DiffWindowCollector: total_windows must be None or an integer >= 0, got {total_windows!r}")
+        if len(env.batch_size) != 1:
+            raise ValueError(f"DiffWindowCollector: expected an env with a 1-D batch size [N], got {tuple(env.batch_size)}")
+        self.env = env
+        self.policy = policy
+        self.horizon = horizon
+        self.total_windows = total_windows
+        self.exploration_type = exploration_type
+        self.episode_returns: deque[float] = deque(maxlen=keep_returns)
+        self.windows = 0
+        # what the env needs to continue: its observation/state entries and the done flags
+        self._carry_keys = list(env.observation_spec.keys()) + list(env.done_keys)
+        self._carried: TensorDictBase | None = None
+        self._running_return: torch.Tensor | None = None
+
+    @property
+    def num_envs(self) -> int:
+        return self.env.batch_size[0]
+
+    @property
+    def frames(self) -> int:
+        return self.windows * self.num_envs * self.horizon
+
+    # ------------------------------------------------------------------ state
+    def reset(self, tensordict: TensorDictBase | None = None, **reset_kwargs) -> TensorDictBase:
+        """Resets every env (``env.reset(tensordict, **reset_kwargs)``) and forgets running returns.
+
+        ``collector.reset(td, set_state=True)`` starts the next window from ``td["state"]`` (a
+        fixed start state, as in trajectory optimisation).
+        """
+        td = self.env.reset(tensordict, **reset_kwargs) if tensordict is not None else self.env.reset(**reset_kwargs)
+        self._carried = td.select(*self._carry_keys, strict=False).detach()
+        self._running_return = torch.zeros(self.num_envs, dtype=torch.float64, device=self.env.device)
+        return self._carried
+
+    def state_dict(self) -> dict:
+        """The carried env TensorDict (as a plain nested dict of tensors), running returns, the
+        env's random generator state and counters: everything needed to resume mid-episode.
+        Loadable with ``torch.load(..., weights_only=True)``."""
+        rng = getattr(self.env, "rng", None)
+        return {
+            "carried": None if self._carried is None else self._carried.to_dict(),
+            "running_return": self._running_return,
+            "episode_returns": list(self.episode_returns),
+            "windows": self.windows,
+            "env_rng": rng.get_state() if isinstance(rng, torch.Generator) else None,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restores :meth:`state_dict` (same env class and ``num_envs``)."""
+        carried = state["carried"]
+        self._carried = (
+            None
+            if carried is None
+            else TensorDict(carried, batch_size=self.env.batch_size, device=self.env.device)
+        )
+        self._running_return = state["running_return"]
+        self.episode_returns.clear()
+        self.episode_returns.extend(state["episode_returns"])
+        self.windows = int(state["windows"])
+        if state.get("env_rng") is not None and isinstance(getattr(self.env, "rng", None), torch.Generator):
+            self.env.rng.set_state(state["env_rng"])
+
+    # ------------------------------------------------------------------ collection
+    def rollout(self) -> TensorDictBase:
+        """Collects and returns the next window ``[N, H]`` (graph on)."""
+        if self._carried is None:
+            self.reset()
+        with torch.enable_grad(), set_exploration_type(self.exploration_type):
+            # the carried TensorDict is detached: the graph starts here
+            window = self.env.rollout(
+                self.horizon,
+                self.policy,
+                auto_reset=False,
+                tensordict=self._carried,
+                break_when_any_done=False,
+                return_contiguous=True,
+            )
+        self._track_returns(window)
+        # where the next window starts: the last step's "next" entries, done envs reset
+        last = window[:, -1].get("next").select(*self._carry_keys, strict=False).detach()
+        self._carried = self.env.maybe_reset(last).select(*self._carry_keys, strict=False).detach()
+        self.windows += 1
+        return window
+
+    @torch.no_grad()
+    def _track_returns(self, window: TensorDictBase) -> None:
+        """Writes ``("next", "episode_reward")`` and records the returns of finished episodes."""
+        n = self.num_envs
+        reward = window.get(("next", "reward")).reshape(n, self.horizon)
+        done = window.get(("next", "done")).reshape(n, self.horizon)
+        running = self._running_return
+        episode_reward = torch.empty(n, self.horizon, dtype=torch.float64, device=reward.device)
+        for t in range(self.horizon):
+            running = running + reward[:, t].to(torch.float64)
+            episode_reward[:, t] = running
+            if done[:, t].any():
+                self.episode_returns.extend(running[done[:, t]].tolist())
+                running = torch.where(done[:, t], torch.zeros_like(running), running)
+        self._running_return = running
+        window.set(("next", "episode_reward"), episode_reward.to(reward.dtype).unsqueeze(-1))
+
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        while self.total_windows is None or self.windows < self.total_windows:
+            yield self.rollout()
+
+    def __len__(self) -> int:
+        if self.total_windows is None:
+            raise TypeError("DiffWindowCollector: len() is undefined when total_windows is None")
+        return self.total_windows
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(num_envs={self.num_envs}, horizon={self.horizon}, "
+            f"total_windows={self.total_windows}, windows={self.windows})"
+        )

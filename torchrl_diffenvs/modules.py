@@ -1,0 +1,312 @@
+"""Networks shared by the gradient-based learners, the demos and the training script.
+
+* :func:`make_actor`: a stochastic policy (``TanhNormal`` with a state-independent log-std) as a
+  TorchRL ``ProbabilisticActor``, usable by :class:`~torchrl_diffenvs.objectives.BPTTLoss`,
+  :class:`~torchrl_diffenvs.objectives.SHACLoss` and TorchRL's PPO / SAC losses; or a
+  deterministic tanh-MLP policy (Ivy Gym's ``optimize_policy`` demo).
+* :func:`make_critic`: a state-value network writing ``"state_value"``.
+* :class:`OpenLoopActor`: a learnable table of actions indexed by ``"episode_step"`` (trajectory
+  optimisation with the ordinary BPTT loss).
+* :class:`ObservationNormalizer`: running mean / std of observations, updated explicitly outside
+  the autograd graph and applied with frozen statistics inside it.
+
+All builders create their parameters in the env's float dtype (``env.float_dtype``), so a float64
+env gives float64 networks (gradient checks).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+from torchrl.modules import ProbabilisticActor, TanhNormal
+
+__all__ = [
+    "LeanModule",
+    "ObservationNormalizer",
+    "OpenLoopActor",
+    "StateIndependentNormalHead",
+    "make_actor",
+    "make_critic",
+    "make_mlp",
+]
+
+DISTRIBUTIONS = ("tanh_normal", "deterministic")
+
+
+class ObservationNormalizer(nn.Module):
+    """``(x - mean) / sqrt(var + eps)`` with running statistics that change only in :meth:`update`.
+
+    Design: the normaliser is an ``nn.Module`` placed as the first layer of the actor and critic
+    networks (``make_actor(env, normalizer=norm)``, ``make_critic(env, normalizer=norm)``; pass the
+    *same* instance to both). Its statistics are buffers, so they are saved in the actor's and the
+    critic's ``state_dict`` and an exported actor carries its normalisation with it.
+
+    Calling the module never changes the statistics: they are frozen for the duration of a
+    rollout window, so every step of the window and the backward pass see the same affine map
+    (gradients flow through it to the observation). The training loop calls :meth:`update` with
+    the window's raw observations *after* the backward pass; :meth:`update` works in place under
+    ``no_grad`` and ignores rows that contain NaN/inf.
+
+    Statistics are merged with Chan et al.'s parallel algorithm; before the first update the map
+    is the identity (mean 0, var 1).
+
+    Args:
+        dim: observation size (last dimension).
+        eps: added to the variance before the square root.
+        clip: if given, normalised values are clamped to ``[-clip, clip]`` (which zeroes their
+            gradient outside that range); ``None`` (default) does not clamp.
+        dtype: dtype of the statistics and of the output.
+    """
+
+    def __init__(self, dim: int, eps: float = 1e-5, clip: float | None = None, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        if not isinstance(dim, int) or dim < 1:
+            raise ValueError(f"ObservationNormalizer: dim must be a positive integer, got {dim!r}")
+        self.eps = eps
+        self.clip = clip
+        self.register_buffer("mean", torch.zeros(dim, dtype=dtype))
+        self.register_buffer("var", torch.ones(dim, dtype=dtype))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = (x - self.mean) / torch.sqrt(self.var + self.eps)
+        if self.clip is not None:
+            out = out.clamp(-self.clip, self.clip)
+        return out
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """Merges the observations ``x`` (``[..., dim]``) into the running statistics."""
+        if x.shape[-1] != self.mean.shape[0]:
+            raise ValueError(
+                f"ObservationNormalizer.update: expected observations of size {self.mean.shape[0]} in the last "
+                f"dimension, got shape {tuple(x.shape)}"
+            )
+        x = x.detach().reshape(-1, x.shape[-1])
+        x = x[torch.isfinite(x).all(-1)].to(torch.float64)
+        n = x.shape[0]
+        if n == 0:
+            return
+        batch_mean, batch_var = x.mean(0), x.var(0, unbiased=False)
+        mean, var, count = self.mean.to(torch.float64), self.var.to(torch.float64), self.count
+        total = count + n
+        delta = batch_mean - mean
+        new_mean = mean + delta * n / total
+        new_var = (var * count + batch_var * n + delta**2 * count * n / total) / total
+        # in place, so that every holder of these buffers (e.g. a loss module's parameter
+        # TensorDict) sees the new values
+        self.mean.copy_(new_mean)
+        self.var.copy_(new_var)
+        self.count.copy_(total)
+
+    def extra_repr(self) -> str:
+        return f"dim={self.mean.shape[0]}, eps={self.eps}, clip={self.clip}, count={int(self.count)}"
+
+
+class LeanModule(TensorDictModuleBase):
+    """Reads ``in_keys``, calls ``module`` on those tensors and writes its output(s) to ``out_keys``.
+
+    What ``tensordict.nn.TensorDictModule`` does for plain tensor outputs, without its
+    per-output conversion step, which in tensordict 0.14.3 probes the filesystem for an
+    optional package (about 80 us per output tensor, more than a pendulum step costs).
+    """
+
+    def __init__(self, module: nn.Module, in_keys: Sequence, out_keys: Sequence):
+        super().__init__()
+        self.module = module
+        self.in_keys = list(in_keys)
+        self.out_keys = list(out_keys)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        outputs = self.module(*(tensordict.get(key) for key in self.in_keys))
+        if isinstance(outputs, torch.Tensor):
+            outputs = (outputs,)
+        if len(outputs) != len(self.out_keys):
+            raise RuntimeError(f"LeanModule: {len(outputs)} outputs for out_keys {self.out_keys}")
+        for key, value in zip(self.out_keys, outputs):
+            tensordict.set(key, value)
+        return tensordict
+
+
+def make_mlp(
+    in_dim: int,
+    out_dim: int,
+    hidden: Sequence[int] = (64, 64),
+    activation: type[nn.Module] = nn.ELU,
+    layer_norm: bool = True,
+    dtype: torch.dtype = torch.float32,
+) -> nn.Sequential:
+    """``[Linear -> (LayerNorm) -> activation] * len(hidden) -> Linear``."""
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers.append(nn.Linear(in_dim, width, dtype=dtype))
+        if layer_norm:
+            layers.append(nn.LayerNorm(width, dtype=dtype))
+        layers.append(activation())
+        in_dim = width
+    layers.append(nn.Linear(in_dim, out_dim, dtype=dtype))
+    return nn.Sequential(*layers)
+
+
+class StateIndependentNormalHead(nn.Module):
+    """Maps features to ``(loc, scale)`` with ``loc = net(x)`` and a learned, state-independent
+    ``scale = exp(log_std)`` (one value per action dimension, initialised to ``init_log_std``)."""
+
+    def __init__(self, net: nn.Module, action_dim: int, init_log_std: float = -1.0, dtype=torch.float32):
+        super().__init__()
+        self.net = net
+        self.log_std = nn.Parameter(torch.full((action_dim,), float(init_log_std), dtype=dtype))
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc = self.net(x)
+        return loc, self.log_std.exp().expand_as(loc)
+
+
+class _ScaledTanh(nn.Module):
+    """``low + (tanh(x) + 1) / 2 * (high - low)``: squashes into the action bounds."""
+
+    def __init__(self, low: float, high: float):
+        super().__init__()
+        self.low, self.high = float(low), float(high)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.low + (torch.tanh(x) + 1) * (0.5 * (self.high - self.low))
+
+
+def _action_bounds(env) -> tuple[float, float]:
+    spec = env.action_spec_unbatched
+    low, high = spec.space.low, spec.space.high
+    if not (torch.all(low == low.flatten()[0]) and torch.all(high == high.flatten()[0])):
+        raise ValueError(f"make_actor: expected the same bounds for every action dimension, got {low} and {high}")
+    return float(low.flatten()[0]), float(high.flatten()[0])
+
+
+def make_actor(
+    env,
+    hidden: Sequence[int] = (64, 64),
+    activation: type[nn.Module] = nn.ELU,
+    layer_norm: bool = True,
+    init_log_std: float = -1.0,
+    distribution: str = "tanh_normal",
+    normalizer: ObservationNormalizer | None = None,
+    return_log_prob: bool = False,
+    in_key: str = "observation",
+) -> TensorDictModuleBase:
+    """A policy for ``env`` reading ``in_key`` and writing ``"action"``.
+
+    Args:
+        env: a :class:`~torchrl_diffenvs.DiffEnv` (or any env with ``observation_dim``,
+            ``action_dim``, ``float_dtype`` and a bounded action spec).
+        hidden, activation, layer_norm: the MLP (SHAC's reference: ``(64, 64)``, ELU, LayerNorm).
+        init_log_std: initial log standard deviation (pre-tanh) of the stochastic policy.
+        distribution: ``"tanh_normal"`` (default): a ``ProbabilisticActor`` with a ``TanhNormal``
+            squashed into the action bounds; it writes ``"loc"``, ``"scale"``, ``"action"`` (and
+            the log-probability when ``return_log_prob``). Under ``ExplorationType.RANDOM`` it
+            samples with ``rsample`` (reparameterised: gradients reach loc and scale); under
+            ``DETERMINISTIC`` it returns the squashed mean. ``"deterministic"``: a module
+            ``MLP -> tanh`` scaled into the action bounds writing ``"action"`` (Ivy Gym's
+            policy); no sampling.
+        normalizer: an :class:`ObservationNormalizer` applied to the observation first.
+        return_log_prob: store the log-probability of the sampled action (needed by PPO).
+        in_key: the observation entry to read.
+    """
+    if distribution not in DISTRIBUTIONS:
+        raise ValueError(f"make_actor: unknown distribution {distribution!r}; valid: {DISTRIBUTIONS}")
+    dtype = env.float_dtype
+    low, high = _action_bounds(env)
+    net = make_mlp(env.observation_dim, env.action_dim, hidden, activation, layer_norm, dtype)
+    prefix = [normalizer] if normalizer is not None else []
+    if distribution == "deterministic":
+        return LeanModule(nn.Sequential(*prefix, net, _ScaledTanh(low, high)), in_keys=[in_key], out_keys=["action"])
+    head = StateIndependentNormalHead(nn.Sequential(*prefix, net), env.action_dim, init_log_std, dtype)
+    module = LeanModule(head, in_keys=[in_key], out_keys=["loc", "scale"])
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        spec=env.action_spec_unbatched,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": low, "high": high},
+        return_log_prob=return_log_prob,
+    )
+
+
+def make_critic(
+    env,
+    hidden: Sequence[int] = (64, 64),
+    activation: type[nn.Module] = nn.ELU,
+    layer_norm: bool = True,
+    normalizer: ObservationNormalizer | None = None,
+    in_key: str = "observation",
+) -> LeanModule:
+    """A state-value network ``V(observation)`` writing ``"state_value"`` (``[..., 1]``)."""
+    net = make_mlp(env.observation_dim, 1, hidden, activation, layer_norm, env.float_dtype)
+    if normalizer is not None:
+        net = nn.Sequential(normalizer, net)
+    return LeanModule(net, in_keys=[in_key], out_keys=["state_value"])
+
+
+class OpenLoopActor(TensorDictModuleBase):
+    """Open-loop control: ``action = squash(logits[episode_step])`` with a learnable table.
+
+    Trajectory optimisation is then ordinary BPTT: roll this actor through the env from one fixed
+    start state and minimise :class:`~torchrl_diffenvs.objectives.BPTTLoss` (Ivy Gym's
+    ``optimize_trajectory``). Every env of the batch uses the same table, indexed by its own
+    ``"episode_step"``.
+
+    Args:
+        horizon: number of time steps ``T`` (rows of the table).
+        action_dim: action size ``A``.
+        init_range: the logits start ``U[low, high]`` (Ivy: ``U[-2, 2]``).
+        low, high: action bounds; ``action = low + (tanh(logit) + 1) / 2 * (high - low)``.
+        dtype: parameter dtype.
+        generator: torch generator for the initial logits (seeding).
+    """
+
+    def __init__(
+        self,
+        horizon: int,
+        action_dim: int,
+        init_range: tuple[float, float] = (-2.0, 2.0),
+        low: float = -1.0,
+        high: float = 1.0,
+        dtype: torch.dtype = torch.float32,
+        generator: torch.Generator | None = None,
+    ):
+        super().__init__()
+        if not isinstance(horizon, int) or horizon < 1:
+            raise ValueError(f"OpenLoopActor: horizon must be a positive integer, got {horizon!r}")
+        self.in_keys = ["episode_step"]
+        self.out_keys = ["action"]
+        a, b = init_range
+        self.logits = nn.Parameter(torch.rand(horizon, action_dim, generator=generator, dtype=dtype) * (b - a) + a)
+        self.squash = _ScaledTanh(low, high)
+
+    @classmethod
+    def from_env(cls, env, horizon: int | None = None, **kwargs) -> OpenLoopActor:
+        """Sized for ``env``: ``horizon`` defaults to ``env.max_episode_steps``."""
+        horizon = horizon if horizon is not None else env.max_episode_steps
+        if horizon is None:
+            raise ValueError("OpenLoopActor.from_env: the env never truncates; pass horizon=")
+        low, high = _action_bounds(env)
+        return cls(horizon, env.action_dim, low=low, high=high, dtype=env.float_dtype, **kwargs)
+
+    @property
+    def horizon(self) -> int:
+        return self.logits.shape[0]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        step = tensordict.get("episode_step")
+        if (step >= self.horizon).any() or (step < 0).any():
+            raise IndexError(
+                f"OpenLoopActor: episode_step must lie in [0, {self.horizon}), got values up to {int(step.max())}; "
+                f"use an env with max_episode_steps <= {self.horizon}"
+            )
+        tensordict.set("action", self.squash(self.logits[step]))
+        return tensordict
+
+    def actions(self) -> torch.Tensor:
+        """The whole open-loop action sequence ``[T, A]``."""
+        return self.squash(self.logits)

@@ -1,0 +1,85 @@
+"""Back-propagation through time (analytic policy gradient) as a TorchRL loss module."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+
+from ._windows import finished_episode_reward, steps_since_start, window_entry
+
+__all__ = ["BPTTLoss"]
+
+
+class BPTTLoss(LossModule):
+    r"""BPTT / analytic policy gradient on a differentiable rollout window.
+
+    For a window ``[N, H]`` collected with the graph on (see
+    :class:`~torchrl_diffenvs.collectors.DiffWindowCollector`)
+
+    .. math::
+
+        \mathcal{L}_{actor} = -\frac{1}{N H} \sum_{i=1}^{N} \sum_{t=0}^{H-1} \gamma^{k_{i,t}} r_{i,t}
+
+    where :math:`k_{i,t}` counts the steps since env ``i``'s sub-trajectory started (the window
+    start, or the reset after an episode ended inside the window). Dividing by ``H`` makes the
+    learning rate independent of the window length. With ``H`` equal to the episode length and
+    one episode per window this is full-episode BPTT (Ivy Gym's demos, TorchRL's Pendulum
+    tutorial); with short windows and carried state it is Brax's APG.
+
+    The policy is not called here: the gradient reaches it through the rollout's graph. The actor
+    is held so that ``loss.parameters()`` lists what to optimise.
+
+    Args:
+        actor_network: the policy used to collect the windows.
+        gamma: discount (default ``1.0``, undiscounted as in Ivy Gym, Brax APG and TorchRL's
+            tutorial).
+
+    Returns (``forward``): a TensorDict with ``loss_actor`` and detached diagnostics:
+    ``reward_mean`` (mean per-step reward of the window) and, when an episode finished inside the
+    window and the collector recorded it, ``episode_reward`` (their mean return).
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable input keys (``loss.set_keys(reward=...)``), read under ``"next"``."""
+
+        reward: NestedKey = "reward"
+        done: NestedKey = "done"
+
+    default_keys = _AcceptedKeys
+
+    def __init__(self, actor_network: TensorDictModuleBase, *, gamma: float = 1.0):
+        super().__init__()
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"BPTTLoss: gamma must lie in (0, 1], got {gamma!r}")
+        self.actor_network = actor_network
+        self.gamma = float(gamma)
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self):
+        return [("next", self.tensor_keys.reward), ("next", self.tensor_keys.done)]
+
+    @property
+    def out_keys(self):
+        return ["loss_actor", "reward_mean", "episode_reward"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        reward = window_entry(tensordict, self.tensor_keys.reward, "BPTTLoss")
+        done = window_entry(tensordict, self.tensor_keys.done, "BPTTLoss").bool()
+        n, h = reward.shape
+        discount = self.gamma ** steps_since_start(done).to(reward.dtype)
+        out = {
+            "loss_actor": -(discount * reward).sum() / (n * h),
+            "reward_mean": reward.detach().mean(),
+        }
+        episode_reward = finished_episode_reward(tensordict, done)
+        if episode_reward is not None:
+            out["episode_reward"] = episode_reward
+        return TensorDict(out, batch_size=[])

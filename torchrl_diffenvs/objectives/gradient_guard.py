@@ -1,0 +1,85 @@
+"""Gradient safety shared by the gradient-based learners: clip, and never apply a bad step."""
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+import torch
+
+__all__ = ["GradientGuard"]
+
+
+class GradientGuard:
+    """Clips the gradient norm and skips optimiser steps whose gradient is unusable.
+
+    Differentiating through long rollouts can produce exploding or non-finite gradients (chaotic
+    dynamics, a NaN reward). :meth:`step` computes the total pre-clip gradient norm of
+    ``parameters``; if it is NaN/inf or above ``skip_above``, the optimiser step is *not* taken
+    (parameters and optimiser state stay exactly as they were) and :attr:`skipped` is
+    incremented. Otherwise the gradients are clipped to ``max_norm`` and the step is taken.
+
+    The caller zeroes gradients before its backward pass as usual.
+
+    Args:
+        max_norm: clip the total gradient norm to this value; ``None`` disables clipping.
+        skip_above: skip the step when the pre-clip norm exceeds this; ``None`` skips only on
+            NaN/inf.
+
+    Example::
+
+        guard = GradientGuard(max_norm=1.0, skip_above=1e6)
+        optimizer.zero_grad()
+        loss.backward()
+        info = guard.step(optimizer, actor.parameters())   # {"grad_norm": ..., "skipped": False}
+    """
+
+    def __init__(self, max_norm: float | None = 1.0, skip_above: float | None = 1e6):
+        if max_norm is not None and not max_norm > 0:
+            raise ValueError(f"GradientGuard: max_norm must be > 0 or None, got {max_norm!r}")
+        if skip_above is not None and not skip_above > 0:
+            raise ValueError(f"GradientGuard: skip_above must be > 0 or None, got {skip_above!r}")
+        self.max_norm = max_norm
+        self.skip_above = skip_above
+        self.skipped = 0
+        self.steps = 0
+
+    def step(self, optimizer: torch.optim.Optimizer, parameters: Iterable[torch.Tensor] | None = None) -> dict:
+        """Checks, clips and (if safe) applies one optimiser step.
+
+        Args:
+            optimizer: the optimiser to step.
+            parameters: the parameters whose gradients are checked and clipped; defaults to every
+                parameter of ``optimizer``.
+
+        Returns:
+            ``{"grad_norm": float (pre-clip), "skipped": bool}``.
+        """
+        if parameters is None:
+            parameters = [p for group in optimizer.param_groups for p in group["params"]]
+        params = [p for p in parameters if p.grad is not None]
+        if params:
+            norm = torch.linalg.vector_norm(
+                torch.stack([torch.linalg.vector_norm(p.grad.detach(), dtype=torch.float64) for p in params])
+            ).item()
+        else:
+            norm = 0.0
+        self.steps += 1
+        if not math.isfinite(norm) or (self.skip_above is not None and norm > self.skip_above):
+            self.skipped += 1
+            return {"grad_norm": norm, "skipped": True}
+        if self.max_norm is not None and norm > self.max_norm:
+            scale = self.max_norm / (norm + 1e-6)
+            for p in params:
+                p.grad.detach().mul_(scale)
+        optimizer.step()
+        return {"grad_norm": norm, "skipped": False}
+
+    def state_dict(self) -> dict:
+        return {"skipped": self.skipped, "steps": self.steps}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.skipped = int(state["skipped"])
+        self.steps = int(state["steps"])
+
+    def __repr__(self) -> str:
+        return f"GradientGuard(max_norm={self.max_norm}, skip_above={self.skip_above}, skipped={self.skipped}/{self.steps})"
