@@ -1,0 +1,27 @@
+"""Rendering without a display: RGB frames of every task, grids of envs, GIF export.
+
+``env.render(td=None, env_index=0 | [i, ...] | "all", size=256)`` returns an ``np.ndarray``
+``[H, W, 3]`` uint8 drawn with Pillow; :func:`save_gif` writes a list of frames. New tasks add
+their picture with :func:`register_drawer`. Needs the ``render`` extra (Pillow).
+"""
+from .core import (
+    Canvas,
+    Drawer,
+    get_drawer,
+    list_drawers,
+    register_drawer,
+    render_frame,
+    reward_color,
+    rollout_frames,
+    tile_frames,
+    transform,
+)
+from .tasks import register_task_drawers
+from .video import save_gif
+
+register_task_drawers()
+
+__all__ = [
+    "Canvas", "Drawer", "get_drawer", "list_drawers", "register_drawer", "render_frame", "reward_color",
+    "rollout_frames", "save_gif", "tile_frames", "transform",
+]
