@@ -241,7 +241,9 @@ class DiffEnv(EnvBase):
             action = action.clamp(self.action_low, self.action_high)
         params = tensordict.get("params")
         next_state, reward, terminated = self.transition(tensordict.get("state"), action, params)
-        return self._output(next_state, params, tensordict.get("episode_step") + 1, reward, terminated)
+        out = self._output(next_state, params, tensordict.get("episode_step") + 1, reward, terminated)
+        self._remember_for_render(out)
+        return out
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         """Fresh start states; ``reset(td, set_state=True)`` starts from ``td["state"]`` instead.
@@ -259,9 +261,45 @@ class DiffEnv(EnvBase):
         else:
             state = self.initial_state(params, self.num_envs)
         episode_step = torch.zeros(self.num_envs, dtype=torch.int64, device=self.device)
-        return self._output(state, params, episode_step)
+        out = self._output(state, params, episode_step)
+        self._remember_for_render(out, reset_mask=given.get("_reset", None))
+        return out
 
     # ------------------------------------------------------------------ conveniences
+    _last_output = None  # see _remember_for_render
+
+    def _remember_for_render(self, tensordict: TensorDictBase, reset_mask: torch.Tensor | None = None) -> None:
+        """Keeps a reference (no copy, no detach) to the latest ``[N]`` output for :meth:`render`.
+
+        ``_step`` and ``_reset`` call it; a rollout path that bypasses them should call it with
+        the last TensorDict it produced (one holding ``"state"``, ``"params"`` and, after a
+        step, ``"reward"``). A partial reset (``reset_mask``) only replaces the masked envs, as
+        TorchRL does; the merge is left to render time. Written into ``__dict__`` directly
+        because ``nn.Module.__setattr__`` costs about 7 us per call, a tenth of a ``_step``.
+        """
+        if reset_mask is not None and self._last_output is not None:
+            tensordict = (self._last_output, tensordict, reset_mask)
+        self.__dict__["_last_output"] = tensordict
+
+    def render(self, tensordict: TensorDictBase | None = None, env_index=0, size=256, **kwargs):
+        """Draws envs as an RGB frame, ``np.ndarray`` uint8 ``[H, W, 3]``, without a display.
+
+        Args:
+            tensordict: a ``[N]`` TensorDict holding ``"state"`` (and ``"reward"`` to colour the
+                body, ``"params"`` else ``env.params``), e.g. ``td["next"]`` of a step; default:
+                the latest output of ``step`` / ``reset``.
+            env_index: an env index, a list of indices, or ``"all"``; several envs are tiled
+                into one grid frame.
+            size: pixels of one env's picture, ``int`` (square) or ``(height, width)``.
+            **kwargs: passed to :func:`torchrl_diffenvs.rendering.render_frame`.
+
+        Needs Pillow (``pip install "torchrl_diffenvs[render]"``); see
+        :mod:`torchrl_diffenvs.rendering` for the drawings and GIF export.
+        """
+        from ..rendering import render_frame  # lazy: Pillow is an optional extra
+
+        return render_frame(self, tensordict, env_index=env_index, size=size, **kwargs)
+
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(name={self.name!r}, num_envs={self.num_envs}, "
