@@ -320,9 +320,9 @@ def test_run_through_script(tmp_path, capsys):
             gif.seek(i)
             durations.append(gif.info["duration"])
     assert sum(durations) == 12 * 40, "12 frames at 25 fps (identical frames are merged, time is kept)"
-    # several envs: a grid; auto-reset through a Gymnasium termination
+    # several envs: a grid; running past max_episode_steps (100) auto-resets
     out = tmp_path / "grid.gif"
-    run_through.main(["env=CartPole-v1", "steps=30", "num_envs=3", f"out={out}", "size=32"])
+    run_through.main(["env=cartpole", "steps=105", "num_envs=3", f"out={out}", "size=32"])
     with Image.open(out) as gif:
         assert gif.size == (2 * 32, 2 * 32)
     with pytest.raises(SystemExit, match="unknown env 'nope'; valid names: .*swimmer"):
