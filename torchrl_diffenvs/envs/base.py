@@ -239,9 +239,15 @@ class DiffEnv(EnvBase):
         self._check_action(action)
         if self.clip_actions:
             action = action.clamp(self.action_low, self.action_high)
-        params = tensordict.get("params")
-        next_state, reward, terminated = self.transition(tensordict.get("state"), action, params)
-        out = self._output(next_state, params, tensordict.get("episode_step") + 1, reward, terminated)
+        params, state, episode_step = (tensordict.get(k, None) for k in ("params", "state", "episode_step"))
+        if params is None or state is None or episode_step is None:
+            # a hand-built TensorDict would otherwise fail inside the physics on a None
+            raise KeyError(
+                f"{self.name}: env.step needs the 'state', 'params' and 'episode_step' entries (as "
+                f"returned by env.reset() or a previous step); got keys {sorted(tensordict.keys())}"
+            )
+        next_state, reward, terminated = self.transition(state, action, params)
+        out = self._output(next_state, params, episode_step + 1, reward, terminated)
         self._remember_for_render(out)
         return out
 
