@@ -206,6 +206,26 @@ class DiffEnv(EnvBase):
         if action.dtype != self.float_dtype:
             raise TypeError(f"{self.name}: expected an action of dtype {self.float_dtype}, got {action.dtype}")
 
+    def _check_state(self, state: TensorDictBase) -> None:
+        """``reset(td, set_state=True)``: ``td["state"]`` must match the state spec entry by entry.
+
+        Without this, a float64 state silently turns a float32 env's outputs into float64 and a
+        wrongly shaped entry can broadcast through the physics.
+        """
+        spec = self.state_spec["state"]
+        expected = sorted(spec.keys())
+        missing = sorted(set(expected) - set(state.keys()))
+        if missing:
+            raise KeyError(f"{self.name}: reset(set_state=True) needs the state entries {expected}, missing {missing}")
+        for key in expected:
+            value, want = state.get(key), spec[key]
+            if value.dtype != want.dtype:
+                raise TypeError(f"{self.name}: state entry {key!r} must have dtype {want.dtype}, got {value.dtype}")
+            if value.shape != want.shape:
+                raise ValueError(
+                    f"{self.name}: state entry {key!r} must have shape {tuple(want.shape)}, got {tuple(value.shape)}"
+                )
+
     def _assert_tensordict_shape(self, tensordict: TensorDictBase) -> None:
         if tensordict.batch_size != self.batch_size:
             raise ValueError(
@@ -264,6 +284,7 @@ class DiffEnv(EnvBase):
             if "state" not in given.keys():
                 raise KeyError(f"{self.name}: reset(set_state=True) needs a 'state' entry in the TensorDict")
             state = given.get("state").copy()
+            self._check_state(state)
         else:
             state = self.initial_state(params, self.num_envs)
         episode_step = torch.zeros(self.num_envs, dtype=torch.int64, device=self.device)
