@@ -1,6 +1,7 @@
 """Differentiable batched environments (TorchRL ``EnvBase`` subclasses)."""
 from .base import DiffEnv
 from .cartpole import CartPoleEnv
+from .gym_classic import CartPoleV1Env, MountainCarContinuousV0Env, PendulumV1Env
 from .mountaincar import MountainCarEnv
 from .pendulum import PendulumEnv
 from .reacher import ReacherEnv
@@ -9,8 +10,12 @@ from .swimmer import SwimmerEnv
 
 for _cls in (CartPoleEnv, PendulumEnv, MountainCarEnv, ReacherEnv, SwimmerEnv):
     register_env(_cls)
+# Gymnasium-compatible variants, registered under their Gymnasium ids
+for _cls in (CartPoleV1Env, PendulumV1Env, MountainCarContinuousV0Env):
+    register_env(_cls)
 
 __all__ = [
     "DiffEnv", "CartPoleEnv", "PendulumEnv", "MountainCarEnv", "ReacherEnv", "SwimmerEnv",
+    "CartPoleV1Env", "PendulumV1Env", "MountainCarContinuousV0Env",
     "list_envs", "make_env", "register_env",
 ]
