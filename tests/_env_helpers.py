@@ -1,0 +1,93 @@
+"""Small helpers shared by the env test files (test_env_gradients/behaviour/composition).
+
+Not a test module (the leading underscore keeps pytest from collecting it); pytest puts
+``tests/`` on ``sys.path``, so the test files import it as ``_env_helpers``.
+"""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import step_mdp
+
+from torchrl_diffenvs import make_env
+
+F64 = torch.float64
+
+
+def is_gymnasium_variant(name: str) -> bool:
+    """Gymnasium ids carry a version suffix ("CartPole-v1"); the Ivy-style names do not."""
+    return "-v" in name
+
+
+def make(name: str, num_envs: int, dtype=F64, seed: int = 0, **kwargs):
+    """``make_env`` with float64 and a fixed seed as test defaults."""
+    return make_env(name, num_envs=num_envs, dtype=dtype, seed=seed, **kwargs)
+
+
+def in_spec_actions(env, *shape: int, fraction: float = 0.5, seed: int = 0) -> torch.Tensor:
+    """Deterministic actions of shape ``[*shape, action_dim]`` strictly inside the action spec.
+
+    ``fraction`` < 1 keeps them away from the bounds, where clipped variants have kinks.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    unit = torch.rand(*shape, env.action_dim, generator=gen, dtype=env.float_dtype) * 2 - 1
+    mid = (env.action_high + env.action_low) / 2
+    half = (env.action_high - env.action_low) / 2
+    return mid + fraction * half * unit
+
+
+def obs_weights(env, seed: int = 1) -> torch.Tensor:
+    """Fixed random weights ``[obs_dim]`` for the test signal ``reward + w . next_obs``.
+
+    CartPole-v1's reward is a constant ``+1``, so a gradient check of the reward alone could
+    never fail there; adding a fixed linear function of the next observation makes every env's
+    signal depend on its actions, state and parameters.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    return torch.rand(env.observation_dim, generator=gen, dtype=env.float_dtype) + 0.5
+
+
+def signal(traj: TensorDict, w: torch.Tensor) -> torch.Tensor:
+    """Per step test signal ``reward + w . next_observation``; ``[N, T]`` for a rollout."""
+    return traj["next", "reward"][..., 0] + (traj["next", "observation"] * w).sum(-1)
+
+
+def start_td(env, state: dict, params: dict) -> TensorDict:
+    """``env.reset(set_state=True)`` from the given state and per-env params (graph kept)."""
+    td = TensorDict({"state": dict(state), "params": dict(params)}, batch_size=[env.num_envs])
+    return env.reset(td, set_state=True)
+
+
+def run_steps(env, td: TensorDict, actions: torch.Tensor) -> TensorDict:
+    """Steps ``env`` with ``actions[:, t]`` for every ``t`` with plain ``env.step`` (no resets).
+
+    Returns the stacked ``[N, T]`` trajectory, like ``env.rollout`` would.
+    """
+    out = []
+    for t in range(actions.shape[1]):
+        td = td.clone(False)
+        td["action"] = actions[:, t]
+        td = env.step(td)
+        out.append(td)
+        td = step_mdp(td)
+    return torch.stack(out, dim=1)
+
+
+def use_rollout_path(env, fast: bool):
+    """Selects DiffEnv's lean rollout loop (``fast``) or TorchRL's ``EnvBase.rollout``."""
+    assert hasattr(env, "use_fast_rollout"), "DiffEnv.use_fast_rollout is gone: update the tests"
+    env.use_fast_rollout = fast
+    return env
+
+
+class ReplayPolicy:
+    """A policy that plays a fixed action sequence ``[N, T, act_dim]``, one column per call."""
+
+    def __init__(self, actions: torch.Tensor):
+        self.actions = actions
+        self.t = 0
+
+    def __call__(self, td: TensorDict) -> TensorDict:
+        td["action"] = self.actions[:, self.t]
+        self.t += 1
+        return td
