@@ -537,6 +537,8 @@ def test_actions_outside_the_spec(name):
         big = (3 * u).requires_grad_()
         out = env.step(td.clone().set("action", big))["next"]
         assert (big.abs() > high).all()
+        if name not in ACTION_SCALE:
+            pytest.fail(f"{name}: add the parameter that scales its action to ACTION_SCALE")
         scale = ACTION_SCALE[name]
         scaled = make(name, n, seed=9, params={scale: 3 * env.params[scale]})
         ref_td = td.clone()
