@@ -30,19 +30,27 @@ LR_SCHEDULES = ("constant", "linear", "exponential")
 
 
 @torch.no_grad()
-def evaluate_policy(env, policy, max_steps: int | None = None, exploration_type=ExplorationType.DETERMINISTIC) -> dict:
+def evaluate_policy(
+    env, policy, max_steps: int | None = None, tail_steps: int = 20, exploration_type=ExplorationType.DETERMINISTIC
+) -> dict:
     """Runs ``policy`` from a fresh reset of every env of ``env`` for ``max_steps`` steps
     (default: one episode, ``env.max_episode_steps``) without gradients.
 
-    Returns ``{"reward_mean": mean per-step reward, "return_mean": mean per-env sum of rewards}``.
+    Returns ``reward_mean`` (mean per-step reward), ``return_mean`` (mean per-env sum of
+    rewards) and ``tail_reward_mean`` (mean per-step reward over the last ``tail_steps`` steps:
+    how well the task is held once reached, e.g. a pendulum kept upright).
     """
     max_steps = max_steps or env.max_episode_steps
     if max_steps is None:
         raise ValueError("evaluate_policy: the env never truncates; pass max_steps=")
     with set_exploration_type(exploration_type):
         rollout = env.rollout(max_steps, policy, break_when_any_done=False)
-    reward = rollout.get(("next", "reward"))
-    return {"reward_mean": reward.mean().item(), "return_mean": reward.sum(-2).mean().item()}
+    reward = rollout.get(("next", "reward"))  # [N, T, 1]
+    return {
+        "reward_mean": reward.mean().item(),
+        "return_mean": reward.sum(-2).mean().item(),
+        "tail_reward_mean": reward[:, -tail_steps:].mean().item(),
+    }
 
 
 class GradientTrainer:
@@ -124,7 +132,8 @@ class GradientTrainer:
         window = self.collector.rollout()
         out = self.loss(window)
         self.actor_optim.zero_grad(set_to_none=True)
-        out["loss_actor"].backward()
+        if out["loss_actor"].requires_grad:  # False when no reward depends on the actions (CartPole-v1's +1)
+            out["loss_actor"].backward()
         actor_info = self.actor_guard.step(self.actor_optim, self.actor_params)
         metrics = {
             "iteration": self.iteration,

@@ -109,7 +109,13 @@ class SHACLoss(LossModule):
         self.gamma = float(gamma)
         self.lmbda = float(lmbda)
         dtype = next(critic_network.parameters()).dtype
-        self._value_estimator = TDLambdaEstimator(gamma=gamma, lmbda=lmbda, value_network=None).to(dtype)
+        # vectorized=False: the plain backward recursion, exact in the critic's dtype (the
+        # vectorised version builds its lambda table in float32) and cheap for short windows
+        estimator = TDLambdaEstimator(gamma=gamma, lmbda=lmbda, value_network=None, vectorized=False)
+        # its gamma/lmbda buffers are created in float32; rebuild them in the critic's dtype
+        estimator.gamma = torch.tensor(gamma, dtype=dtype)
+        estimator.lmbda = torch.tensor(lmbda, dtype=dtype)
+        self._value_estimator = estimator
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         self.value_estimator.set_keys(
