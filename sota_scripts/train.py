@@ -1,0 +1,245 @@
+"""Train any torchrl_diffenvs env with BPTT, SHAC, PPO or SAC, or evaluate a saved policy.
+
+    python sota_scripts/train.py env=swimmer loss=bptt
+    python sota_scripts/train.py env=Pendulum-v1 loss=sac logger=csv train.total_env_steps=50000
+    python sota_scripts/train.py -m env=pendulum,cartpole loss=shac,ppo seed=0,1,2
+    python sota_scripts/train.py resume=outputs/<run>/checkpoints/last.pt
+    python sota_scripts/train.py mode=eval checkpoint=outputs/<run>/checkpoints/last.pt
+
+Configuration: configs/ (Hydra; config groups env/, loss/, logger/, per-pair defaults in tuned/).
+Everything a run writes goes to its Hydra run directory: metrics.jsonl / metrics.csv,
+final_metrics.json, checkpoints/ (last.pt and numbered ones), learning_curve.png, final.gif and,
+with the default logger, the offline W&B run in wandb/.
+"""
+from __future__ import annotations
+
+import json
+import random
+import time
+import warnings
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf, open_dict
+from tqdm.auto import tqdm
+
+from torchrl_diffenvs.training import (
+    CheckpointError,
+    ConfigError,
+    RunLogger,
+    capture_rng_state,
+    evaluate,
+    evaluate_random,
+    load_checkpoint,
+    make_env_from_config,
+    make_learner,
+    plot_learning_curve,
+    record_gif,
+    restore_rng_state,
+    save_checkpoint,
+    validate_config,
+)
+from torchrl_diffenvs.training.checkpoint import atomic_copy
+from torchrl_diffenvs.training.config import check_resume_compatible, merge_overrides
+from torchrl_diffenvs.training.learners import make_policy_from_config
+
+CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
+
+
+@hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> float:
+    overrides = list(HydraConfig.get().overrides.task)
+    try:
+        validate_config(cfg)
+        if cfg.mode == "train" and cfg.get("resume"):
+            # continue the run as it was configured: its own overrides, then today's (which win)
+            overrides = merge_overrides(load_checkpoint(cfg.resume).get("overrides", []), overrides)
+            cfg = hydra.compose(config_name="config", overrides=overrides)
+        result = run(cfg, Path(HydraConfig.get().runtime.output_dir), overrides)
+    except (ConfigError, CheckpointError) as err:  # a clear message instead of a traceback
+        raise SystemExit(f"error: {err}") from None
+    return result["eval/return"]  # a sweeper can maximise it
+
+
+def run(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
+    """Checks ``cfg`` and trains, or evaluates a checkpoint (``mode=eval``). Returns the final metrics."""
+    validate_config(cfg)
+    if cfg.mode == "eval":
+        return evaluate_checkpoint(cfg, Path(run_dir))
+    return train(cfg, Path(run_dir), list(overrides))
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
+    # ------------------------------------------------------------------ build everything
+    seed_everything(cfg.seed)
+    env = make_env_from_config(cfg, cfg.env.num_envs, seed=cfg.seed)
+    eval_env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed)
+    eval_steps = cfg.eval.max_steps or eval_env.max_episode_steps
+    learner = make_learner(cfg, env)
+    total = int(cfg.train.total_env_steps)
+    # the counters a checkpoint carries, so that a resumed run continues its schedules
+    progress = {"iteration": 0, "env_steps": 0, "wall_time_s": 0.0, "next_eval": 0,
+                "next_checkpoint": int(cfg.train.checkpoint_interval)}
+    history, wandb_run_id = [], None
+    if cfg.get("resume"):
+        ckpt = load_checkpoint(cfg.resume, map_location=env.device)
+        check_resume_compatible(OmegaConf.create(ckpt["config"]), cfg)
+        learner.load_state_dict(ckpt["learner"])
+        progress, history, wandb_run_id = ckpt["progress"], ckpt["history"], ckpt.get("wandb_run_id")
+        restore_rng_state(ckpt["rng"], {"env": env.rng})  # last: building the learner drew numbers
+        print(f"resumed {cfg.resume} at env step {progress['env_steps']:,}")
+    logger = RunLogger(cfg, run_dir, history, wandb_run_id)
+    ckpt_dir = run_dir / "checkpoints"
+    last = {"eval/return": float("nan"), "train/return": float("nan")}
+    for row in history:  # what the progress bar and the final metrics show after a resume
+        last.update({k: v for k, v in row.items() if k in last or k == "eval/random_return"})
+
+    def checkpoint() -> Path:
+        state = {
+            "config": OmegaConf.to_container(cfg, resolve=True),
+            "overrides": [o for o in overrides if not o.startswith(("resume=", "mode=", "checkpoint="))],
+            "learner": learner.state_dict(),
+            "policy": learner.policy.state_dict(),
+            "progress": dict(progress),
+            "history": logger.rows,
+            "rng": capture_rng_state({"env": env.rng}),
+            "wandb_run_id": logger.wandb_run_id,
+        }
+        path = save_checkpoint(state, ckpt_dir / f"ckpt_{progress['env_steps']:012d}.pt")
+        atomic_copy(path, ckpt_dir / "last.pt")
+        for old in sorted(ckpt_dir.glob("ckpt_*.pt"))[: -cfg.train.keep_checkpoints or None]:
+            old.unlink()
+        logger.write_csv()
+        return path
+
+    def evaluation() -> None:
+        if "eval/random_return" not in last:
+            last["eval/random_return"] = evaluate_random(eval_env, eval_steps, cfg.eval.seed)
+            logger.log({"eval/random_return": last["eval/random_return"]}, progress["env_steps"])
+        scores = evaluate(eval_env, learner.policy, eval_steps, cfg.eval.seed)
+        last["eval/return"], progress["last_eval"] = scores["return"], progress["env_steps"]
+        logger.log({f"eval/{k}": v for k, v in scores.items()}, progress["env_steps"])
+
+    # ------------------------------------------------------------------ the loop
+    bar = tqdm(total=total, initial=min(progress["env_steps"], total), unit="step", unit_scale=True,
+               dynamic_ncols=True, disable=not cfg.train.progress_bar, desc=f"{cfg.env.name} {cfg.loss.name}")
+    start = time.perf_counter() - progress["wall_time_s"]
+    try:
+        while True:
+            if progress["env_steps"] >= progress["next_eval"]:
+                evaluation()
+                while progress["next_eval"] <= progress["env_steps"]:
+                    progress["next_eval"] += int(cfg.eval.interval)
+            if progress["env_steps"] >= progress["next_checkpoint"]:
+                while progress["next_checkpoint"] <= progress["env_steps"]:
+                    progress["next_checkpoint"] += int(cfg.train.checkpoint_interval)
+                checkpoint()
+            if progress["env_steps"] >= total:
+                break
+
+            tic = time.perf_counter()
+            metrics = learner.train_iteration()
+            steps = learner.env_steps_per_iteration
+            progress["iteration"] += 1
+            progress["env_steps"] += steps
+            progress["wall_time_s"] = time.perf_counter() - start
+            if "return" in metrics:
+                last["train/return"] = metrics["return"]
+            if progress["iteration"] % cfg.train.log_interval == 0:
+                row = {f"train/{k}": v for k, v in metrics.items()}
+                row.update({"time/iteration": progress["iteration"], "time/wall_s": progress["wall_time_s"],
+                            "time/steps_per_s": steps / (time.perf_counter() - tic)})
+                logger.log(row, progress["env_steps"])
+            bar.update(steps)
+            bar.set_postfix({"return": f"{last['train/return']:.3g}", "eval": f"{last['eval/return']:.3g}"},
+                            refresh=False)
+        bar.close()
+
+        # ------------------------------------------------------------------ the end
+        if progress.get("last_eval") != progress["env_steps"]:
+            evaluation()
+        checkpoint()
+        files = {}
+        if cfg.eval.gif:
+            files["final_gif"] = write_gif(cfg, eval_env, learner.policy, eval_steps, run_dir / "final.gif")
+        curve = plot_learning_curve(logger.rows, run_dir / "learning_curve.png",
+                                    title=f"{cfg.env.name} - {cfg.loss.name} - seed {cfg.seed}")
+        logger.log_files(images={"learning_curve": curve} if curve else {},
+                         gifs={"final_gif": files["final_gif"]} if files.get("final_gif") else {})
+        result = {
+            "env": cfg.env.name, "loss": cfg.loss.name, "seed": cfg.seed,
+            "env_steps": progress["env_steps"], "iterations": progress["iteration"],
+            "wall_time_s": progress["wall_time_s"],
+            "steps_per_s": progress["env_steps"] / max(progress["wall_time_s"], 1e-9),
+            "eval/return": last["eval/return"], "eval/random_return": last.get("eval/random_return"),
+            "train/return": last["train/return"], "checkpoint": str(ckpt_dir / "last.pt"),
+            "run_dir": str(run_dir), "wandb_dir": str(logger.wandb_dir) if logger.wandb_dir else None,
+        }
+        (run_dir / "final_metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+        print(f"{cfg.env.name} {cfg.loss.name}: eval return {result['eval/return']:.4g} "
+              f"(random policy {result['eval/random_return']:.4g}) after {progress['env_steps']:,} env steps "
+              f"in {progress['wall_time_s']:.0f} s; outputs in {run_dir}")
+        return result
+    except KeyboardInterrupt:
+        bar.close()
+        saved = sorted(ckpt_dir.glob("ckpt_*.pt"))
+        hint = f"resume=<{saved[-1]}>" if saved else "no checkpoint was written yet"
+        print(f"\ninterrupted at env step {progress['env_steps']:,}; to continue: {hint}")
+        raise
+    finally:
+        logger.close()
+        learner.close()
+
+
+def write_gif(cfg: DictConfig, env, policy, steps: int, path: Path) -> Path | None:
+    """The policy's GIF; a failure to draw (e.g. Pillow missing) warns instead of losing the run."""
+    try:
+        return record_gif(env, policy, steps, cfg.eval.seed, path, env_index=cfg.eval.gif_env_index,
+                          fps=cfg.eval.gif_fps, size=cfg.eval.gif_size)
+    except (ImportError, ValueError, KeyError) as err:
+        warnings.warn(f"no GIF written ({type(err).__name__}: {err})", stacklevel=2)
+        return None
+
+
+def evaluate_checkpoint(cfg: DictConfig, run_dir: Path) -> dict:
+    """``mode=eval``: scores the policy of ``cfg.checkpoint`` on fresh envs and writes its GIF.
+
+    The env, the loss (network shapes) and the dtype come from the checkpoint; ``eval.*`` and
+    ``device`` from the command line.
+    """
+    ckpt = load_checkpoint(cfg.checkpoint)
+    trained = OmegaConf.create(ckpt["config"])
+    cfg = cfg.copy()
+    with open_dict(cfg):  # whole sections replaced, not merged: the trained env may have other options
+        cfg.env, cfg.loss, cfg.dtype = trained.env, trained.loss, trained.dtype
+    env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed)
+    steps = cfg.eval.max_steps or env.max_episode_steps
+    policy, _ = make_policy_from_config(cfg.loss, env, return_log_prob=cfg.loss.name == "ppo")
+    policy.load_state_dict(ckpt["policy"])
+    scores = evaluate(env, policy, steps, cfg.eval.seed)
+    result = {"env": cfg.env.name, "loss": cfg.loss.name, "checkpoint": str(cfg.checkpoint),
+              "trained_env_steps": ckpt["progress"]["env_steps"], "eval_steps": steps,
+              "eval/random_return": evaluate_random(env, steps, cfg.eval.seed),
+              **{f"eval/{k}": v for k, v in scores.items()}}
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if cfg.eval.gif:
+        gif = write_gif(cfg, env, policy, steps, run_dir / "eval.gif")
+        result["gif"] = str(gif) if gif else None
+    (run_dir / "eval_metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+    print(f"{cfg.env.name} {cfg.loss.name} ({cfg.checkpoint}): eval return {scores['return']:.4g} "
+          f"+- {scores['return_std']:.3g} over {cfg.eval.num_envs} envs (random policy "
+          f"{result['eval/random_return']:.4g}); outputs in {run_dir}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,305 @@
+"""Checks a composed training configuration before anything is built, and turns it into objects.
+
+:func:`validate_config` collects *every* problem of a configuration and raises one
+:class:`ConfigError` that lists them, each naming the key, the value found and what is valid, so a
+typo costs one run, not one run per typo. It runs before any env, network or logger is created.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from ..envs import list_envs, make_env
+from ..modules import DISTRIBUTIONS
+
+__all__ = [
+    "ConfigError",
+    "DTYPES",
+    "LOGGERS",
+    "LOSSES",
+    "MODES",
+    "WANDB_MODES",
+    "check_resume_compatible",
+    "env_kwargs",
+    "make_env_from_config",
+    "merge_overrides",
+    "resolve_device",
+    "resolve_dtype",
+    "validate_config",
+]
+
+LOSSES = ("bptt", "shac", "ppo", "sac")
+LOGGERS = ("wandb", "csv", "none")
+WANDB_MODES = ("offline", "online", "disabled")
+MODES = ("train", "eval")
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+ACTIVATIONS = ("tanh", "elu", "relu")
+
+# loss.* keys checked by name, whichever learner they belong to
+_POSITIVE_INT_KEYS = (
+    "horizon", "rollout_len", "epochs", "minibatch_size", "batch_size", "buffer_size",
+    "critic_passes", "critic_minibatches",
+)
+# key: (low, high, low inclusive); high is always inclusive
+_INTERVAL_KEYS = {
+    "gamma": (0.0, 1.0, False), "lmbda": (0.0, 1.0, True), "tau": (0.0, 1.0, False),
+    "target_tau": (0.0, 1.0, False), "lr_decay": (0.0, 1.0, False),
+}
+LR_SCHEDULES = ("linear", "exponential", "constant")
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot run; the message lists every problem found."""
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def resolve_device(name: str) -> torch.device:
+    """``"cpu"``, ``"cuda"`` or ``"cuda:<i>"`` as a ``torch.device``, checking that it exists."""
+    try:
+        device = torch.device(str(name))
+    except (RuntimeError, TypeError) as err:
+        raise ConfigError(f"device={name!r} is not a torch device ({err}); valid: cpu, cuda, cuda:<index>") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(
+                f"device={name!r} but torch.cuda.is_available() is False (no GPU, or a CPU-only torch build); "
+                "use device=cpu"
+            )
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ConfigError(f"device={name!r} but only {torch.cuda.device_count()} CUDA device(s) exist")
+    elif device.type != "cpu":
+        raise ConfigError(f"device={name!r} is not supported; valid: cpu, cuda, cuda:<index>")
+    return device
+
+
+def resolve_dtype(name: str) -> torch.dtype:
+    """``"float32"`` / ``"float64"`` as a ``torch.dtype``."""
+    try:
+        return DTYPES[str(name)]
+    except KeyError:
+        raise ConfigError(f"dtype={name!r} is not supported; valid: {', '.join(DTYPES)}") from None
+
+
+def env_kwargs(env_cfg: Mapping) -> dict:
+    """The keyword arguments of :func:`~torchrl_diffenvs.make_env` that an ``env`` config section sets
+    (everything except ``name``, ``num_envs``, device, dtype and seed)."""
+    def plain(value) -> dict:
+        return OmegaConf.to_container(value, resolve=True) if isinstance(value, DictConfig) else dict(value or {})
+
+    kwargs = plain(env_cfg.get("options"))
+    params = plain(env_cfg.get("params"))
+    if params:
+        kwargs["params"] = params
+    if env_cfg.get("max_episode_steps") is not None:
+        kwargs["max_episode_steps"] = int(env_cfg.max_episode_steps)
+    return kwargs
+
+
+def make_env_from_config(cfg: DictConfig, num_envs: int, seed: int):
+    """Builds the env named by ``cfg.env`` with ``num_envs`` envs on ``cfg.device`` in ``cfg.dtype``."""
+    return make_env(
+        cfg.env.name,
+        num_envs=num_envs,
+        device=resolve_device(cfg.device),
+        dtype=resolve_dtype(cfg.dtype),
+        seed=seed,
+        **env_kwargs(cfg.env),
+    )
+
+
+def _check_network(section, where: str, problems: list[str]) -> None:
+    hidden = section.get("hidden")
+    if not isinstance(hidden, (list, ListConfig)) or not all(_is_int(h) and h >= 1 for h in hidden):
+        problems.append(f"{where}.hidden={hidden!r}: expected a list of positive layer widths, e.g. [64, 64]")
+    activation = section.get("activation")
+    if activation is not None and activation not in ACTIVATIONS:
+        problems.append(f"{where}.activation={activation!r}: valid: {', '.join(ACTIVATIONS)}")
+    distribution = section.get("distribution")
+    if distribution is not None and distribution not in DISTRIBUTIONS:
+        problems.append(f"{where}.distribution={distribution!r}: valid: {', '.join(DISTRIBUTIONS)}")
+
+
+def _check_loss(loss, problems: list[str]) -> None:
+    for key, value in loss.items():
+        where = f"loss.{key}"
+        if key == "lr" or key.endswith("_lr"):
+            if not _is_number(value) or value <= 0:
+                problems.append(f"{where}={value!r}: a learning rate must be a number > 0")
+        elif key in _POSITIVE_INT_KEYS:
+            if not _is_int(value) or value < 1:
+                problems.append(f"{where}={value!r}: expected an integer >= 1")
+        elif key in _INTERVAL_KEYS:
+            low, high, low_inclusive = _INTERVAL_KEYS[key]
+            ok = _is_number(value) and (value >= low if low_inclusive else value > low) and value <= high
+            if not ok:
+                bracket = "[" if low_inclusive else "("
+                problems.append(f"{where}={value!r}: expected a number in {bracket}{low}, {high}]")
+        elif key in ("max_grad_norm", "skip_above"):
+            if value is not None and (not _is_number(value) or value <= 0):
+                problems.append(f"{where}={value!r}: expected a number > 0, or null to disable it")
+        elif key == "betas":
+            if not (
+                isinstance(value, (list, ListConfig)) and len(value) == 2
+                and all(_is_number(b) and 0.0 <= b < 1.0 for b in value)
+            ):
+                problems.append(f"{where}={value!r}: expected two Adam betas in [0, 1), e.g. [0.7, 0.95]")
+        elif key == "lr_schedule":
+            if value not in LR_SCHEDULES:
+                problems.append(f"{where}={value!r}: valid: {', '.join(LR_SCHEDULES)}")
+        elif key in ("clip_epsilon", "utd_ratio", "alpha_init"):
+            if not _is_number(value) or value <= 0:
+                problems.append(f"{where}={value!r}: expected a number > 0")
+        elif key in ("init_random_frames",):
+            if not _is_int(value) or value < 0:
+                problems.append(f"{where}={value!r}: expected an integer >= 0")
+        elif isinstance(value, (DictConfig, Mapping)) and "hidden" in value:
+            _check_network(value, where, problems)
+    if _is_int(loss.get("buffer_size")) and _is_int(loss.get("batch_size")) and loss.buffer_size < loss.batch_size:
+        problems.append(f"loss.buffer_size={loss.buffer_size} is smaller than loss.batch_size={loss.batch_size}")
+
+
+def _check_file(value, key: str, problems: list[str]) -> None:
+    path = Path(str(value)).expanduser()
+    if not path.is_file():
+        problems.append(f"{key}={value!r}: no such checkpoint file" + (" (it is a directory)" if path.is_dir() else ""))
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Raises :class:`ConfigError` listing every problem of ``cfg``; returns ``None`` when it can run.
+
+    Checked: mode, env name and its options/params (by building one env), loss name and values
+    (learning rates > 0, horizons and batch sizes >= 1, gamma / lambda / tau ranges, network sizes),
+    logger, device, dtype, step counts and intervals, and the ``resume`` / ``checkpoint`` files.
+    """
+    problems: list[str] = []
+    try:
+        OmegaConf.to_container(cfg, resolve=True)
+    except Exception as err:  # e.g. an interpolation that cannot resolve
+        raise ConfigError(f"invalid configuration: {err}") from None
+
+    mode = cfg.get("mode")
+    if mode not in MODES:
+        problems.append(f"mode={mode!r}: valid: {', '.join(MODES)}")
+
+    env_name = cfg.env.get("name")
+    if env_name not in list_envs():
+        problems.append(f"env.name={env_name!r}: unknown env; valid: {', '.join(list_envs())}")
+    loss_name = cfg.loss.get("name")
+    if loss_name not in LOSSES:
+        problems.append(f"loss.name={loss_name!r}: unknown loss; valid: {', '.join(LOSSES)}")
+    backend = cfg.logger.get("backend")
+    if backend not in LOGGERS:
+        problems.append(f"logger.backend={backend!r}: valid: {', '.join(LOGGERS)}")
+    elif backend == "wandb" and cfg.logger.get("mode") not in WANDB_MODES:
+        problems.append(f"logger.mode={cfg.logger.get('mode')!r}: valid: {', '.join(WANDB_MODES)}")
+
+    for resolver, key in ((resolve_device, "device"), (resolve_dtype, "dtype")):
+        try:
+            resolver(cfg.get(key))
+        except ConfigError as err:
+            problems.append(str(err))
+
+    if not _is_int(cfg.get("seed")) or cfg.seed < 0:
+        problems.append(f"seed={cfg.get('seed')!r}: expected an integer >= 0")
+    for key, minimum in (
+        ("env.num_envs", 1), ("eval.num_envs", 1), ("train.total_env_steps", 1), ("train.checkpoint_interval", 1),
+        ("train.keep_checkpoints", 0), ("train.log_interval", 1), ("eval.interval", 1), ("eval.gif_fps", 1),
+        ("eval.gif_size", 16), ("eval.seed", 0),
+    ):
+        value = OmegaConf.select(cfg, key)
+        if not _is_int(value) or value < minimum:
+            problems.append(f"{key}={value!r}: expected an integer >= {minimum}")
+    for key in ("env.max_episode_steps", "eval.max_steps"):
+        value = OmegaConf.select(cfg, key)
+        if value is not None and (not _is_int(value) or value < 1):
+            problems.append(f"{key}={value!r}: expected an integer >= 1, or null for the env's default")
+    gif_index = cfg.eval.get("gif_env_index")
+    if not _is_int(gif_index) or not 0 <= gif_index < max(int(cfg.eval.num_envs) if _is_int(cfg.eval.num_envs) else 1, 1):
+        problems.append(f"eval.gif_env_index={gif_index!r}: expected an integer in [0, eval.num_envs)")
+
+    if loss_name in LOSSES:
+        _check_loss(cfg.loss, problems)
+
+    if mode == "eval":
+        if cfg.get("checkpoint") is None:
+            problems.append("mode=eval needs checkpoint=<path of a .pt file written by a training run>")
+        else:
+            _check_file(cfg.checkpoint, "checkpoint", problems)
+    elif cfg.get("checkpoint") is not None:
+        problems.append(
+            f"checkpoint={cfg.checkpoint!r} is only read in mode=eval; to continue training use resume=<path>"
+        )
+    if cfg.get("resume") is not None:
+        if mode == "eval":
+            problems.append("resume= continues training; with mode=eval use checkpoint=<path> instead")
+        else:
+            _check_file(cfg.resume, "resume", problems)
+
+    # build one env: catches bad options / params / max_episode_steps with the env's own message
+    if env_name in list_envs() and not any(p.startswith(("env.", "device", "dtype")) for p in problems):
+        try:
+            env = make_env_from_config(cfg, num_envs=1, seed=0)
+        except (ValueError, TypeError, KeyError) as err:
+            problems.append(f"env.options / env.params rejected by {env_name!r}: {err}")
+        else:
+            if env.max_episode_steps is None and cfg.eval.get("max_steps") is None:
+                problems.append(f"env {env_name!r} never truncates episodes: set eval.max_steps")
+
+    if problems:
+        lines = "\n".join(f"  - {p}" for p in problems)
+        raise ConfigError(f"invalid configuration ({len(problems)} problem{'s' * (len(problems) > 1)}):\n{lines}")
+
+
+# ---------------------------------------------------------------------- resuming
+_NOT_CARRIED = ("resume", "mode", "checkpoint")
+
+
+def _override_key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def merge_overrides(saved: list[str], current: list[str]) -> list[str]:
+    """Command-line overrides of a resumed run: those the checkpointed run was started with, then
+    today's; for a key given in both, today's wins. ``hydra.*`` overrides and the original run's
+    ``resume`` / ``mode`` / ``checkpoint`` are dropped."""
+    merged: dict[str, str] = {}
+    for overrides, dropped in ((saved, _NOT_CARRIED), (current, ())):
+        for override in overrides:
+            key = _override_key(override)
+            if key.startswith("hydra.") or key in dropped:
+                continue
+            merged.pop(key, None)  # re-insert: the later value, at the later position
+            merged[key] = override
+    return list(merged.values())
+
+
+def check_resume_compatible(trained: DictConfig, cfg: DictConfig) -> None:
+    """Raises :class:`ConfigError` unless ``cfg`` trains the same env and learner as the
+    checkpointed config ``trained`` (budget, evaluation, logging and device may change)."""
+    problems = []
+    for section in ("env", "loss"):
+        old = OmegaConf.to_container(trained[section], resolve=True)
+        new = OmegaConf.to_container(cfg[section], resolve=True)
+        for key in sorted(set(old) | set(new)):
+            if old.get(key) != new.get(key):
+                problems.append(f"{section}.{key}: checkpoint {old.get(key)!r}, now {new.get(key)!r}")
+    for key in ("dtype", "seed"):
+        if trained.get(key) != cfg.get(key):
+            problems.append(f"{key}: checkpoint {trained.get(key)!r}, now {cfg.get(key)!r}")
+    if problems:
+        lines = "\n".join(f"  - {p}" for p in problems)
+        raise ConfigError(
+            f"resume={cfg.resume!r} was trained with a different env/learner setup; the saved state would not "
+            f"fit. Differences:\n{lines}\nDrop these overrides to continue that run, or start a new run."
+        )
