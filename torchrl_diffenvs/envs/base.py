@@ -233,14 +233,21 @@ class DiffEnv(EnvBase):
                 f"got {tuple(tensordict.batch_size)}"
             )
 
+    def _truncated(self, episode_step: torch.Tensor, terminated: torch.Tensor) -> torch.Tensor:
+        """``[N]`` bool time-limit flag: ``episode_step >= max_episode_steps`` unless terminated.
+
+        The one place the truncation rule lives (``_step``, ``_reset`` and the fast rollout path
+        all use it); a task with another rule (e.g. Gymnasium's ``TimeLimit``) overrides this.
+        """
+        if self.max_episode_steps is None:
+            return torch.zeros_like(terminated)
+        return (episode_step >= self.max_episode_steps) & ~terminated
+
     def _output(self, state, params, episode_step, reward=None, terminated=None) -> TensorDict:
         n = self.num_envs
         if terminated is None:
             terminated = torch.zeros(n, dtype=torch.bool, device=self.device)
-        if self.max_episode_steps is None:
-            truncated = torch.zeros_like(terminated)
-        else:
-            truncated = (episode_step >= self.max_episode_steps) & ~terminated
+        truncated = self._truncated(episode_step, terminated)
         out = {
             "observation": self.observation(state, params),
             "state": TensorDict(dict(state), batch_size=[n]),
@@ -291,6 +298,23 @@ class DiffEnv(EnvBase):
         out = self._output(state, params, episode_step)
         self._remember_for_render(out, reset_mask=given.get("_reset", None))
         return out
+
+    # ------------------------------------------------------------------ fast rollout
+    use_fast_rollout: bool = True  # False: always use EnvBase.rollout (e.g. to compare)
+
+    def rollout(self, max_steps: int, policy=None, callback=None, **kwargs) -> TensorDictBase:
+        """``EnvBase.rollout`` (same arguments, same result), through a lean loop when possible.
+
+        The lean loop (:mod:`torchrl_diffenvs.envs.fast_rollout`) steps the pure physics on plain
+        tensors and builds the output TensorDict once; it is taken unless a ``callback`` or an
+        argument it does not reproduce is given (see ``fast_rollout_unsupported``).
+        ``TransformedEnv`` never calls this method: it steps the base env itself.
+        """
+        from .fast_rollout import fast_rollout, fast_rollout_unsupported  # base.py is imported first
+
+        if fast_rollout_unsupported(self, callback, kwargs) is None:
+            return fast_rollout(self, max_steps, policy, **kwargs)
+        return super().rollout(max_steps, policy, callback, **kwargs)
 
     # ------------------------------------------------------------------ conveniences
     _last_output = None  # see _remember_for_render

@@ -1,0 +1,300 @@
+"""The lean rollout path returns exactly what TorchRL's ``EnvBase.rollout`` returns.
+
+The reference is TorchRL's own implementation, called as ``EnvBase.rollout(env, ...)`` on the
+same env with the same seeds (torch's global generator for random actions and policy samples, the
+env's generator for resets). Compared: TensorDict types, batch sizes, names, devices, key sets,
+dtypes, values (bitwise) and gradients.
+"""
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.envs import EnvBase, StepCounter, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import ProbabilisticActor, TanhNormal
+
+from torchrl_diffenvs import list_envs, make_env
+from torchrl_diffenvs.envs.fast_rollout import fast_rollout, fast_rollout_unsupported
+
+N = 5
+STEPS = 11
+MAX_EPISODE_STEPS = 4  # short episodes: auto-resets happen inside the rollouts
+
+
+def assert_same_tensordict(got, ref, path="root", exact=True):
+    """Same structure, dtypes and values (bitwise when ``exact``, else to float64 rounding)."""
+    assert type(got) is type(ref), f"{path}: {type(got).__name__} != {type(ref).__name__}"
+    assert got.batch_size == ref.batch_size, f"{path}: batch size {got.batch_size} != {ref.batch_size}"
+    assert got.names == ref.names, f"{path}: names {got.names} != {ref.names}"
+    assert got.device == ref.device, f"{path}: device {got.device} != {ref.device}"
+    assert set(got.keys()) == set(ref.keys()), f"{path}: keys differ by {set(got.keys()) ^ set(ref.keys())}"
+    for key in ref.keys():
+        x, y = got.get(key), ref.get(key)
+        where = f"{path}/{key}"
+        if isinstance(y, torch.Tensor):
+            assert x.shape == y.shape and x.dtype == y.dtype, f"{where}: {x.shape} {x.dtype} != {y.shape} {y.dtype}"
+            assert x.is_contiguous() == y.is_contiguous(), f"{where}: contiguity differs"
+            if exact:
+                assert torch.equal(x, y), f"{where}: values differ, max |diff| {(x.double() - y.double()).abs().max()}"
+            else:
+                torch.testing.assert_close(x, y, rtol=1e-10, atol=1e-12, msg=where)
+        else:
+            assert_same_tensordict(x, y, where, exact)
+
+
+def both_paths(env, *args, seed=0, prepare=None, **kwargs):
+    """(fast path, EnvBase.rollout) from identical generator states; ``prepare()`` builds fresh inputs."""
+    results, after = [], []
+    for path in (fast_rollout, EnvBase.rollout):
+        torch.manual_seed(seed)
+        env.set_seed(seed + 1)
+        extra = prepare() if prepare is not None else {}
+        results.append(path(env, *args, **kwargs, **extra))
+        # both leave torch's and the env's generators in the same state
+        after.append((torch.rand(4), env.uniform(0, 1, 4)))
+    assert torch.equal(after[0][0], after[1][0]) and torch.equal(after[0][1], after[1][1])
+    return results
+
+
+def make_fast_env(name, **kwargs):
+    env = make_env(name, num_envs=N, seed=0, max_episode_steps=MAX_EPISODE_STEPS, **kwargs)
+    reason = fast_rollout_unsupported(env, None, {})
+    assert reason is None, f"{name}: env.rollout would not take the fast path: {reason}"
+    return env
+
+
+def tanh_normal_actor(env, hidden=16):
+    net = nn.Sequential(
+        nn.Linear(env.observation_dim, hidden), nn.Tanh(), nn.Linear(hidden, 2 * env.action_dim), NormalParamExtractor()
+    ).to(env.float_dtype)
+    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    spec = env.action_spec
+    return ProbabilisticActor(
+        module, in_keys=["loc", "scale"], distribution_class=TanhNormal,
+        distribution_kwargs={"low": spec.space.low[0], "high": spec.space.high[0]},
+        return_log_prob=True, spec=spec,
+    )
+
+
+# ---------------------------------------------------------------------------- every env, no policy
+@pytest.mark.parametrize("name", list_envs())
+def test_every_env_takes_the_fast_path(name):
+    env = make_env(name, num_envs=2, seed=0)
+    assert fast_rollout_unsupported(env, None, {}) is None
+    assert fast_rollout_unsupported(env, None, {"break_when_any_done": False, "tensordict": env.reset()}) is None
+
+
+@pytest.mark.parametrize("name", list_envs())
+@pytest.mark.parametrize("break_when_any_done", [True, False])
+def test_random_actions_match_envbase(name, break_when_any_done):
+    env = make_fast_env(name)
+    got, ref = both_paths(env, STEPS, break_when_any_done=break_when_any_done)
+    expected_steps = STEPS if not break_when_any_done else min(STEPS, MAX_EPISODE_STEPS)
+    assert ref.shape[1] <= expected_steps
+    if not break_when_any_done:  # the comparison covers auto-resets inside the rollout
+        assert ref.shape[1] == STEPS and ref["next", "done"].any()
+    assert_same_tensordict(got, ref)
+    # the env remembers the same latest output for rendering
+    assert_same_tensordict(env._last_output, _last_output_after(EnvBase.rollout, env, break_when_any_done))
+
+
+def _last_output_after(rollout, env, break_when_any_done):
+    torch.manual_seed(0)
+    env.set_seed(1)
+    rollout(env, STEPS, break_when_any_done=break_when_any_done)
+    return env._last_output
+
+
+@pytest.mark.parametrize("name", list_envs())
+def test_policy_values_and_gradients_match_envbase(name):
+    """A TanhNormal actor sampling with rsample; gradients of the return w.r.t. its weights."""
+    env = make_fast_env(name, dtype=torch.float64)
+    actor = tanh_normal_actor(env)
+    grads = []
+    outputs = []
+    for path in (fast_rollout, EnvBase.rollout):
+        torch.manual_seed(0)
+        env.set_seed(1)
+        actor.zero_grad()
+        with set_exploration_type(ExplorationType.RANDOM):
+            td = path(env, STEPS, actor, break_when_any_done=False)
+        # observations too: CartPole-v1's reward (+1 per step) carries no gradient
+        (td["next", "reward"].sum() + td["next", "observation"].sum()).backward()
+        grads.append([p.grad.clone() for p in actor.parameters()])
+        outputs.append(td.detach())
+    assert outputs[1]["next", "done"].any(), "the rollout should contain auto-resets"
+    assert {"loc", "scale", "action_log_prob"} <= set(outputs[1].keys())
+    assert_same_tensordict(*outputs)
+    for g_fast, g_ref in zip(*grads):
+        assert g_ref.abs().sum() > 0
+        torch.testing.assert_close(g_fast, g_ref, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("break_when_any_done", [True, False])
+def test_gradients_wrt_actions_and_start_state_match_envbase(break_when_any_done):
+    """actions= (leaf tensors) and a start state given through tensordict=, set_state=True."""
+    env = make_fast_env("reacher", dtype=torch.float64)
+    torch.manual_seed(5)
+    base_actions = torch.randn(STEPS, N, env.action_dim, dtype=torch.float64)
+    start = env.reset()
+    grads = []
+    outputs = []
+    for path in (fast_rollout, EnvBase.rollout):
+        env.set_seed(1)
+        actions = [a.clone().requires_grad_(True) for a in base_actions]
+        th = start["state", "th"].clone().requires_grad_(True)
+        td_in = start.clone()
+        td_in["state", "th"] = th
+        td = path(env, STEPS, actions=actions, tensordict=td_in, set_state=True,
+                  break_when_any_done=break_when_any_done)
+        (td["next", "reward"] * torch.linspace(1, 2, td.shape[1], dtype=torch.float64)).sum().backward()
+        grads.append([a.grad for a in actions] + [th.grad])
+        outputs.append(td.detach())
+    assert_same_tensordict(*outputs)
+    used = outputs[1].shape[1]
+    for i, (g_fast, g_ref) in enumerate(zip(*grads)):
+        if g_ref is None:  # actions after an early stop are never used
+            assert g_fast is None and i >= used
+            continue
+        torch.testing.assert_close(g_fast, g_ref, rtol=1e-10, atol=1e-12)
+    # the gradient reaches the start state, and is cut at the first auto-reset
+    assert grads[1][-1].abs().sum() > 0
+
+
+def test_gradients_wrt_physical_params_match_envbase():
+    env = make_fast_env("pendulum", dtype=torch.float64)
+    grads = []
+    for path in (fast_rollout, EnvBase.rollout):
+        torch.manual_seed(0)
+        env.set_seed(1)
+        g = torch.full((N,), 9.0, dtype=torch.float64, requires_grad=True)
+        td_in = env.reset()
+        td_in["params", "g"] = g
+        td = path(env, STEPS, tensordict=td_in, auto_reset=False, break_when_any_done=False)
+        td["next", "reward"].sum().backward()
+        grads.append(g.grad)
+    assert grads[1].abs().sum() > 0
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-10, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------- arguments
+def test_continuing_rollouts_with_auto_reset_false():
+    """The TorchRL data-collection idiom: feed step_mdp(last step) back with auto_reset=False."""
+    env = make_fast_env("cartpole")
+    got, ref = both_paths(env, 3, break_when_any_done=False)
+    for _ in range(3):  # crosses episode ends (4 steps) at window boundaries
+        start_got, start_ref = env.step_mdp(got[:, -1]), env.step_mdp(ref[:, -1])
+        assert_same_tensordict(start_got, start_ref)
+        torch.manual_seed(7)
+        env.set_seed(8)
+        got = env.rollout(3, tensordict=start_got, auto_reset=False, break_when_any_done=False)
+        torch.manual_seed(7)
+        env.set_seed(8)
+        ref = EnvBase.rollout(env, 3, tensordict=start_ref, auto_reset=False, break_when_any_done=False)
+        assert_same_tensordict(got, ref)
+        # EnvBase leaves step 0's action and "next" in the input tensordict: so does the fast path
+        assert_same_tensordict(start_got, start_ref)
+
+
+@pytest.mark.parametrize("return_contiguous", [True, False, None])
+@pytest.mark.parametrize("set_truncated", [True, False])
+def test_return_contiguous_and_set_truncated(return_contiguous, set_truncated):
+    env = make_fast_env("swimmer")
+    got, ref = both_paths(
+        env, 6, break_when_any_done=False, return_contiguous=return_contiguous, set_truncated=set_truncated
+    )
+    assert_same_tensordict(got, ref)
+    assert bool(got["next", "truncated"][:, -1].all()) == set_truncated
+
+
+def test_user_entries_are_carried_and_zeroed_at_partial_resets():
+    """Extra root entries travel with the env entries; TorchRL zeroes them where an env resets."""
+    env = make_env("pendulum", num_envs=N, seed=0, max_episode_steps=3)
+
+    def prepare():
+        td = env.reset()
+        td["episode_step"] = torch.tensor([0, 1, 2, 0, 1])  # staggered episodes: partial resets
+        td["user_flag"] = torch.arange(N, dtype=torch.float32) + 1
+        return {"tensordict": td}
+
+    got, ref = both_paths(env, 8, break_when_any_done=False, auto_reset=False, prepare=prepare)
+    assert (ref["user_flag"] == 0).any() and (ref["user_flag"] != 0).any()
+    assert_same_tensordict(got, ref)
+
+
+def test_plain_module_policy_and_trust_policy():
+    """A policy that is not a TensorDict module is wrapped exactly as EnvBase wraps it."""
+    env = make_fast_env("mountaincar")
+
+    class Policy(nn.Module):
+        def forward(self, observation, state, params, episode_step):
+            return torch.tanh(observation.sum(-1, keepdim=True) + episode_step.unsqueeze(-1))
+
+    got, ref = both_paths(env, 7, Policy(), break_when_any_done=False)
+    assert_same_tensordict(got, ref)
+
+    def td_policy(td):
+        td["action"] = torch.sin(td["observation"][..., :1])
+        return td
+
+    got, ref = both_paths(env, 7, td_policy, break_when_any_done=False, trust_policy=True)
+    assert_same_tensordict(got, ref)
+
+
+def test_policy_writing_changing_keys_gives_the_same_lazy_stack():
+    env = make_fast_env("pendulum")
+
+    def policy(td):
+        td["action"] = torch.zeros(N, 1)
+        if int(td["episode_step"][0]) == 1:
+            td["extra"] = torch.ones(N)
+        return td
+
+    got, ref = both_paths(env, 3, policy, break_when_any_done=False, return_contiguous=False, trust_policy=True)
+    assert type(got) is type(ref)
+    assert got.shape == ref.shape
+    assert_same_tensordict(got.tensordicts[1], ref.tensordicts[1])
+
+
+def test_errors_match_envbase():
+    env = make_fast_env("pendulum")
+    with pytest.raises(ValueError, match=r"expected an action of shape \(5, 1\)"):
+        env.rollout(3, actions=[torch.zeros(5, 2)])
+    with pytest.raises(RuntimeError, match="tensordict must be provided when auto_reset is False"):
+        env.rollout(3, auto_reset=False)
+    with pytest.raises(ValueError, match="Cannot pass both `policy` and `actions`"):
+        env.rollout(3, lambda td: td, actions=[torch.zeros(5, 1)])
+    with pytest.raises(KeyError, match="the policy wrote no 'action' entry"):
+        env.rollout(3, lambda td: td, trust_policy=True)
+
+
+def test_unsupported_arguments_fall_back_to_envbase():
+    env = make_fast_env("pendulum")
+    assert "callback" in fast_rollout_unsupported(env, print, {})
+    assert "break_when_all_done" in fast_rollout_unsupported(env, None, {"break_when_all_done": True})
+    assert "unknown keyword" in fast_rollout_unsupported(env, None, {"bogus": 1})
+    calls = []
+    td = env.rollout(5, callback=lambda e, t: calls.append(t), break_when_any_done=False)
+    assert len(calls) == 4 and td.shape == (N, 5)
+    torch.manual_seed(0)
+    env.set_seed(1)
+    td = env.rollout(9, break_when_all_done=True)
+    torch.manual_seed(0)
+    env.set_seed(1)
+    assert_same_tensordict(td, EnvBase.rollout(env, 9, break_when_all_done=True))
+    env.use_fast_rollout = False
+    assert "use_fast_rollout" in fast_rollout_unsupported(env, None, {})
+    with pytest.raises(ValueError, match="fast_rollout cannot reproduce"):
+        fast_rollout(env, 3)
+
+
+def test_transformed_env_steps_the_base_env_itself():
+    """TransformedEnv does not call DiffEnv.rollout; its rollout is TorchRL's, over our _step."""
+    env = make_env("pendulum", num_envs=N, seed=0)
+    called = []
+    env.rollout = lambda *a, **k: called.append(1)  # would be hit if TransformedEnv delegated
+    td = TransformedEnv(env, StepCounter()).rollout(4)
+    assert not called and td.shape == (N, 4) and "step_count" in td.keys()

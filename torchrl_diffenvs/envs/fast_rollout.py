@@ -1,0 +1,509 @@
+"""A lean implementation of ``EnvBase.rollout`` for :class:`~torchrl_diffenvs.DiffEnv`.
+
+TorchRL's generic rollout builds, validates, copies and merges several TensorDicts per step
+(``step``, ``step_mdp``, ``maybe_reset``, the random-action TensorDict): on CPU that machinery
+costs several times the physics of our tasks. Because a DiffEnv's physics are pure tensor
+functions (``initial_state`` / ``transition`` / ``observation``), a rollout can instead loop
+over plain tensors, call the policy on one light TensorDict per step (only when there is a
+policy), stack each entry once at the end and build the output TensorDict once.
+
+:func:`fast_rollout` returns exactly what ``EnvBase.rollout`` returns for the arguments it
+supports (same keys, shapes, dtypes, values for the same seeds, gradients, auto-reset and
+``break_when_any_done`` semantics, side effects on the input ``tensordict``); tests/
+test_fast_rollout.py compares the two. ``DiffEnv.rollout`` takes this path automatically when
+:func:`fast_rollout_unsupported` finds nothing in the way and falls back to
+``EnvBase.rollout`` otherwise, so users get the speed without changing their code.
+
+What the lean loop reproduces, step by step (``EnvBase._rollout_nonstop`` /
+``_rollout_stop_early``, torchrl 0.14):
+
+* random actions (no policy) come from ``action_spec.rand()``, i.e. torch's *global* generator,
+  drawn in the same order and with the same arithmetic, so a seeded run gives equal values;
+* the step is ``DiffEnv._step``: optional clipping, ``transition``, ``episode_step + 1``, the
+  done flags of ``DiffEnv._truncated``, ``observation`` of the new state;
+* with ``break_when_any_done`` the loop stops after the first step where any env is done;
+  otherwise done envs are reset between steps as ``maybe_reset`` does: a full-batch
+  ``initial_state`` draw (so the env's generator advances exactly as in TorchRL) merged with
+  ``torch.where(~reset, old, fresh)``; the merge cuts the graph for the reset envs only;
+* the root entries of step ``t + 1`` are the ``"next"`` entries of step ``t`` (the same
+  tensors, as ``step_mdp`` makes them), reset envs excepted.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from typing import TYPE_CHECKING, Any
+
+import torch
+from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import _make_compatible_policy
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .base import DiffEnv
+
+__all__ = ["fast_rollout", "fast_rollout_unsupported", "FAST_ROLLOUT_KWARGS"]
+
+# Entries that the env owns at the root of a step TensorDict (everything else at the root, such as
+# "action" or a policy's "loc"/"scale", belongs to the policy or to the user).
+_ENV_KEYS = ("observation", "state", "params", "episode_step", "terminated", "truncated", "done")
+_NESTED_ENV_KEYS = ("state", "params")
+_FLAG_KEYS = ("terminated", "truncated", "done")
+
+# Keyword arguments of EnvBase.rollout that the lean path implements, with the values it accepts
+# (``None`` = any value). Anything else sends the call to EnvBase.rollout.
+FAST_ROLLOUT_KWARGS: dict[str, tuple | None] = {
+    "auto_reset": None,
+    "break_when_any_done": None,
+    "break_when_all_done": (None, False),
+    "return_contiguous": None,
+    "tensordict": None,
+    "set_truncated": None,
+    "trust_policy": None,
+    "set_state": None,
+    "actions": None,
+    "auto_cast_to_device": (False,),
+    "storing_device": (None,),
+    "out": (None,),
+}
+
+# Methods whose TorchRL / DiffEnv versions the lean loop reimplements: a subclass that overrides
+# one of them gets EnvBase.rollout, which calls the override.
+_REIMPLEMENTED_METHODS = (
+    "_step", "_reset", "step", "reset", "maybe_reset", "step_and_maybe_reset", "_step_and_maybe_reset",
+    "_step_proc_data", "_reset_proc_data", "rand_action", "any_done", "_output",
+)
+
+
+def fast_rollout_unsupported(env: DiffEnv, callback: Callable | None, kwargs: Mapping[str, Any]) -> str | None:
+    """Why ``env.rollout(..., callback=callback, **kwargs)`` must take ``EnvBase.rollout``.
+
+    Returns ``None`` when the lean path reproduces the call exactly, else a short reason
+    (useful when debugging a slow rollout: ``fast_rollout_unsupported(env, None, kwargs)``).
+    """
+    from .base import DiffEnv  # local: base.py imports this module
+
+    if not getattr(env, "use_fast_rollout", True):
+        return "env.use_fast_rollout is False"
+    if callback is not None:
+        return "a callback is given"
+    for key, value in kwargs.items():
+        if key not in FAST_ROLLOUT_KWARGS:
+            return f"unknown keyword argument {key!r}"
+        allowed = FAST_ROLLOUT_KWARGS[key]
+        if allowed is not None and not any(value is a or (a is not None and value == a) for a in allowed):
+            return f"{key}={value!r}"
+    if kwargs.get("actions") is not None and kwargs.get("policy") is not None:
+        return "both policy and actions"
+    cls = type(env)
+    # an _output override with the same flags as DiffEnv is fine only through _truncated
+    for name in _REIMPLEMENTED_METHODS:
+        if getattr(cls, name) is not getattr(DiffEnv, name):
+            return f"{cls.__name__} overrides {name}"
+    if env.__dict__.get("_compiled_step_and_maybe_reset") is not None:
+        return "env.compile() is active"
+    if env.__dict__.get("_torchrl_native_autoreset", False):
+        return "native auto-reset"
+    if env._post_step_mdp_hooks is not None:
+        return "post-step-mdp hooks"
+    if env.run_type_checks:
+        return "run_type_checks"
+    if env.action_keys != ["action"] or env.reward_keys != ["reward"] or sorted(env.done_keys) != sorted(_FLAG_KEYS):
+        return "non-default action/reward/done keys"
+    td = kwargs.get("tensordict")
+    if td is not None and (not isinstance(td, TensorDict) or "next" in td.keys() or "_step" in td.keys()):
+        return "the input tensordict is not a plain TensorDict without 'next'/'_step' entries"
+    return None
+
+
+def fast_rollout(
+    env: DiffEnv,
+    max_steps: int,
+    policy: Callable[[TensorDictBase], TensorDictBase] | None = None,
+    *,
+    auto_reset: bool = True,
+    break_when_any_done: bool | None = None,
+    break_when_all_done: bool | None = None,
+    return_contiguous: bool | None = False,
+    tensordict: TensorDictBase | None = None,
+    set_truncated: bool = False,
+    trust_policy: bool = False,
+    set_state: bool | None = None,
+    actions: Iterable[torch.Tensor] | None = None,
+    auto_cast_to_device: bool = False,
+    storing_device=None,
+    out=None,
+) -> TensorDictBase:
+    """``EnvBase.rollout(env, ...)`` through a lean loop (same arguments, same result).
+
+    Call it through ``env.rollout``, which checks :func:`fast_rollout_unsupported` first; calling
+    it directly with an unsupported argument raises ``ValueError``.
+    """
+    reason = fast_rollout_unsupported(
+        env, None,
+        dict(break_when_all_done=break_when_all_done, auto_cast_to_device=auto_cast_to_device,
+             storing_device=storing_device, out=out, tensordict=tensordict),
+    )
+    if reason is not None:
+        raise ValueError(f"fast_rollout cannot reproduce EnvBase.rollout here ({reason}); call env.rollout")
+    if break_when_any_done is None:  # EnvBase's defaults
+        break_when_any_done = not break_when_all_done
+    if return_contiguous is None:
+        return_contiguous = not env._has_dynamic_specs
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"{env.name}: rollout max_steps must be a positive integer, got {max_steps!r}")
+
+    action_source = None
+    if actions is not None:
+        if policy is not None:
+            raise ValueError("Cannot pass both `policy` and `actions` to rollout().")
+        action_source = iter(actions)
+        if hasattr(actions, "__len__"):
+            max_steps = min(max_steps, len(actions))
+    elif policy is not None:
+        policy = _make_compatible_policy(
+            policy, env.observation_spec, env=env, fast_wrap=True, trust_policy=trust_policy
+        )
+
+    # The first TensorDict comes from TorchRL itself: same reset, same warnings, same in-place
+    # update of a user-given ``tensordict``.
+    if auto_reset:
+        td0 = env.reset(tensordict, set_state=set_state)
+    elif tensordict is None:
+        raise RuntimeError("tensordict must be provided when auto_reset is False")
+    else:
+        td0 = env.maybe_reset(tensordict)
+    return _Loop(env, policy, action_source, max_steps).run(td0, max_steps, break_when_any_done, return_contiguous, set_truncated)
+
+
+class _RandomActions:
+    """The random actions of ``EnvBase.rollout`` without a policy: ``action_spec.rand()`` per step.
+
+    ``Bounded.rand()`` (torchrl 0.14) draws ``uniform_`` from torch's global generator, scales
+    it to the bounds and sets values that rounding pushed past a bound to that bound. Here the
+    same arithmetic runs on a block of steps at once: on CPU, ``uniform_`` fills a tensor from
+    the generator element after element, so one draw of ``K`` steps gives the values of ``K``
+    one-step draws, bitwise (tests/test_fast_rollout.py checks it against EnvBase.rollout).
+    :meth:`close` rewinds the generator to the end of the last action actually used, so the
+    global random stream continues exactly where TorchRL's rollout would leave it.
+    """
+
+    BLOCK_ELEMENTS = 1 << 18  # about 1 MB of float32 per block
+
+    def __init__(self, env: DiffEnv, max_steps: int):
+        space = env.action_spec.space
+        self.low, self.high = space.low, space.high
+        self.span = self.high - self.low
+        self.shape = (env.num_envs, env.action_dim)
+        self.dtype, self.device = env.float_dtype, env.device
+        # other devices have counter-based generators whose block draws differ from step draws
+        self.block_steps = 1
+        if self.device.type == "cpu":
+            self.block_steps = min(max_steps, max(1, self.BLOCK_ELEMENTS // (self.shape[0] * self.shape[1])))
+        self.remaining = max_steps
+        self.block: list[torch.Tensor] = []
+        self.used = 0  # actions handed out from the current block
+        self.state_before_block = None
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> torch.Tensor:
+        if self.used == len(self.block):
+            if self.block_steps > 1:
+                self.state_before_block = torch.get_rng_state()
+            steps = min(self.block_steps, self.remaining)
+            self.remaining -= steps
+            raw = torch.rand((steps, *self.shape), dtype=self.dtype, device=self.device)
+            self.block = list(torch.clamp(raw * self.span + self.low, self.low, self.high).unbind(0))
+            self.used = 0
+        self.used += 1
+        return self.block[self.used - 1]
+
+    def close(self) -> None:
+        """Leaves the global generator as if only the used actions had been drawn."""
+        if self.block_steps > 1 and self.used < len(self.block):
+            torch.set_rng_state(self.state_before_block)
+            torch.rand((self.used, *self.shape), dtype=self.dtype, device=self.device)
+        self.block = []
+
+
+class _Loop:
+    """One rollout: per-step tensors in lists, stacked along the time dim at the end.
+
+    Internally a step is a dict of entries ("observation", "state" and "params" as dicts of
+    tensors, "episode_step", "action", ...); the done flags and the reward are kept ``[N]`` and
+    get their trailing ``1`` only in TensorDicts (fewer ops per step, and the same tensor object
+    can be recognised from step to step, see :func:`_stack_time`).
+    """
+
+    def __init__(self, env: DiffEnv, policy, action_source, max_steps: int):
+        from .base import DiffEnv
+
+        self.env = env
+        self.policy = policy
+        self.action_source = action_source if action_source is not None or policy is not None else _RandomActions(env, max_steps)
+        self.n = env.num_envs
+        self.bs = env.batch_size
+        self.device = env.device
+        self.all_false = torch.zeros(self.n, dtype=torch.bool, device=self.device)
+        # DiffEnv's own rule without termination reduces to one comparison (same values)
+        self.plain_truncation = type(env)._truncated is DiffEnv._truncated
+
+    # ------------------------------------------------------------------ main loop
+    def run(self, td0: TensorDictBase, max_steps: int, break_when_any_done: bool, return_contiguous: bool,
+            set_truncated: bool) -> TensorDictBase:
+        root = self.entries_of(td0)
+        # root entries that are not the env's (a user's extra entries) travel along, as step_mdp does
+        extras = {key: value for key, value in root.items() if key not in _ENV_KEYS}
+        root = {key: root[key] for key in _ENV_KEYS}
+        roots: list[dict] = []
+        nexts: list[dict] = []
+        for t in range(max_steps):
+            if self.policy is not None:
+                # step 0 runs on the input TensorDict itself, as in EnvBase
+                views: dict = {}
+                td = td0 if t == 0 else self.as_tensordict({**root, **extras}, views)
+                root_t = self.call_policy(td, views)  # what the policy leaves at the root is what TorchRL stores
+                action = root_t["action"]
+            else:
+                action = next(self.action_source)
+                if t == 0:  # EnvBase writes step 0's action into the input tensordict
+                    td0.set("action", action.clone() if isinstance(self.action_source, _RandomActions) else action)
+                root_t = {**root, **extras, "action": action}
+            roots.append(root_t)
+            nxt = self.step(root_t, action)
+            nexts.append(nxt)
+            if t == max_steps - 1:
+                break
+            any_done = bool(nxt["done"].any())
+            if break_when_any_done and any_done:
+                break
+            # step_mdp: the next root is the "next" entries plus whatever else was at the root
+            root = {key: nxt[key] for key in _ENV_KEYS}
+            extras = {key: value for key, value in root_t.items() if key not in _ENV_KEYS}
+            if any_done:  # only without break_when_any_done
+                root, extras = self.reset_done(nxt["done"], root, extras)
+
+        if isinstance(self.action_source, _RandomActions):
+            self.action_source.close()
+        out_td = self.build_output(roots, nexts, return_contiguous)
+        # EnvBase leaves step 0's "next" in the input tensordict; rendering wants the last output
+        td0.set("next", self.as_tensordict(nexts[0]))
+        remember = getattr(self.env, "_remember_for_render", None)
+        if remember is not None:
+            remember(self.as_tensordict(nexts[-1]))
+        if set_truncated:
+            _set_truncated_last_step(out_td)
+        out_td.refine_names(..., "time")
+        return out_td
+
+    def call_policy(self, td: TensorDictBase, views: dict) -> dict:
+        """Runs the policy on a step TensorDict; returns the root entries it leaves."""
+        td.update(self.policy(td))
+        entries = self.entries_of(td, views)
+        if "action" not in entries:
+            raise KeyError(f"{self.env.name}: the policy wrote no 'action' entry (keys: {sorted(entries)})")
+        return entries
+
+    def step(self, root: dict, action: torch.Tensor) -> dict:
+        """``DiffEnv._step`` on plain tensors: returns the ``"next"`` entries of one step."""
+        env = self.env
+        env._check_action(action)
+        if env.clip_actions:
+            action = action.clamp(env.action_low, env.action_high)
+        params = root["params"]
+        state, reward, terminated = env.transition(root["state"], action, params)
+        episode_step = root["episode_step"] + 1
+        if terminated is None and self.plain_truncation:
+            terminated = self.all_false
+            if env.max_episode_steps is None:
+                truncated = done = self.all_false
+            else:  # (episode_step >= max) & ~False
+                truncated = done = episode_step >= env.max_episode_steps
+        else:
+            if terminated is None:
+                terminated = self.all_false
+            truncated = env._truncated(episode_step, terminated)
+            done = terminated | truncated
+        return {
+            "observation": env.observation(state, params),
+            "state": state,
+            "params": params,
+            "episode_step": episode_step,
+            "terminated": terminated,
+            "truncated": truncated,
+            "done": done,
+            "reward": reward,
+        }
+
+    def reset_done(self, done: torch.Tensor, root: dict, extras: dict) -> tuple[dict, dict]:
+        """``maybe_reset``: fresh start states for the done envs, the graph cut there only."""
+        env = self.env
+        params = env.params.clone()  # DiffEnv._reset during an auto-reset: env.params, full batch
+        state = env.initial_state(params, self.n)
+        fresh = {
+            "observation": env.observation(state, params),
+            "state": dict(state),
+            "params": dict(params.items()),
+            "episode_step": torch.zeros(self.n, dtype=torch.int64, device=self.device),
+            "terminated": self.all_false,
+            "truncated": self.all_false,
+            "done": self.all_false,
+        }
+        if bool(done.all()):
+            # TorchRL then replaces the env entries and leaves the others untouched
+            return fresh, extras
+        keep = ~done
+
+        def merge(old: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+            return torch.where(keep.reshape(keep.shape + (1,) * (old.ndim - 1)), old, new)
+
+        for key in _ENV_KEYS:
+            if key in _NESTED_ENV_KEYS:
+                root[key] = {k: merge(v, fresh[key][k]) for k, v in root[key].items()}
+            else:
+                root[key] = merge(root[key], fresh[key])
+        # entries the reset does not produce (action, policy outputs, user extras) are zeroed
+        extras = {key: _zero_where(done, value) for key, value in extras.items()}
+        return root, extras
+
+    # ------------------------------------------------------------------ TensorDict <-> entries
+    def entries_of(self, td: TensorDictBase, views: dict | None = None) -> dict:
+        """A step TensorDict's root entries in the internal layout.
+
+        ``views``: the ``{key: ([N, 1] view, [N] flag)}`` that :meth:`as_tensordict` made for
+        ``td``; a flag the policy left untouched maps back to the loop's own tensor.
+        """
+        entries = dict(td.items())
+        for key in _NESTED_ENV_KEYS:
+            entries[key] = dict(entries[key].items())
+        for key in _FLAG_KEYS:
+            flag = entries[key]
+            made = views.get(key) if views else None
+            entries[key] = made[1] if made is not None and made[0] is flag else flag.reshape(self.n)
+        return entries
+
+    def as_tensordict(self, entries: dict, views: dict | None = None) -> TensorDict:
+        """A ``[N]`` TensorDict of one step's entries (the TorchRL layout); see :meth:`entries_of`."""
+        source = {}
+        for key, value in entries.items():
+            if key in _NESTED_ENV_KEYS:
+                value = TensorDict(value, batch_size=self.bs, device=self.device)
+            elif key in _FLAG_KEYS or key == "reward":
+                view = value.unsqueeze(-1)
+                if views is not None:
+                    views[key] = (view, value)
+                value = view
+            source[key] = value
+        return TensorDict(source, batch_size=self.bs, device=self.device)
+
+    # ------------------------------------------------------------------ output
+    def build_output(self, roots: list[dict], nexts: list[dict], return_contiguous: bool) -> TensorDictBase:
+        """Stacks every entry along a new time dim 1: ``[N, T, ...]``, as EnvBase.rollout does."""
+        if any(r.keys() != roots[0].keys() for r in roots):
+            # a policy that writes different keys at different steps: let TensorDict decide, as EnvBase does
+            steps = [self.as_tensordict({**r, "next": self.as_tensordict(x)}) for r, x in zip(roots, nexts)]
+            if return_contiguous:
+                return torch.stack(steps, len(self.bs))
+            return LazyStackedTensorDict.maybe_dense_stack(steps, len(self.bs))
+        batch_size = torch.Size([self.n, len(roots)])
+
+        memo: dict = {}  # entries made of the very same tensors (e.g. "truncated" and "done") stack once
+
+        def stack_once(values):
+            ids = tuple(map(id, values))
+            if ids in memo:
+                return memo[ids].clone()
+            memo[ids] = result = _stack_time(values)
+            return result
+
+        def stacked(key, sub=None):
+            pick = (lambda d: d[key]) if sub is None else (lambda d: d[key][sub])
+            next_values = [pick(x) for x in nexts] if key in nexts[0] else None
+            next_stack = None if next_values is None else stack_once(next_values)
+            return _stack_root([pick(r) for r in roots], next_values, next_stack), next_stack
+
+        out, out_next = {}, {}
+        for key in roots[0]:
+            if key in _NESTED_ENV_KEYS:
+                leaves = {sub: stacked(key, sub) for sub in roots[0][key]}
+                out[key] = TensorDict({k: v[0] for k, v in leaves.items()}, batch_size=batch_size, device=self.device)
+                out_next[key] = TensorDict({k: v[1] for k, v in leaves.items()}, batch_size=batch_size,
+                                           device=self.device)
+            elif isinstance(roots[0][key], torch.Tensor):
+                out[key], next_stack = stacked(key)
+                if next_stack is not None:
+                    out_next[key] = next_stack
+            else:  # a policy's nested TensorDict
+                out[key] = torch.stack([r[key] for r in roots], dim=1)
+        for key in nexts[0]:
+            if key not in out_next:  # "reward"
+                out_next[key] = stack_once([x[key] for x in nexts])
+        for entries in (out, out_next):  # [N, T] -> [N, T, 1], TorchRL's layout
+            for key in (*_FLAG_KEYS, "reward"):
+                if key in entries:
+                    entries[key] = entries[key].unsqueeze(-1)
+        out["next"] = TensorDict(out_next, batch_size=batch_size, device=self.device)
+        return TensorDict(out, batch_size=batch_size, device=self.device)
+
+
+def _stack_time(values: list[torch.Tensor]) -> torch.Tensor:
+    """``torch.stack(values, dim=1)``, with runs of one repeated tensor copied in one go.
+
+    Entries that do not change between resets (the physical parameters, a goal position, the
+    ``terminated`` flag of a task without termination) appear as the same tensor object at many
+    steps; expanding it is the same data and the same gradient as stacking it.
+    """
+    runs: list[list] = []  # [tensor, repeat count]
+    for value in values:
+        if runs and runs[-1][0] is value:
+            runs[-1][1] += 1
+        else:
+            runs.append([value, 1])
+    if 4 * len(runs) > len(values):
+        return torch.stack(values, dim=1)
+    pieces = [v.unsqueeze(1).expand(v.shape[0], count, *v.shape[1:]) for v, count in runs]
+    return torch.cat(pieces, dim=1) if len(pieces) > 1 else pieces[0].clone()
+
+
+def _stack_root(root_values: list[torch.Tensor], next_values: list[torch.Tensor] | None,
+                next_stack: torch.Tensor | None) -> torch.Tensor:
+    """Stacks a root entry; where it is the previous step's ``"next"`` entry, copies that slice.
+
+    Between resets the root entry of step ``t + 1`` *is* the ``"next"`` entry of step ``t`` (the
+    same tensor, as ``step_mdp`` makes it): one contiguous copy of the stacked ``"next"`` entry
+    replaces a second strided stack. Reset steps contribute their own (merged) tensor.
+    """
+    if next_values is None:
+        return _stack_time(root_values)
+    pieces = [root_values[0].unsqueeze(1)]
+    start = None  # first step of the current run of steps that reuse "next" entries
+    for t in range(1, len(root_values)):
+        if root_values[t] is next_values[t - 1]:
+            if start is None:
+                start = t
+            continue
+        if start is not None:
+            pieces.append(next_stack[:, start - 1:t - 1])
+            start = None
+        pieces.append(root_values[t].unsqueeze(1))
+    if start is not None:
+        pieces.append(next_stack[:, start - 1:len(root_values) - 1])
+    return torch.cat(pieces, dim=1)
+
+
+def _zero_where(reset: torch.Tensor, value):
+    """``TensorDict.where(~reset, other=<nothing>, pad=0)`` for one entry."""
+    if isinstance(value, torch.Tensor):
+        keep = (~reset).reshape(reset.shape + (1,) * (value.ndim - 1))
+        return torch.where(keep, value, torch.tensor(0, dtype=value.dtype, device=value.device))
+    return value.where(~reset, other=value.empty(), pad=0)
+
+
+def _set_truncated_last_step(out_td: TensorDictBase) -> None:
+    """EnvBase.rollout(set_truncated=True): the last step is marked truncated (and done)."""
+    val = out_td.get(("next", "truncated"))
+    done = out_td.get(("next", "done"))
+    val[(slice(None),) * (out_td.ndim - 1) + (-1,)] = True
+    out_td.set(("next", "truncated"), val)
+    out_td.set(("next", "done"), val | done)
