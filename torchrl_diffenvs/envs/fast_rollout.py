@@ -30,6 +30,7 @@ What the lean loop reproduces, step by step (``EnvBase._rollout_nonstop`` /
 """
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -41,7 +42,7 @@ from torchrl.envs.utils import _make_compatible_policy
 if TYPE_CHECKING:  # pragma: no cover
     from .base import DiffEnv
 
-__all__ = ["fast_rollout", "fast_rollout_unsupported", "FAST_ROLLOUT_KWARGS"]
+__all__ = ["fast_rollout", "fast_rollout_unsupported", "compile_physics", "eager_physics", "FAST_ROLLOUT_KWARGS"]
 
 # Entries that the env owns at the root of a step TensorDict (everything else at the root, such as
 # "action" or a policy's "loc"/"scale", belongs to the policy or to the user).
@@ -175,6 +176,123 @@ def fast_rollout(
     return _Loop(env, policy, action_source, max_steps).run(td0, max_steps, break_when_any_done, return_contiguous, set_truncated)
 
 
+def _physics_steps(env: DiffEnv, plain_truncation: bool, state: dict, params: dict, episode_step: torch.Tensor,
+                   actions: list[torch.Tensor]) -> list[dict]:
+    """``DiffEnv._step`` on plain tensors, once per action: the ``"next"`` entries of each step.
+
+    Pure tensor code (``torch.compile`` traces it, see :func:`compile_physics`). Flags that need
+    no computation come back as ``None`` and :class:`_Physics` fills them in: ``"terminated"`` of
+    a task without termination, ``"done"`` when it equals ``"truncated"``, both when there is no
+    time limit either. The ``"params"`` entry is added by the caller (the input, unchanged).
+    """
+    out = []
+    for action in actions:
+        if env.clip_actions:
+            action = action.clamp(env.action_low, env.action_high)
+        state, reward, terminated = env.transition(state, action, params)
+        episode_step = episode_step + 1
+        if terminated is None and plain_truncation:
+            # DiffEnv._truncated with nothing terminated: one comparison, and done == truncated
+            truncated = None if env.max_episode_steps is None else episode_step >= env.max_episode_steps
+            done = None
+        else:
+            flags = terminated if terminated is not None else torch.zeros_like(episode_step, dtype=torch.bool)
+            truncated = env._truncated(episode_step, flags)
+            done = flags | truncated
+        out.append({
+            "observation": env.observation(state, params),
+            "state": state,
+            "episode_step": episode_step,
+            "terminated": terminated,
+            "truncated": truncated,
+            "done": done,
+            "reward": reward,
+        })
+    return out
+
+
+class _Physics:
+    """Runs :func:`_physics_steps` eagerly, or through the functions of :func:`compile_physics`."""
+
+    def __init__(self, env: DiffEnv, all_false: torch.Tensor):
+        from .base import DiffEnv  # local: base.py imports this module
+
+        self.env = env
+        self.all_false = all_false
+        self.plain_truncation = type(env)._truncated is DiffEnv._truncated
+        self.compiled = env.__dict__.get("_compiled_physics")
+        self.chunk = 1 if self.compiled is None else self.compiled.steps_per_chunk
+
+    def steps(self, state: dict, params: dict, episode_step: torch.Tensor, actions: list[torch.Tensor],
+              policy_step: bool = False) -> list[dict]:
+        for action in actions:
+            self.env._check_action(action)
+        if self.compiled is not None and (len(actions) == self.chunk or policy_step):
+            out = self.compiled(self.plain_truncation, state, params, episode_step, actions)
+        else:  # eager; with compiled chunks, only the last few steps of a rollout come here
+            out = _physics_steps(self.env, self.plain_truncation, state, params, episode_step, actions)
+        for nxt in out:
+            nxt["params"] = params
+            if nxt["terminated"] is None:
+                nxt["terminated"] = self.all_false
+            if nxt["truncated"] is None:
+                nxt["truncated"] = self.all_false
+            if nxt["done"] is None:
+                nxt["done"] = nxt["truncated"]
+        return out
+
+
+class _CompiledPhysics:
+    """``torch.compile``'d :func:`_physics_steps` for one env: chunks of ``K`` steps and single steps."""
+
+    def __init__(self, env: DiffEnv, steps_per_chunk: int, compile_kwargs: dict):
+        self.steps_per_chunk = steps_per_chunk
+        self.compile_kwargs = {"dynamic": False, **compile_kwargs}
+        self.env_ref = weakref.ref(env)  # the env holds this object: no reference cycle
+        self.functions: dict[tuple[int, bool], Callable] = {}  # (steps, plain_truncation) -> compiled
+
+    def __call__(self, plain_truncation, state, params, episode_step, actions) -> list[dict]:
+        """A full chunk, or one step (with a policy); called with ``len(actions)`` = one of them."""
+        key = (len(actions), plain_truncation)
+        fn = self.functions.get(key)
+        if fn is None:
+            env_ref = self.env_ref
+
+            def physics(state, params, episode_step, actions):
+                return _physics_steps(env_ref(), plain_truncation, state, params, episode_step, actions)
+
+            fn = self.functions[key] = torch.compile(physics, **self.compile_kwargs)
+        return fn(state, params, episode_step, actions)
+
+
+def compile_physics(env: DiffEnv, steps_per_chunk: int = 8, **compile_kwargs) -> DiffEnv:
+    """Opt-in: ``env.rollout`` runs its physics through ``torch.compile``; returns ``env``.
+
+    Without a policy (random actions, or ``actions=``) the lean rollout path steps
+    ``steps_per_chunk`` steps per compiled call (the physics of ``K`` steps fused into a few
+    kernels: no per-operation overhead); with a policy, one compiled step per policy call.
+    Resets stay eager: a chunk is cut at the first step where an env is done and the next chunk
+    starts after the reset, so the result is that of the eager path up to floating-point
+    rounding (fused kernels may round differently), gradients included.
+
+    Compilation happens on first use and takes seconds to tens of seconds per function (one for
+    chunks, one for single steps, and again for the backward pass); it pays off for long or
+    repeated rollouts, mostly at small and medium batch sizes (see docs, Performance).
+    ``compile_kwargs`` go to ``torch.compile`` (default ``dynamic=False``). Undo with
+    :func:`eager_physics`. ``EnvBase.rollout`` and ``env.step`` are not affected.
+    """
+    if isinstance(steps_per_chunk, bool) or not isinstance(steps_per_chunk, int) or steps_per_chunk < 1:
+        raise ValueError(f"compile_physics: steps_per_chunk must be a positive integer, got {steps_per_chunk!r}")
+    env.__dict__["_compiled_physics"] = _CompiledPhysics(env, steps_per_chunk, compile_kwargs)
+    return env
+
+
+def eager_physics(env: DiffEnv) -> DiffEnv:
+    """Undoes :func:`compile_physics`; returns ``env``."""
+    env.__dict__.pop("_compiled_physics", None)
+    return env
+
+
 class _RandomActions:
     """The random actions of ``EnvBase.rollout`` without a policy: ``action_spec.rand()`` per step.
 
@@ -237,8 +355,6 @@ class _Loop:
     """
 
     def __init__(self, env: DiffEnv, policy, action_source, max_steps: int):
-        from .base import DiffEnv
-
         self.env = env
         self.policy = policy
         self.action_source = action_source if action_source is not None or policy is not None else _RandomActions(env, max_steps)
@@ -246,8 +362,7 @@ class _Loop:
         self.bs = env.batch_size
         self.device = env.device
         self.all_false = torch.zeros(self.n, dtype=torch.bool, device=self.device)
-        # DiffEnv's own rule without termination reduces to one comparison (same values)
-        self.plain_truncation = type(env)._truncated is DiffEnv._truncated
+        self.physics = _Physics(env, self.all_false)
 
     # ------------------------------------------------------------------ main loop
     def run(self, td0: TensorDictBase, max_steps: int, break_when_any_done: bool, return_contiguous: bool,
@@ -258,31 +373,47 @@ class _Loop:
         root = {key: root[key] for key in _ENV_KEYS}
         roots: list[dict] = []
         nexts: list[dict] = []
-        for t in range(max_steps):
+        queued: list[torch.Tensor] = []  # drawn actions that a reset inside a chunk left unused
+        t, finished = 0, False
+        while not finished:
             if self.policy is not None:
                 # step 0 runs on the input TensorDict itself, as in EnvBase
                 views: dict = {}
                 td = td0 if t == 0 else self.as_tensordict({**root, **extras}, views)
                 root_t = self.call_policy(td, views)  # what the policy leaves at the root is what TorchRL stores
-                action = root_t["action"]
+                actions = [root_t["action"]]
+                start = root_t
             else:
-                action = next(self.action_source)
+                chunk = min(self.physics.chunk, max_steps - t)
+                while len(queued) < chunk:
+                    queued.append(next(self.action_source))
+                actions, queued = queued[:chunk], queued[chunk:]
                 if t == 0:  # EnvBase writes step 0's action into the input tensordict
-                    td0.set("action", action.clone() if isinstance(self.action_source, _RandomActions) else action)
-                root_t = {**root, **extras, "action": action}
-            roots.append(root_t)
-            nxt = self.step(root_t, action)
-            nexts.append(nxt)
-            if t == max_steps - 1:
-                break
-            any_done = bool(nxt["done"].any())
-            if break_when_any_done and any_done:
-                break
-            # step_mdp: the next root is the "next" entries plus whatever else was at the root
-            root = {key: nxt[key] for key in _ENV_KEYS}
-            extras = {key: value for key, value in root_t.items() if key not in _ENV_KEYS}
-            if any_done:  # only without break_when_any_done
-                root, extras = self.reset_done(nxt["done"], root, extras)
+                    first = actions[0]
+                    td0.set("action", first.clone() if isinstance(self.action_source, _RandomActions) else first)
+                start = root
+            nxts = self.physics.steps(start["state"], start["params"], start["episode_step"], actions,
+                                      policy_step=self.policy is not None)
+            for j, nxt in enumerate(nxts):
+                if self.policy is None:
+                    root_t = {**root, **extras, "action": actions[j]}
+                roots.append(root_t)
+                nexts.append(nxt)
+                t += 1
+                if t == max_steps:
+                    finished = True
+                    break
+                any_done = bool(nxt["done"].any())
+                if break_when_any_done and any_done:
+                    finished = True
+                    break
+                # step_mdp: the next root is the "next" entries plus whatever else was at the root
+                root = {key: nxt[key] for key in _ENV_KEYS}
+                extras = {key: value for key, value in root_t.items() if key not in _ENV_KEYS}
+                if any_done:  # only without break_when_any_done
+                    root, extras = self.reset_done(nxt["done"], root, extras)
+                    queued = actions[j + 1:] + queued  # the rest of the chunk ran without this reset
+                    break
 
         if isinstance(self.action_source, _RandomActions):
             self.action_source.close()
@@ -304,37 +435,6 @@ class _Loop:
         if "action" not in entries:
             raise KeyError(f"{self.env.name}: the policy wrote no 'action' entry (keys: {sorted(entries)})")
         return entries
-
-    def step(self, root: dict, action: torch.Tensor) -> dict:
-        """``DiffEnv._step`` on plain tensors: returns the ``"next"`` entries of one step."""
-        env = self.env
-        env._check_action(action)
-        if env.clip_actions:
-            action = action.clamp(env.action_low, env.action_high)
-        params = root["params"]
-        state, reward, terminated = env.transition(root["state"], action, params)
-        episode_step = root["episode_step"] + 1
-        if terminated is None and self.plain_truncation:
-            terminated = self.all_false
-            if env.max_episode_steps is None:
-                truncated = done = self.all_false
-            else:  # (episode_step >= max) & ~False
-                truncated = done = episode_step >= env.max_episode_steps
-        else:
-            if terminated is None:
-                terminated = self.all_false
-            truncated = env._truncated(episode_step, terminated)
-            done = terminated | truncated
-        return {
-            "observation": env.observation(state, params),
-            "state": state,
-            "params": params,
-            "episode_step": episode_step,
-            "terminated": terminated,
-            "truncated": truncated,
-            "done": done,
-            "reward": reward,
-        }
 
     def reset_done(self, done: torch.Tensor, root: dict, extras: dict) -> tuple[dict, dict]:
         """``maybe_reset``: fresh start states for the done envs, the graph cut there only."""
