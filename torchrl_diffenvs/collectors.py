@@ -46,6 +46,14 @@ class DiffWindowCollector:
         total_windows: iteration stops after this many windows; ``None`` iterates forever.
         exploration_type: exploration mode for the policy.
         keep_returns: how many finished-episode returns :attr:`episode_returns` keeps.
+        start_state: if given, every window starts from this TensorDict's ``"state"``
+            (``env.reset(start_state, set_state=True)``) instead of continuing the previous
+            one: fixed-start trajectory optimisation.
+        stagger_episodes: after the first reset, give every env a random ``"episode_step"`` in
+            ``[0, max_episode_steps)`` so that the envs' episodes end at different times
+            instead of all together (their first episodes are shorter). This decorrelates the
+            batch; it needs an env with ``max_episode_steps``.
+        generator: torch generator for ``stagger_episodes`` (seeding).
 
     Attributes:
         episode_returns: the undiscounted returns of the most recently finished episodes.
@@ -71,6 +79,9 @@ class DiffWindowCollector:
         *,
         exploration_type: ExplorationType = ExplorationType.RANDOM,
         keep_returns: int = 100,
+        start_state: TensorDictBase | None = None,
+        stagger_episodes: bool = False,
+        generator: torch.Generator | None = None,
     ):
         if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
             raise ValueError(f"DiffWindowCollector: horizon must be a positive integer, got {horizon!r}")
@@ -83,6 +94,11 @@ class DiffWindowCollector:
         self.horizon = horizon
         self.total_windows = total_windows
         self.exploration_type = exploration_type
+        self.start_state = start_state
+        self.stagger_episodes = stagger_episodes
+        self.generator = generator
+        if stagger_episodes and getattr(env, "max_episode_steps", None) is None:
+            raise ValueError("DiffWindowCollector: stagger_episodes needs an env with max_episode_steps")
         self.episode_returns: deque[float] = deque(maxlen=keep_returns)
         self.windows = 0
         # what the env needs to continue: its observation/state entries and the done flags
@@ -107,6 +123,10 @@ class DiffWindowCollector:
         """
         td = self.env.reset(tensordict, **reset_kwargs) if tensordict is not None else self.env.reset(**reset_kwargs)
         self._carried = td.select(*self._carry_keys, strict=False).detach()
+        if self.stagger_episodes:
+            step = self._carried.get("episode_step")
+            offset = torch.randint(self.env.max_episode_steps, step.shape, generator=self.generator, device="cpu")
+            self._carried.set("episode_step", step + offset.to(step.device))
         self._running_return = torch.zeros(self.num_envs, dtype=torch.float64, device=self.env.device)
         return self._carried
 
@@ -141,7 +161,9 @@ class DiffWindowCollector:
     # ------------------------------------------------------------------ collection
     def rollout(self) -> TensorDictBase:
         """Collects and returns the next window ``[N, H]`` (graph on)."""
-        if self._carried is None:
+        if self.start_state is not None:
+            self.reset(self.start_state, set_state=True)
+        elif self._carried is None:
             self.reset()
         with torch.enable_grad(), set_exploration_type(self.exploration_type):
             # the carried TensorDict is detached: the graph starts here
