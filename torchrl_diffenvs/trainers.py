@@ -103,12 +103,13 @@ class GradientTrainer:
         self.total_iterations = total_iterations
         self.is_shac = isinstance(loss, SHACLoss)
         self.actor_params = list(loss.actor_network.parameters())
-        self.actor_optim = torch.optim.Adam(self.actor_params, lr=actor_lr, betas=betas)
+        # foreach: one kernel per Adam operation for all tensors (about 2x faster for small nets on CPU)
+        self.actor_optim = torch.optim.Adam(self.actor_params, lr=actor_lr, betas=betas, foreach=True)
         self.actor_guard = GradientGuard(max_norm=max_grad_norm, skip_above=skip_above)
         self.optimizers = [self.actor_optim]
         if self.is_shac:
             self.critic_params = list(loss.critic_network.parameters())
-            self.critic_optim = torch.optim.Adam(self.critic_params, lr=critic_lr, betas=betas)
+            self.critic_optim = torch.optim.Adam(self.critic_params, lr=critic_lr, betas=betas, foreach=True)
             self.critic_guard = GradientGuard(max_norm=max_grad_norm, skip_above=skip_above)
             self.target_updater = loss.make_target_updater(tau=target_tau)
             self.critic_passes, self.critic_minibatches = critic_passes, critic_minibatches

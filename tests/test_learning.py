@@ -1,0 +1,94 @@
+"""Short seeded learning checks on the Ivy-style Pendulum (default physics, 100-step episodes).
+
+Reference points (mean per-step reward of 100-step episodes from random starts): a policy of
+uniformly random actions scores about 0.45 (measured in each test); an untrained network 0.35-0.5;
+a hand-written energy-pumping + PD swing-up controller 0.75 (the swing-up from the bottom takes
+several seconds with this motor, so no policy gets near 1). Gradient learners first sit on a
+plateau near 0.49 (the pendulum is left swinging) and then learn to pump energy; a policy scoring
+above 0.6 swings the pendulum up from most starts.
+"""
+import math
+
+import pytest
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from torchrl_diffenvs import make_env
+from torchrl_diffenvs.collectors import DiffWindowCollector
+from torchrl_diffenvs.modules import ObservationNormalizer, OpenLoopActor, make_actor, make_critic
+from torchrl_diffenvs.objectives import BPTTLoss, SHACLoss
+from torchrl_diffenvs.trainers import GradientTrainer, evaluate_policy
+
+
+class UniformRandomPolicy(TensorDictModuleBase):
+    def __init__(self, env, seed=0):
+        super().__init__()
+        self.in_keys, self.out_keys = ["observation"], ["action"]
+        self.env, self.gen = env, torch.Generator().manual_seed(seed)
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        td.set("action", torch.rand(self.env.num_envs, self.env.action_dim, generator=self.gen) * 2 - 1)
+        return td
+
+
+@pytest.fixture(scope="module")
+def eval_env():
+    return make_env("pendulum", num_envs=128, seed=1234)
+
+
+@pytest.fixture(scope="module")
+def random_policy_reward(eval_env):
+    return evaluate_policy(eval_env, UniformRandomPolicy(eval_env))["reward_mean"]
+
+
+def test_trajectory_optimisation_swings_the_pendulum_up():
+    """Ivy's optimize_trajectory: an open-loop table from the bottom at rest, full-episode BPTT."""
+    torch.manual_seed(0)
+    env = make_env("pendulum", num_envs=1, seed=0, max_episode_steps=100)
+    start = env.reset()
+    start["state", "th"] = torch.tensor([math.pi])  # hanging down, at rest: reward ~0
+    start["state", "thd"] = torch.tensor([0.0])
+    actor = OpenLoopActor.from_env(env, generator=torch.Generator().manual_seed(0))
+    collector = DiffWindowCollector(env, actor, horizon=100, start_state=start)
+    trainer = GradientTrainer(
+        collector, BPTTLoss(actor), actor_lr=0.1, betas=(0.9, 0.999), lr_schedule="constant", max_grad_norm=None
+    )
+    returns = [trainer.step()["reward_mean"] * 100 for _ in range(25)]
+    assert returns[0] < 1.0
+    assert max(returns[-5:]) > 15.0, returns  # the pendulum gets well above the horizontal
+
+
+def test_bptt_learns_to_swing_up(eval_env, random_policy_reward):
+    """BPTT over 16-step windows with carried state, Ivy's deterministic tanh policy, N=64."""
+    torch.manual_seed(0)
+    env = make_env("pendulum", num_envs=64, seed=0)
+    normalizer = ObservationNormalizer(env.observation_dim)
+    actor = make_actor(env, distribution="deterministic", normalizer=normalizer)
+    trainer = GradientTrainer(
+        DiffWindowCollector(env, actor, horizon=16), BPTTLoss(actor), actor_lr=1e-2, total_iterations=1000,
+        normalizer=normalizer,
+    )
+    before = evaluate_policy(eval_env, actor)["reward_mean"]
+    trainer.train(160, progress=False)
+    after = evaluate_policy(eval_env, actor)["reward_mean"]
+    assert random_policy_reward < 0.5 and before < 0.5
+    assert after > 0.6, (random_policy_reward, before, after)
+
+
+def test_shac_learns_to_swing_up(eval_env, random_policy_reward):
+    """SHAC: 16-step windows closed by the target critic, TanhNormal policy, N=64."""
+    torch.manual_seed(0)
+    env = make_env("pendulum", num_envs=64, seed=0)
+    normalizer = ObservationNormalizer(env.observation_dim)
+    actor = make_actor(env, normalizer=normalizer)
+    loss = SHACLoss(actor, make_critic(env, normalizer=normalizer))
+    trainer = GradientTrainer(
+        DiffWindowCollector(env, actor, horizon=16), loss, actor_lr=1e-2, total_iterations=1000,
+        critic_passes=2, critic_minibatches=2, normalizer=normalizer,
+    )
+    before = evaluate_policy(eval_env, actor)["reward_mean"]
+    trainer.train(140, progress=False)
+    after = evaluate_policy(eval_env, actor)["reward_mean"]
+    assert random_policy_reward < 0.5 and before < 0.5
+    assert after > 0.6, (random_policy_reward, before, after)
