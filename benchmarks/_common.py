@@ -1,0 +1,141 @@
+"""Shared harness of the benchmark scripts: arguments, timing, tables, JSON.
+
+Measurement rules (the machine these run on is usually shared, 2 CPU cores):
+
+* one torch intra-op thread by default (``--threads 2`` for two); the count is recorded;
+* candidates are timed *interleaved*: round ``r`` runs every candidate once, so a burst of load
+  from another process hits all of them; ratios are taken within a round, then the median
+  over rounds is reported;
+* every timing records wall-clock time and the process's CPU time (user + system, which
+  includes page faults). On a busy machine the wall clock also counts the time the process
+  waited for a core; CPU time does not, so CPU-time rates and ratios are the steadier ones.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+def base_parser(description: str) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--quick", action="store_true", help="tiny sizes and 2 repeats: a smoke run in seconds")
+    parser.add_argument("--threads", type=int, default=1, choices=(1, 2), help="torch intra-op threads (default 1)")
+    parser.add_argument("--repeats", type=int, default=None, help="timed rounds per configuration")
+    parser.add_argument("--out", type=Path, default=None, help="JSON output path (default benchmarks/results/<name>.json)")
+    return parser
+
+
+def setup_threads(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+    # gymnasium's numpy and any BLAS follow the same limit
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, str(threads))
+
+
+def versions() -> dict:
+    import gymnasium
+    import numpy
+    import tensordict
+    import torch
+    import torchrl
+
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torchrl": torchrl.__version__,
+        "tensordict": tensordict.__version__,
+        "gymnasium": gymnasium.__version__,
+        "numpy": numpy.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "cpu_count": os.cpu_count(),
+        "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+        "platform": platform.platform(),
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+    }
+
+
+def print_header(title: str, info: dict) -> None:
+    print(f"# {title}")
+    for key, value in info.items():
+        print(f"#   {key}: {value}")
+
+
+def cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def timed(fn: Callable[[], object]) -> tuple[float, float]:
+    """(wall seconds, CPU seconds) of one call; the result is dropped before returning."""
+    wall, cpu = time.perf_counter(), cpu_seconds()
+    result = fn()
+    wall, cpu = time.perf_counter() - wall, cpu_seconds() - cpu
+    del result
+    return wall, cpu
+
+
+def interleaved(candidates: dict[str, Callable[[], object]], rounds: int, warmup: int = 1) -> dict[str, dict]:
+    """Times each candidate ``rounds`` times, round-robin; returns per-candidate lists."""
+    for fn in candidates.values():
+        for _ in range(warmup):
+            fn()
+    out = {name: {"wall": [], "cpu": []} for name in candidates}
+    for _ in range(rounds):
+        for name, fn in candidates.items():
+            wall, cpu = timed(fn)
+            out[name]["wall"].append(wall)
+            out[name]["cpu"].append(cpu)
+    return out
+
+
+def spread(values: Sequence[float]) -> dict:
+    return {"min": min(values), "median": statistics.median(values), "max": max(values)}
+
+
+def median_ratio(numerator: Sequence[float], denominator: Sequence[float]) -> float:
+    """Median over rounds of ``numerator[r] / denominator[r]``."""
+    return statistics.median(a / b for a, b in zip(numerator, denominator))
+
+
+def fmt_rate(x: float | None) -> str:
+    if x is None:
+        return "-"
+    for unit, scale in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
+        if x >= scale:
+            return f"{x / scale:.3g}{unit}"
+    return f"{x:.3g}"
+
+
+def fmt_ratio(x: float | None) -> str:
+    return "-" if x is None else (f"{x:.3g}x" if x < 100 else f"{x:.0f}x")
+
+
+def print_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    """Prints (and returns) a Markdown table."""
+    cells = [[str(c) for c in headers]] + [[str(c) for c in row] for row in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |" for r in cells]
+    lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    text = "\n".join(lines)
+    print(text)
+    return text
+
+
+def write_json(name: str, payload: dict, out: Path | None) -> Path:
+    path = out if out is not None else RESULTS_DIR / f"{name}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(payload, indent=1, default=str) + "\n")
+    print(f"# wrote {path}")
+    return path

@@ -1,0 +1,213 @@
+"""Env throughput without gradients: env-steps per second, ours vs the tools users would pick.
+
+For every registered task and N in {1, 64, 1024, 16384}, timed interleaved in one process:
+
+* ``ours``: ``env.rollout(T, break_when_any_done=False)`` under ``torch.no_grad`` (the lean
+  path of ``DiffEnv.rollout``; random actions, auto-resets included);
+* ``EnvBase.rollout``: TorchRL's generic rollout on the same env (what ``ours`` replaces);
+* ``raw``: a plain torch loop over the same task's pure physics (``transition`` +
+  ``observation`` with random actions on plain tensors; no resets, no TensorDicts, nothing
+  kept): the speed limit of eager torch for this physics;
+* ``ours compiled`` (``--compile``): ``compile_physics(env, steps_per_chunk=8)``; its
+  compile time is reported separately;
+* for the Gymnasium ids: gymnasium's ``SyncVectorEnv`` of the same task and, for CartPole-v1,
+  gymnasium's own numpy-vectorised CartPole (``make_vec(vectorization_mode=
+  "vector_entry_point")``), stepping with ``action_space.sample()``;
+* per N, TorchRL's own ``PendulumEnv`` (batch ``[N]``) rollout, for reference.
+
+Unit: env-steps/s = batched steps/s x N, from CPU time (see benchmarks/_common.py); wall-clock
+rates are in the JSON. ``T`` is the same for ours / EnvBase / raw (1000 steps, fewer at large N
+to bound memory: the rollout output is 100-300 bytes per env-step); gymnasium and TorchRL's
+PendulumEnv run as many steps as fit in about a quarter of a second.
+
+    python benchmarks/env_throughput.py            # full run, several minutes
+    python benchmarks/env_throughput.py --quick    # smoke run, seconds
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+import warnings
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
+
+GYM_IDS = ("CartPole-v1", "Pendulum-v1", "MountainCarContinuous-v0")
+
+
+def raw_loop(env, steps: int):
+    """The task's physics in a plain torch loop: random actions, transition, observation."""
+    import torch
+
+    params = dict(env.params.items())
+    state = env.initial_state(env.params, env.num_envs)
+    low, span = env.action_low, env.action_high - env.action_low
+    shape = (env.num_envs, env.action_dim)
+    for _ in range(steps):
+        action = torch.rand(shape, dtype=env.float_dtype) * span + low
+        state, reward, terminated = env.transition(state, action, params)
+        observation = env.observation(state, params)
+    return observation, reward
+
+
+def raw_pendulum_by_hand(num_envs: int, steps: int):
+    """The Ivy pendulum written out by hand with scalar parameters (a sanity check of ``raw``)."""
+    import torch
+
+    th = torch.rand(num_envs) * 2 * math.pi - math.pi
+    thd = torch.rand(num_envs) * 2 - 1
+    g, m, length, dt, max_torque = 9.8, 1.0, 1.0, 0.05, 1.0
+    for _ in range(steps):
+        torque = max_torque * (torch.rand(num_envs, 1) * 2 - 1)[..., 0]
+        thd = thd + dt * (3 * g / (2 * length) * torch.sin(th) + 3 / (m * length**2) * torque)
+        th = th + dt * thd
+        reward = (torch.cos(th) + 1) / 2
+        observation = torch.stack([torch.cos(th), torch.sin(th), thd], dim=-1)
+    return observation, reward
+
+
+def gym_loop(vec_env, steps: int):
+    for _ in range(steps):
+        vec_env.step(vec_env.action_space.sample())
+
+
+def calibrated_steps(fn_of_steps, target_seconds: float, max_steps: int) -> int:
+    """Steps for one timed call of about ``target_seconds`` (from a 2-step trial)."""
+    start = time.perf_counter()
+    fn_of_steps(2)
+    per_step = (time.perf_counter() - start) / 2
+    return int(max(2, min(max_steps, target_seconds / max(per_step, 1e-9))))
+
+
+def main(argv=None) -> dict:
+    parser = C.base_parser(__doc__.splitlines()[0])
+    parser.add_argument("--tasks", nargs="*", default=None, help="task names (default: every registered env)")
+    parser.add_argument("--sizes", nargs="*", type=int, default=None, help="batch sizes N (default 1 64 1024 16384)")
+    parser.add_argument("--compile", action="store_true", help="also time compile_physics (compiles per task and N)")
+    parser.add_argument("--no-gym", action="store_true", help="skip gymnasium and TorchRL's PendulumEnv")
+    args = parser.parse_args(argv)
+    C.setup_threads(args.threads)
+
+    import gymnasium
+    import torch
+    from torchrl.envs import EnvBase
+    from torchrl.envs import PendulumEnv as TorchRLPendulum
+
+    from torchrl_diffenvs import list_envs, make_env
+    from torchrl_diffenvs.envs.fast_rollout import compile_physics
+
+    quick = args.quick
+    tasks = args.tasks or (["pendulum", "Pendulum-v1", "CartPole-v1"] if quick else list_envs())
+    sizes = args.sizes or ([4] if quick else [1, 64, 1024, 16384])
+    rounds = args.repeats or (2 if quick else 5)
+    target_seconds = 0.01 if quick else 0.25
+    info = C.versions()
+    C.print_header("env throughput, no grad (env-steps/s from CPU time)", info)
+
+    results = []  # one dict per (task, N)
+    for n in sizes:
+        steps = 5 if quick else max(10, min(1000, 1_000_000 // n))
+        reference = {}  # TorchRL's PendulumEnv for this N
+        if not args.no_gym:
+            trl = TorchRLPendulum()
+            start = trl.reset(trl.gen_params(batch_size=[n]), set_state=False)
+            trl_steps = calibrated_steps(
+                lambda k: trl.rollout(k, tensordict=start.clone(), auto_reset=False, break_when_any_done=False),
+                target_seconds, steps)
+            reference["torchrl PendulumEnv"] = (
+                lambda: trl.rollout(trl_steps, tensordict=start.clone(), auto_reset=False, break_when_any_done=False),
+                trl_steps)
+        for task in tasks:
+            env = make_env(task, num_envs=n, seed=0)
+            candidates = {
+                "ours": (lambda env=env: env.rollout(steps, break_when_any_done=False), steps),
+                "EnvBase.rollout": (lambda env=env: EnvBase.rollout(env, steps, break_when_any_done=False), steps),
+                "raw": (lambda env=env: raw_loop(env, steps), steps),
+            }
+            if task == "pendulum":
+                candidates["raw by hand"] = (lambda: raw_pendulum_by_hand(n, steps), steps)
+            compile_seconds = None
+            if args.compile:
+                cenv = compile_physics(make_env(task, num_envs=n, seed=0), steps_per_chunk=8)
+                with torch.no_grad():
+                    t0 = time.perf_counter()
+                    cenv.rollout(16, break_when_any_done=False)  # compiles the 8-step chunk
+                    compile_seconds = time.perf_counter() - t0
+                candidates["ours compiled"] = (lambda cenv=cenv: cenv.rollout(steps, break_when_any_done=False), steps)
+            gym_envs = []
+            if not args.no_gym and task in GYM_IDS:
+                modes = [("gymnasium SyncVectorEnv", "sync")]
+                if task == "CartPole-v1":
+                    modes.append(("gymnasium vectorised CartPole", "vector_entry_point"))
+                for label, mode in modes:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        vec = gymnasium.make_vec(task, num_envs=n, vectorization_mode=mode)
+                    vec.reset(seed=0)
+                    vec.action_space.seed(0)
+                    gym_envs.append(vec)
+                    k = calibrated_steps(lambda k, vec=vec: gym_loop(vec, k), target_seconds, 1000)
+                    candidates[label] = (lambda vec=vec, k=k: gym_loop(vec, k), k)
+            if task in ("pendulum", "Pendulum-v1"):
+                candidates.update(reference)
+            with torch.no_grad():
+                timings = C.interleaved({name: fn for name, (fn, _) in candidates.items()}, rounds)
+            for vec in gym_envs:
+                vec.close()
+            row = {"task": task, "N": n, "compile_seconds": compile_seconds, "candidates": {}}
+            for name, (_, k) in candidates.items():
+                t = timings[name]
+                row["candidates"][name] = {
+                    "steps": k,
+                    "env_steps_per_s_cpu": C.spread([n * k / s for s in t["cpu"]]),
+                    "env_steps_per_s_wall": C.spread([n * k / s for s in t["wall"]]),
+                    "cpu_rates": [n * k / s for s in t["cpu"]],
+                }
+            rates = {name: c["cpu_rates"] for name, c in row["candidates"].items()}
+            row["ratios_cpu"] = {
+                f"ours / {other}": C.median_ratio(rates["ours"], rates[other]) for other in rates if other != "ours"
+            }
+            wall_rates = {name: [n * k / s for s in timings[name]["wall"]] for name, (_, k) in candidates.items()}
+            row["ratios_wall"] = {
+                f"ours / {other}": C.median_ratio(wall_rates["ours"], wall_rates[other])
+                for other in wall_rates if other != "ours"
+            }
+            results.append(row)
+            print(f"# {task:>26s} N={n:<6d} " + "  ".join(
+                f"{name}={C.fmt_rate(c['env_steps_per_s_cpu']['median'])}" for name, c in row["candidates"].items()))
+
+    print("\n## env-steps/s (median over rounds, CPU time; min-max in the JSON)")
+    names = []
+    for row in results:
+        names += [name for name in row["candidates"] if name not in names]
+    table = C.print_table(
+        ["task", "N", *names],
+        [[r["task"], r["N"], *[C.fmt_rate(r["candidates"][nm]["env_steps_per_s_cpu"]["median"])
+                               if nm in r["candidates"] else "-" for nm in names]] for r in results],
+    )
+    print("\n## ratios: ours / other (median of per-round ratios; CPU time | wall clock)")
+    others = [nm for nm in names if nm != "ours"]
+    ratio_table = C.print_table(
+        ["task", "N", *others],
+        [[r["task"], r["N"], *[
+            f"{C.fmt_ratio(r['ratios_cpu'][f'ours / {nm}'])} | {C.fmt_ratio(r['ratios_wall'][f'ours / {nm}'])}"
+            if f"ours / {nm}" in r["ratios_cpu"] else "-" for nm in others]] for r in results],
+    )
+    if args.compile:
+        print("\n## compile_physics: compile time of the 8-step chunk (first rollout)")
+        C.print_table(["task", "N", "compile s", "ours compiled / ours"],
+                      [[r["task"], r["N"], f"{r['compile_seconds']:.1f}",
+                        C.fmt_ratio(1 / r["ratios_cpu"]["ours / ours compiled"])] for r in results])
+    for row in results:
+        for c in row["candidates"].values():
+            c.pop("cpu_rates")
+    payload = {"benchmark": "env_throughput", "info": info, "rounds": rounds, "results": results,
+               "table": table, "ratio_table": ratio_table}
+    C.write_json("env_throughput" + ("_quick" if quick else ""), payload, args.out)
+    return payload
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,192 @@
+"""Time to solve: SHAC vs BPTT vs PPO vs SAC on the swing-up tasks, in one run, same seeds.
+
+Drives the project's public training entry point, ``sota_scripts/train.py`` (its ``run``
+function, on configurations composed by Hydra exactly as the command line composes them: the
+defaults of configs/, the tuned per-pair files of configs/tuned/, then the overrides below).
+Runs are interleaved (seed by seed, loss by loss) so that load from other processes spreads
+over all learners. Each run logs deterministic evaluations (``eval/return``, the mean return of
+``eval.num_envs`` fixed start states) against env steps; the wall time of an evaluation is the
+run's ``time/wall_s`` at that env step (training time, earlier evaluations included).
+
+Reported per env and loss, over seeds (median, min-max): the final evaluation return, the wall
+time and env steps of the run, and the wall time at which the evaluation return first reached
+PPO's final return (the median over seeds of PPO's last evaluation): ``speed-up vs PPO`` is
+PPO's time to its own final level divided by that time. The issue's target: SHAC >= 10x on
+the pendulum.
+
+    python benchmarks/time_to_solve.py                          # pendulum + cartpole, seeds 0 1 2
+    python benchmarks/time_to_solve.py --envs pendulum --seeds 0 --steps ppo=500000
+    python benchmarks/time_to_solve.py --quick                  # a few iterations each: smoke run
+"""
+from __future__ import annotations
+
+import importlib.util
+import math
+import shutil
+import statistics
+import sys
+import json
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "sota_scripts" / "train.py"
+CONFIGS = ROOT / "configs"
+LOSSES = ("shac", "bptt", "ppo", "sac")
+
+# --quick: tiny networks and batches, a few iterations per learner (mirrors tests/test_train.py)
+QUICK = {
+    "common": ["env.num_envs=4", "env.max_episode_steps=12", "eval.num_envs=2", "eval.interval=16"],
+    "bptt": ["loss.horizon=4", "loss.actor.hidden=[16]", "train.total_env_steps=32"],
+    "shac": ["loss.horizon=4", "loss.actor.hidden=[16]", "loss.critic.hidden=[16]", "loss.critic_passes=2",
+             "loss.critic_minibatches=2", "train.total_env_steps=32"],
+    "ppo": ["loss.rollout_len=4", "loss.epochs=2", "loss.minibatch_size=8", "loss.actor.hidden=[16]",
+            "loss.critic.hidden=[16]", "train.total_env_steps=32"],
+    "sac": ["loss.rollout_len=2", "loss.init_random_frames=8", "loss.batch_size=8", "loss.buffer_size=256",
+            "loss.actor.hidden=[16]", "loss.qvalue.hidden=[16]", "train.total_env_steps=32"],
+}
+
+
+def load_train_script():
+    if not SCRIPT.exists():
+        raise SystemExit(f"time_to_solve: waiting on the training script: {SCRIPT} does not exist yet")
+    spec = importlib.util.spec_from_file_location("train_script", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def compose(overrides: list[str]):
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return hydra_compose(config_name="config", overrides=overrides)
+
+
+def eval_curve(run_dir: Path) -> list[tuple[int, float, float]]:
+    """``(env_steps, wall_s, eval_return)`` of every evaluation in ``metrics.jsonl``."""
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    wall_at = {0: 0.0}
+    for row in rows:
+        if "time/wall_s" in row:
+            wall_at[row["env_steps"]] = row["time/wall_s"]
+    curve = []
+    for row in rows:
+        if "eval/return" in row:
+            steps = row["env_steps"]
+            known = [s for s in wall_at if s <= steps]
+            curve.append((steps, wall_at[max(known)], row["eval/return"]))
+    return curve
+
+
+def first_time_at(curve, threshold: float) -> float:
+    """Wall time of the first evaluation at or above ``threshold`` (inf if never)."""
+    for _, wall, value in curve:
+        if value >= threshold:
+            return wall
+    return math.inf
+
+
+def speedup(reference_s: float, time_s: float) -> float | None:
+    """``reference_s / time_s``; ``None`` when ``time_s`` never came (inf) or both are 0."""
+    if not math.isfinite(time_s) or not math.isfinite(reference_s):
+        return None
+    if time_s == 0:
+        return None if reference_s == 0 else math.inf
+    return reference_s / time_s
+
+
+def main(argv=None) -> dict:
+    parser = C.base_parser(__doc__.splitlines()[0])
+    parser.add_argument("--envs", nargs="*", default=None, help="envs (default: pendulum cartpole)")
+    parser.add_argument("--losses", nargs="*", default=list(LOSSES), choices=LOSSES)
+    parser.add_argument("--seeds", nargs="*", type=int, default=None, help="seeds (default 0 1 2)")
+    parser.add_argument("--steps", nargs="*", default=[], metavar="LOSS=N",
+                        help="env-step budget per loss (default: each pair's configured train.total_env_steps)")
+    parser.add_argument("--eval-interval", type=int, default=None, help="env steps between evaluations")
+    parser.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
+    parser.add_argument("--keep-runs", type=Path, default=None, help="keep the run directories here")
+    args = parser.parse_args(argv)
+    C.setup_threads(args.threads)
+    train_script = load_train_script()
+
+    quick = args.quick
+    envs = args.envs or (["pendulum"] if quick else ["pendulum", "cartpole"])
+    seeds = args.seeds if args.seeds is not None else ([0] if quick else [0, 1, 2])
+    budgets = dict(item.split("=", 1) for item in args.steps)
+    info = C.versions()
+    C.print_header("time to solve (sota_scripts/train.py, interleaved runs)", info)
+    runs_root = args.keep_runs or Path(tempfile.mkdtemp(prefix="time_to_solve_"))
+
+    runs = []
+    for seed in seeds:
+        for env in envs:
+            for loss in args.losses:
+                overrides = [f"env={env}", f"loss={loss}", f"seed={seed}", "logger=none",
+                             "train.progress_bar=false", "eval.gif=false"]
+                if quick:
+                    overrides += QUICK["common"] + QUICK[loss]
+                if args.eval_interval:
+                    overrides.append(f"eval.interval={args.eval_interval}")
+                if loss in budgets:
+                    overrides.append(f"train.total_env_steps={budgets[loss]}")
+                overrides += args.override
+                run_dir = runs_root / f"{env}_{loss}_seed{seed}"
+                cfg = compose(overrides)
+                wall, cpu = C.timed(lambda: runs.append(train_script.run(cfg, run_dir, overrides)))
+                result = runs[-1]
+                result.update({"overrides": overrides, "curve": eval_curve(run_dir), "process_wall_s": wall,
+                               "process_cpu_s": cpu, "total_env_steps": int(cfg.train.total_env_steps)})
+                print(f"# {env} {loss} seed {seed}: eval return {result['eval/return']:.4g} after "
+                      f"{result['env_steps']:,} env steps, {result['wall_time_s']:.1f} s")
+
+    summary = []
+    for env in envs:
+        by_loss = {loss: [r for r in runs if r["env"] == env and r["loss"] == loss] for loss in args.losses}
+        threshold = None
+        if by_loss.get("ppo"):
+            threshold = statistics.median(r["eval/return"] for r in by_loss["ppo"])
+            ppo_time = statistics.median(first_time_at(r["curve"], threshold) for r in by_loss["ppo"])
+        for loss, group in by_loss.items():
+            finals = [r["eval/return"] for r in group]
+            row = {"env": env, "loss": loss, "seeds": [r["seed"] for r in group],
+                   "final_return": C.spread(finals), "wall_s": C.spread([r["wall_time_s"] for r in group]),
+                   "env_steps": C.spread([r["env_steps"] for r in group]),
+                   "random_return": statistics.median(r["eval/random_return"] for r in group)}
+            if threshold is not None:
+                times = [first_time_at(r["curve"], threshold) for r in group]
+                row["ppo_final_return"] = threshold
+                row["time_to_ppo_final_s"] = statistics.median(times)
+                row["reached"] = f"{sum(math.isfinite(t) for t in times)}/{len(times)}"
+                row["speedup_vs_ppo"] = speedup(ppo_time, row["time_to_ppo_final_s"])
+            summary.append(row)
+
+    print("\n## time to solve (median over seeds; min-max in brackets)")
+
+    def rng(d, fmt):
+        return f"{fmt.format(d['median'])} [{fmt.format(d['min'])}, {fmt.format(d['max'])}]"
+
+    table = C.print_table(
+        ["env", "loss", "final eval return", "random policy", "wall s", "env steps", "t to PPO's final (s)",
+         "reached", "speed-up vs PPO"],
+        [[r["env"], r["loss"], rng(r["final_return"], "{:.3g}"), f"{r['random_return']:.3g}",
+          rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}",
+          f"{r['time_to_ppo_final_s']:.0f}" if r.get("time_to_ppo_final_s") not in (None, math.inf) else "never",
+          r.get("reached", "-"), C.fmt_ratio(r.get("speedup_vs_ppo"))]
+         for r in summary],
+    )
+    for r in runs:
+        r["curve"] = [list(p) for p in r["curve"]]
+    payload = {"benchmark": "time_to_solve", "info": info, "summary": summary, "runs": runs, "table": table}
+    C.write_json("time_to_solve" + ("_quick" if quick else ""), payload, args.out)
+    if args.keep_runs is None:
+        shutil.rmtree(runs_root, ignore_errors=True)
+    return payload
+
+
+if __name__ == "__main__":
+    main()

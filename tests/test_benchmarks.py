@@ -1,0 +1,69 @@
+"""Every benchmark script runs in --quick mode and writes a well-formed JSON result.
+
+The benchmarks measure (benchmarks/, docs/sections/60-performance.md); this only checks that
+they run end to end and report what they claim, in seconds, in-process.
+"""
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def load(name: str):
+    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(autouse=True)
+def keep_torch_threads():
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
+def positive_rates(candidates: dict) -> None:
+    for name, c in candidates.items():
+        spread = c["env_steps_per_s_cpu"]
+        assert 0 < spread["min"] <= spread["median"] <= spread["max"] < math.inf, name
+
+
+def test_env_throughput_quick(tmp_path):
+    out = tmp_path / "env.json"
+    payload = load("env_throughput").main(["--quick", "--out", str(out)])
+    assert json.loads(out.read_text())["benchmark"] == "env_throughput"
+    assert payload["info"]["torch_threads"] == 1
+    rows = {row["task"]: row for row in payload["results"]}
+    assert set(rows) == {"pendulum", "Pendulum-v1", "CartPole-v1"}
+    assert {"ours", "EnvBase.rollout", "raw", "raw by hand", "torchrl PendulumEnv"} <= set(rows["pendulum"]["candidates"])
+    assert {"gymnasium SyncVectorEnv", "gymnasium vectorised CartPole"} <= set(rows["CartPole-v1"]["candidates"])
+    for row in payload["results"]:
+        positive_rates(row["candidates"])
+        assert set(row["ratios_cpu"]) == {f"ours / {name}" for name in row["candidates"] if name != "ours"}
+
+
+def test_gradient_throughput_quick(tmp_path):
+    payload = load("gradient_throughput").main(["--quick", "--out", str(tmp_path / "grad.json")])
+    assert [(r["mode"], r["H"], r["N"]) for r in payload["results"]] == [("policy", 4, 2), ("open-loop", 4, 2)]
+    for row in payload["results"]:
+        positive_rates(row["candidates"])
+        memory = row["memory"]
+        # the rollouts keep at least what the raw loop keeps, plus their TensorDict
+        assert memory["ours"]["held_bytes_per_env_step"] > memory["raw"]["saved_bytes_per_env_step"] > 0
+        assert memory["ours"]["held_bytes_per_env_step"] >= memory["ours"]["saved_bytes_per_env_step"]
+
+
+def test_time_to_solve_quick(tmp_path):
+    payload = load("time_to_solve").main(["--quick", "--out", str(tmp_path / "tts.json")])
+    assert [(r["env"], r["loss"]) for r in payload["summary"]] == [("pendulum", l) for l in ("shac", "bptt", "ppo", "sac")]
+    for run in payload["runs"]:
+        assert run["env_steps"] >= 32 and run["curve"], run["loss"]
+        assert run["curve"][0][0] == 0  # evaluated before training
+    ppo = next(r for r in payload["summary"] if r["loss"] == "ppo")
+    assert ppo["time_to_ppo_final_s"] <= ppo["wall_s"]["max"]
