@@ -269,6 +269,10 @@ def test_errors_match_envbase():
         env.rollout(3, lambda td: td, actions=[torch.zeros(5, 1)])
     with pytest.raises(KeyError, match="the policy wrote no 'action' entry"):
         env.rollout(3, lambda td: td, trust_policy=True)
+    with pytest.raises(ValueError, match=r"max_steps >= 1 \(and actions, if given\), got 0"):
+        env.rollout(3, actions=[])
+    with pytest.raises(TypeError, match="max_steps must be an integer, got 2.5"):
+        env.rollout(2.5)
 
 
 def test_unsupported_arguments_fall_back_to_envbase():

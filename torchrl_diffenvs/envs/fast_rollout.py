@@ -30,6 +30,7 @@ What the lean loop reproduces, step by step (``EnvBase._rollout_nonstop`` /
 """
 from __future__ import annotations
 
+import operator
 import weakref
 from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
@@ -37,7 +38,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import _make_compatible_policy
+from torchrl.envs.utils import _make_compatible_policy  # the policy wrapping EnvBase.rollout applies
 
 if TYPE_CHECKING:  # pragma: no cover
     from .base import DiffEnv
@@ -93,10 +94,8 @@ def fast_rollout_unsupported(env: DiffEnv, callback: Callable | None, kwargs: Ma
         allowed = FAST_ROLLOUT_KWARGS[key]
         if allowed is not None and not any(value is a or (a is not None and value == a) for a in allowed):
             return f"{key}={value!r}"
-    if kwargs.get("actions") is not None and kwargs.get("policy") is not None:
-        return "both policy and actions"
     cls = type(env)
-    # an _output override with the same flags as DiffEnv is fine only through _truncated
+    # (a task with its own truncation rule overrides DiffEnv._truncated, which the loop calls)
     for name in _REIMPLEMENTED_METHODS:
         if getattr(cls, name) is not getattr(DiffEnv, name):
             return f"{cls.__name__} overrides {name}"
@@ -150,8 +149,10 @@ def fast_rollout(
         break_when_any_done = not break_when_all_done
     if return_contiguous is None:
         return_contiguous = not env._has_dynamic_specs
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"{env.name}: rollout max_steps must be a positive integer, got {max_steps!r}")
+    try:
+        max_steps = operator.index(max_steps)
+    except TypeError:
+        raise TypeError(f"{env.name}: rollout max_steps must be an integer, got {max_steps!r}") from None
 
     action_source = None
     if actions is not None:
@@ -173,7 +174,10 @@ def fast_rollout(
         raise RuntimeError("tensordict must be provided when auto_reset is False")
     else:
         td0 = env.maybe_reset(tensordict)
-    return _Loop(env, policy, action_source, max_steps).run(td0, max_steps, break_when_any_done, return_contiguous, set_truncated)
+    if max_steps < 1:  # EnvBase.rollout fails later, stacking an empty list
+        raise ValueError(f"{env.name}: rollout needs max_steps >= 1 (and actions, if given), got {max_steps}")
+    loop = _Loop(env, policy, action_source, max_steps)
+    return loop.run(td0, max_steps, break_when_any_done, return_contiguous, set_truncated)
 
 
 def _physics_steps(env: DiffEnv, plain_truncation: bool, state: dict, params: dict, episode_step: torch.Tensor,
@@ -302,7 +306,9 @@ class _RandomActions:
     the generator element after element, so one draw of ``K`` steps gives the values of ``K``
     one-step draws, bitwise (tests/test_fast_rollout.py checks it against EnvBase.rollout).
     :meth:`close` rewinds the generator to the end of the last action actually used, so the
-    global random stream continues exactly where TorchRL's rollout would leave it.
+    global random stream continues exactly where TorchRL's rollout would leave it. (This relies
+    on the physics being pure: a task draws its random start states from ``env.rng``, never from
+    torch's global generator.)
     """
 
     BLOCK_ELEMENTS = 1 << 18  # about 1 MB of float32 per block
@@ -357,7 +363,9 @@ class _Loop:
     def __init__(self, env: DiffEnv, policy, action_source, max_steps: int):
         self.env = env
         self.policy = policy
-        self.action_source = action_source if action_source is not None or policy is not None else _RandomActions(env, max_steps)
+        if action_source is None and policy is None:
+            action_source = _RandomActions(env, max_steps)
+        self.action_source = action_source
         self.n = env.num_envs
         self.bs = env.batch_size
         self.device = env.device
