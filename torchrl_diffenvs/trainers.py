@@ -135,7 +135,7 @@ class GradientTrainer:
         self.actor_optim.zero_grad(set_to_none=True)
         if out["loss_actor"].requires_grad:  # False when no reward depends on the actions (CartPole-v1's +1)
             out["loss_actor"].backward()
-        actor_info = self.actor_guard.step(self.actor_optim, self.actor_params)
+        actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"])
         metrics = {
             "iteration": self.iteration,
             "frames": self.collector.frames,
@@ -170,7 +170,7 @@ class GradientTrainer:
                 critic_loss = self.loss.critic_loss(flat[batch])["loss_critic"]
                 self.critic_optim.zero_grad(set_to_none=True)
                 critic_loss.backward()
-                self.critic_guard.step(self.critic_optim, self.critic_params)
+                self.critic_guard.step(self.critic_optim, self.critic_params, loss=critic_loss)
                 losses.append(critic_loss.item())
         return sum(losses) / len(losses)
 

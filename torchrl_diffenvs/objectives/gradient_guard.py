@@ -14,9 +14,11 @@ class GradientGuard:
 
     Differentiating through long rollouts can produce exploding or non-finite gradients (chaotic
     dynamics, a NaN reward). :meth:`step` computes the total pre-clip gradient norm of
-    ``parameters``; if it is NaN/inf or above ``skip_above``, the optimiser step is *not* taken
-    (parameters and optimiser state stay exactly as they were) and :attr:`skipped` is
-    incremented. Otherwise the gradients are clipped to ``max_norm`` and the step is taken.
+    ``parameters``; if it is NaN/inf or above ``skip_above`` (or the ``loss`` value passed in is
+    NaN/inf: a NaN that does not depend on the parameters, e.g. ``reward + nan``, leaves the
+    gradient finite), the optimiser step is *not* taken (parameters and optimiser state stay
+    exactly as they were) and :attr:`skipped` is incremented. Otherwise the gradients are clipped
+    to ``max_norm`` and the step is taken.
 
     The caller zeroes gradients before its backward pass as usual.
 
@@ -30,7 +32,7 @@ class GradientGuard:
         guard = GradientGuard(max_norm=1.0, skip_above=1e6)
         optimizer.zero_grad()
         loss.backward()
-        info = guard.step(optimizer, actor.parameters())   # {"grad_norm": ..., "skipped": False}
+        info = guard.step(optimizer, actor.parameters(), loss=loss)  # {"grad_norm": ..., "skipped": False}
     """
 
     def __init__(self, max_norm: float | None = 1.0, skip_above: float | None = 1e6):
@@ -43,7 +45,12 @@ class GradientGuard:
         self.skipped = 0
         self.steps = 0
 
-    def step(self, optimizer: torch.optim.Optimizer, parameters: Iterable[torch.Tensor] | None = None) -> dict:
+    def step(
+        self,
+        optimizer: torch.optim.Optimizer,
+        parameters: Iterable[torch.Tensor] | None = None,
+        loss: torch.Tensor | float | None = None,
+    ) -> dict:
         """Checks, clips and (if safe) applies one optimiser step.
 
         Args:
@@ -64,7 +71,10 @@ class GradientGuard:
         else:
             norm = 0.0
         self.steps += 1
-        if not math.isfinite(norm) or (self.skip_above is not None and norm > self.skip_above):
+        if isinstance(loss, torch.Tensor):
+            loss = loss.detach()
+        loss_ok = loss is None or math.isfinite(float(loss))
+        if not loss_ok or not math.isfinite(norm) or (self.skip_above is not None and norm > self.skip_above):
             self.skipped += 1
             return {"grad_norm": norm, "skipped": True}
         if self.max_norm is not None and norm > self.max_norm:
