@@ -92,3 +92,28 @@ def test_shac_learns_to_swing_up(eval_env, random_policy_reward):
     after = evaluate_policy(eval_env, actor)["reward_mean"]
     assert random_policy_reward < 0.5 and before < 0.5
     assert after > 0.6, (random_policy_reward, before, after)
+
+
+@pytest.mark.parametrize("script, extra", [
+    ("optimize_trajectory", ["env=reacher", "steps=10"]),
+    ("optimize_policy", ["env=swimmer", "steps=10", "loss=shac", "policy=stochastic", "num_envs=4", "eval_envs=4",
+                         "gif_envs=2", "eval_every=1"]),
+])
+def test_demo_scripts_write_a_learning_curve_and_a_gif(tmp_path, monkeypatch, script, extra):
+    """The Ivy demos end to end with tiny settings (the learning itself is checked above)."""
+    pytest.importorskip("matplotlib")
+    pytest.importorskip("PIL")
+    import importlib
+    import sys
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "sota_scripts"))
+    module = importlib.import_module(script)
+    summary = module.main(["iterations=2", f"out_dir={tmp_path}", "progress=false", *extra])
+    gif = "trajectory.gif" if script == "optimize_trajectory" else "policy.gif"
+    assert (tmp_path / "learning_curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / gif).read_bytes()[:6] == b"GIF89a"
+    assert summary["iterations"] == 2 and summary["skipped_steps"] == 0
+    with pytest.raises(SystemExit, match="unknown argument"):
+        module.main(["nonsense=1"])
+    sys.modules.pop(script, None)
