@@ -108,6 +108,15 @@ def _last_output_after(rollout, env, break_when_any_done):
     return env._last_output
 
 
+def test_terminations_and_partial_resets_match_envbase():
+    """CartPole-v1 terminates at different steps in different envs: partial auto-resets."""
+    env = make_env("CartPole-v1", num_envs=16, seed=0)
+    got, ref = both_paths(env, 60, break_when_any_done=False)
+    terminated = ref["next", "terminated"].squeeze(-1)
+    assert terminated.any() and (terminated.any(0) & ~terminated.all(0)).any(), "expected partial resets"
+    assert_same_tensordict(got, ref)
+
+
 @pytest.mark.parametrize("name", list_envs())
 def test_policy_values_and_gradients_match_envbase(name):
     """A TanhNormal actor sampling with rsample; gradients of the return w.r.t. its weights."""

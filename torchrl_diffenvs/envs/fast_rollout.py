@@ -379,6 +379,13 @@ class _Loop:
         # root entries that are not the env's (a user's extra entries) travel along, as step_mdp does
         extras = {key: value for key, value in root.items() if key not in _ENV_KEYS}
         root = {key: root[key] for key in _ENV_KEYS}
+        # Physical parameters equal to env.params, without gradient: a reset merges them with
+        # env.params, which leaves them as they are (and the same tensors from step to step).
+        env_params = self.env.params
+        self.params_are_env_params = root["params"].keys() == set(env_params.keys()) and all(
+            not value.requires_grad and not env_params[key].requires_grad and torch.equal(value, env_params[key])
+            for key, value in root["params"].items()
+        )
         roots: list[dict] = []
         nexts: list[dict] = []
         queued: list[torch.Tensor] = []  # drawn actions that a reset inside a chunk left unused
@@ -445,35 +452,45 @@ class _Loop:
         return entries
 
     def reset_done(self, done: torch.Tensor, root: dict, extras: dict) -> tuple[dict, dict]:
-        """``maybe_reset``: fresh start states for the done envs, the graph cut there only."""
+        """``maybe_reset``: fresh start states for the done envs, the graph cut there only.
+
+        TorchRL calls ``DiffEnv._reset`` for the whole batch (so the env's generator advances by
+        a full-batch draw) and merges with ``torch.where(~done, old, fresh)``. Two merges are
+        known without computing them: the done flags (an env that is not done has no flag set:
+        ``done = terminated | truncated``), and the physical parameters when they are
+        ``env.params`` themselves, without gradient (see :meth:`run`).
+        """
         env = self.env
-        params = env.params.clone()  # DiffEnv._reset during an auto-reset: env.params, full batch
-        state = env.initial_state(params, self.n)
-        fresh = {
-            "observation": env.observation(state, params),
-            "state": dict(state),
-            "params": dict(params.items()),
-            "episode_step": torch.zeros(self.n, dtype=torch.int64, device=self.device),
-            "terminated": self.all_false,
-            "truncated": self.all_false,
-            "done": self.all_false,
-        }
+        # DiffEnv._reset passes a clone of env.params; initial_state is pure, so env.params will do
+        state = env.initial_state(env.params, self.n)
+        observation = env.observation(state, env.params)
+        params = root["params"] if self.params_are_env_params else dict(env.params.clone().items())
+        flags = {key: self.all_false for key in _FLAG_KEYS}
         if bool(done.all()):
             # TorchRL then replaces the env entries and leaves the others untouched
-            return fresh, extras
+            zeros = torch.zeros(self.n, dtype=torch.int64, device=self.device)
+            return {"observation": observation, "state": dict(state), "params": params, "episode_step": zeros,
+                    **flags}, extras
         keep = ~done
+        masks = {1: keep}  # keep, shaped for entries of each number of dims
 
-        def merge(old: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
-            return torch.where(keep.reshape(keep.shape + (1,) * (old.ndim - 1)), old, new)
+        def merge(old: torch.Tensor, new) -> torch.Tensor:
+            mask = masks.get(old.ndim)
+            if mask is None:
+                mask = masks[old.ndim] = keep.reshape(keep.shape + (1,) * (old.ndim - 1))
+            return torch.where(mask, old, new)
 
-        for key in _ENV_KEYS:
-            if key in _NESTED_ENV_KEYS:
-                root[key] = {k: merge(v, fresh[key][k]) for k, v in root[key].items()}
-            else:
-                root[key] = merge(root[key], fresh[key])
-        # entries the reset does not produce (action, policy outputs, user extras) are zeroed
-        extras = {key: _zero_where(done, value) for key, value in extras.items()}
-        return root, extras
+        merged = {"observation": merge(root["observation"], observation),
+                  "state": {k: merge(v, state[k]) for k, v in root["state"].items()},
+                  "params": params if self.params_are_env_params else
+                  {k: merge(v, params[k]) for k, v in root["params"].items()},
+                  "episode_step": merge(root["episode_step"], 0),
+                  **flags}
+        # entries the reset does not produce (action, policy outputs, user extras) are zeroed;
+        # without a policy the action is replaced before anyone sees it
+        extras = {key: value if key == "action" and self.policy is None else _zero_where(done, value)
+                  for key, value in extras.items()}
+        return merged, extras
 
     # ------------------------------------------------------------------ TensorDict <-> entries
     def entries_of(self, td: TensorDictBase, views: dict | None = None) -> dict:
