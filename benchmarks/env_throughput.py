@@ -8,6 +8,8 @@ For every registered task and N in {1, 64, 1024, 16384}, timed interleaved in on
 * ``raw``: a plain torch loop over the same task's pure physics (``transition`` +
   ``observation`` with random actions on plain tensors; no resets, no TensorDicts, nothing
   kept): the speed limit of eager torch for this physics;
+* ``raw + resets``: the same loop with the episode bookkeeping of an RL env (step counter,
+  time limit, termination, auto-reset of done envs), still nothing kept;
 * ``ours compiled`` (``--compile``): ``compile_physics(env, steps_per_chunk=8)``; its
   compile time is reported separately;
 * for the Gymnasium ids: gymnasium's ``SyncVectorEnv`` of the same task and, for CartPole-v1,
@@ -49,6 +51,30 @@ def raw_loop(env, steps: int):
         action = torch.rand(shape, dtype=env.float_dtype) * span + low
         state, reward, terminated = env.transition(state, action, params)
         observation = env.observation(state, params)
+    return observation, reward
+
+
+def raw_loop_with_resets(env, steps: int):
+    """``raw_loop`` plus what an RL env loop adds: a time limit, termination, auto-resets."""
+    import torch
+
+    n = env.num_envs
+    params = dict(env.params.items())
+    state = env.initial_state(env.params, n)
+    episode_step = torch.zeros(n, dtype=torch.int64)
+    low, span = env.action_low, env.action_high - env.action_low
+    for _ in range(steps):
+        action = torch.rand((n, env.action_dim), dtype=env.float_dtype) * span + low
+        state, reward, terminated = env.transition(state, action, params)
+        observation = env.observation(state, params)
+        episode_step = episode_step + 1
+        done = episode_step >= (env.max_episode_steps or steps + 1)
+        if terminated is not None:
+            done = done | terminated
+        if done.any():
+            fresh = env.initial_state(env.params, n)
+            state = {k: torch.where(done.view(n, *[1] * (v.ndim - 1)), fresh[k], v) for k, v in state.items()}
+            episode_step = torch.where(done, 0, episode_step)
     return observation, reward
 
 
@@ -125,6 +151,7 @@ def main(argv=None) -> dict:
                 "ours": (lambda env=env: env.rollout(steps, break_when_any_done=False), steps),
                 "EnvBase.rollout": (lambda env=env: EnvBase.rollout(env, steps, break_when_any_done=False), steps),
                 "raw": (lambda env=env: raw_loop(env, steps), steps),
+                "raw + resets": (lambda env=env: raw_loop_with_resets(env, steps), steps),
             }
             if task == "pendulum":
                 candidates["raw by hand"] = (lambda: raw_pendulum_by_hand(n, steps), steps)

@@ -41,7 +41,8 @@ def test_env_throughput_quick(tmp_path):
     assert payload["info"]["torch_threads"] == 1
     rows = {row["task"]: row for row in payload["results"]}
     assert set(rows) == {"pendulum", "Pendulum-v1", "CartPole-v1"}
-    assert {"ours", "EnvBase.rollout", "raw", "raw by hand", "torchrl PendulumEnv"} <= set(rows["pendulum"]["candidates"])
+    assert {"ours", "EnvBase.rollout", "raw", "raw + resets", "raw by hand", "torchrl PendulumEnv"} <= set(
+        rows["pendulum"]["candidates"])
     assert {"gymnasium SyncVectorEnv", "gymnasium vectorised CartPole"} <= set(rows["CartPole-v1"]["candidates"])
     for row in payload["results"]:
         positive_rates(row["candidates"])

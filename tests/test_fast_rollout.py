@@ -326,6 +326,7 @@ def test_compiled_physics_matches_eager_values_and_gradients():
         td = env.rollout(8, actions=actions, break_when_any_done=False)
         (td["next", "reward"].sum() + td["next", "observation"].sum()).backward()
         results.append((td.detach(), [a.grad for a in actions]))
+    assert list(env.__dict__["_compiled_physics"].functions) == [(2, True)]  # 2-step chunks ran compiled
     eager_physics(env)
     (td_eager, grads_eager), (td_compiled, grads_compiled) = results
     assert td_eager["next", "done"][:, :-1].any(), "the rollout should cut chunks at auto-resets"

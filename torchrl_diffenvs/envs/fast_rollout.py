@@ -275,8 +275,10 @@ def compile_physics(env: DiffEnv, steps_per_chunk: int = 8, **compile_kwargs) ->
     Without a policy (random actions, or ``actions=``) the lean rollout path steps
     ``steps_per_chunk`` steps per compiled call (the physics of ``K`` steps fused into a few
     kernels: no per-operation overhead); with a policy, one compiled step per policy call.
-    Resets stay eager: a chunk is cut at the first step where an env is done and the next chunk
-    starts after the reset, so the result is that of the eager path up to floating-point
+    Resets stay eager: a chunk is cut at the first step where an env is done, the reset runs
+    eagerly, and the next ``K`` steps run eagerly too before chunks resume (a task whose envs
+    reset every few steps, e.g. CartPole-v1 with many envs, thus stays eager instead of
+    computing chunks it throws away). The result is that of the eager path up to floating-point
     rounding (fused kernels may round differently), gradients included.
 
     Compilation happens on first use and takes seconds to tens of seconds per function (one for
@@ -389,7 +391,7 @@ class _Loop:
         roots: list[dict] = []
         nexts: list[dict] = []
         queued: list[torch.Tensor] = []  # drawn actions that a reset inside a chunk left unused
-        t, finished = 0, False
+        t, finished, eager_until = 0, False, 0
         while not finished:
             if self.policy is not None:
                 # step 0 runs on the input TensorDict itself, as in EnvBase
@@ -399,7 +401,9 @@ class _Loop:
                 actions = [root_t["action"]]
                 start = root_t
             else:
-                chunk = min(self.physics.chunk, max_steps - t)
+                # compiled chunks run only between resets: right after one, step eagerly for a
+                # chunk's length (a task that resets every few steps stays eager)
+                chunk = min(self.physics.chunk if t >= eager_until else 1, max_steps - t)
                 while len(queued) < chunk:
                     queued.append(next(self.action_source))
                 actions, queued = queued[:chunk], queued[chunk:]
@@ -428,6 +432,7 @@ class _Loop:
                 if any_done:  # only without break_when_any_done
                     root, extras = self.reset_done(nxt["done"], root, extras)
                     queued = actions[j + 1:] + queued  # the rest of the chunk ran without this reset
+                    eager_until = t + self.physics.chunk
                     break
 
         if isinstance(self.action_source, _RandomActions):
