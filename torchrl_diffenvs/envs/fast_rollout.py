@@ -584,16 +584,26 @@ def _stack_time(values: list[torch.Tensor]) -> torch.Tensor:
     ``terminated`` flag of a task without termination) appear as the same tensor object at many
     steps; expanding it is the same data and the same gradient as stacking it.
     """
-    runs: list[list] = []  # [tensor, repeat count]
+    runs = _runs(values)
+    if 4 * len(runs) > len(values):
+        return torch.stack(values, dim=1)
+    pieces = [v.unsqueeze(1).expand(v.shape[0], count, *v.shape[1:]) for v, count in runs]
+    return torch.cat(pieces, dim=1) if len(pieces) > 1 else pieces[0].clone()
+
+
+def _runs(values: list[torch.Tensor]) -> list[list]:
+    """``[[tensor, count], ...]``: consecutive repeats of the same tensor object."""
+    runs: list[list] = []
     for value in values:
         if runs and runs[-1][0] is value:
             runs[-1][1] += 1
         else:
             runs.append([value, 1])
-    if 4 * len(runs) > len(values):
-        return torch.stack(values, dim=1)
-    pieces = [v.unsqueeze(1).expand(v.shape[0], count, *v.shape[1:]) for v, count in runs]
-    return torch.cat(pieces, dim=1) if len(pieces) > 1 else pieces[0].clone()
+    return runs
+
+
+def _few_runs(values: list[torch.Tensor]) -> bool:
+    return 4 * len(_runs(values)) <= len(values)
 
 
 def _stack_root(root_values: list[torch.Tensor], next_values: list[torch.Tensor] | None,
@@ -604,8 +614,8 @@ def _stack_root(root_values: list[torch.Tensor], next_values: list[torch.Tensor]
     same tensor, as ``step_mdp`` makes it): one contiguous copy of the stacked ``"next"`` entry
     replaces a second strided stack. Reset steps contribute their own (merged) tensor.
     """
-    if next_values is None:
-        return _stack_time(root_values)
+    if next_values is None or _few_runs(root_values):
+        return _stack_time(root_values)  # e.g. unchanged physical parameters: expand, no read-back
     pieces = [root_values[0].unsqueeze(1)]
     start = None  # first step of the current run of steps that reuse "next" entries
     for t in range(1, len(root_values)):
