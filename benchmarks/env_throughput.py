@@ -1,6 +1,6 @@
 """Env throughput without gradients: env-steps per second, ours vs the tools users would pick.
 
-For every registered task and N in {1, 64, 1024, 16384}, timed interleaved in one process:
+For every registered task and N in {1, 64, 1024, 4096, 16384}, timed interleaved in one process:
 
 * ``ours``: ``env.rollout(T, break_when_any_done=False)`` under ``torch.no_grad`` (the lean
   path of ``DiffEnv.rollout``; random actions, auto-resets included);
@@ -126,7 +126,7 @@ def main(argv=None) -> dict:
 
     quick = args.quick
     tasks = args.tasks or (["pendulum", "Pendulum-v1", "CartPole-v1"] if quick else list_envs())
-    sizes = args.sizes or ([4] if quick else [1, 64, 1024, 16384])
+    sizes = args.sizes or ([4] if quick else [1, 64, 1024, 4096, 16384])
     rounds = args.repeats or (2 if quick else 5)
     target_seconds = 0.01 if quick else 0.25
     info = C.versions()
