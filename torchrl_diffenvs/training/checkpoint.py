@@ -148,14 +148,15 @@ def capture_rng_state(generators: Mapping[str, torch.Generator] | None = None) -
 
 def restore_rng_state(state: Mapping, generators: Mapping[str, torch.Generator] | None = None) -> None:
     """Restores a :func:`capture_rng_state` snapshot (the named ``generators`` in place)."""
-    torch.set_rng_state(state["torch"])
+    # generator states are CPU byte tensors, whatever map_location the checkpoint was loaded with
+    torch.set_rng_state(state["torch"].cpu())
     name, keys, pos, has_gauss, cached = state["numpy"]
-    np.random.set_state((name, keys.numpy().astype(np.uint32), int(pos), int(has_gauss), float(cached)))
+    np.random.set_state((name, keys.cpu().numpy().astype(np.uint32), int(pos), int(has_gauss), float(cached)))
     py = state["python"]
     random.setstate((py[0], tuple(py[1]), py[2]))
     if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
     saved = state.get("generators", {})
     for gen_name, gen in (generators or {}).items():
         if gen_name in saved:
-            gen.set_state(saved[gen_name])
+            gen.set_state(saved[gen_name].cpu())

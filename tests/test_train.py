@@ -1,0 +1,397 @@
+"""sota_scripts/train.py: every env x loss trains a few iterations, logging, checkpoints, resume,
+eval mode, sweeps and configuration errors.
+
+Runs are composed in-process (Hydra's compose API, as TorchRL's own sota scripts are smoke-tested
+with tiny overrides); a few tests go through the command line in a subprocess.
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from hydra import compose, initialize_config_dir
+from hydra.errors import MissingConfigException
+
+from torchrl_diffenvs import list_envs
+from torchrl_diffenvs.training import (
+    CheckpointError,
+    ConfigError,
+    episode_returns,
+    load_checkpoint,
+    save_checkpoint,
+)
+from torchrl_diffenvs.training.config import LOSSES, merge_overrides
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = ROOT / "configs"
+SCRIPT = ROOT / "sota_scripts" / "train.py"
+
+
+def _load_script(name: str, path: Path):
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+train_script = _load_script("train_script", SCRIPT)
+results_table = _load_script("results_table", ROOT / "sota_scripts" / "results_table.py")
+
+# Tiny runs: 4 envs, 12-step episodes (so episodes finish inside the run), small networks.
+COMMON = [
+    "logger=none", "train.progress_bar=false", "eval.gif=false", "env.num_envs=4", "env.max_episode_steps=12",
+    "eval.num_envs=2", "eval.interval=1000000",
+]
+TINY = {
+    "bptt": ["loss.horizon=4", "loss.actor.hidden=[16]"],
+    "shac": ["loss.horizon=4", "loss.actor.hidden=[16]", "loss.critic.hidden=[16]", "loss.critic_passes=2",
+             "loss.critic_minibatches=2"],
+    "ppo": ["loss.rollout_len=4", "loss.epochs=2", "loss.minibatch_size=8", "loss.actor.hidden=[16]",
+            "loss.critic.hidden=[16]"],
+    "sac": ["loss.rollout_len=2", "loss.init_random_frames=8", "loss.batch_size=8", "loss.buffer_size=256",
+            "loss.utd_ratio=0.25", "loss.actor.hidden=[16]", "loss.qvalue.hidden=[16]"],
+}
+STEPS_PER_ITER = {"bptt": 16, "shac": 16, "ppo": 16, "sac": 8}  # num_envs x horizon / rollout_len
+
+
+def make_cfg(*overrides: str):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+def tiny_cfg(env: str, loss: str, iterations: int = 2, *extra: str):
+    steps = iterations * STEPS_PER_ITER[loss]
+    return make_cfg(f"env={env}", f"loss={loss}", *COMMON, *TINY[loss], f"train.total_env_steps={steps}",
+                    f"train.checkpoint_interval={steps}", *extra)
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+# ---------------------------------------------------------------------- configuration
+def test_every_registered_env_has_a_config_and_every_pair_tuned_defaults():
+    env_files = {p.stem for p in (CONFIGS / "env").glob("*.yaml")}
+    assert env_files == set(list_envs())
+    loss_files = {p.stem for p in (CONFIGS / "loss").glob("*.yaml")}
+    assert loss_files == set(LOSSES)
+    for env in list_envs():
+        for loss in LOSSES:
+            assert (CONFIGS / "tuned" / f"{env}_{loss}.yaml").is_file(), f"no tuned defaults for {env} x {loss}"
+
+
+@pytest.mark.parametrize("env", list_envs())
+def test_default_config_of_every_pair_is_valid(env):
+    for loss in LOSSES:
+        cfg = make_cfg(f"env={env}", f"loss={loss}")
+        assert cfg.env.name == env and cfg.loss.name == loss
+        train_script.validate_config(cfg)  # raises on any problem
+
+
+def test_tuned_defaults_override_the_loss_defaults_but_not_the_command_line():
+    tuned = yaml.safe_load((CONFIGS / "tuned" / "pendulum_shac.yaml").read_text())
+    budget = tuned["train"]["total_env_steps"]
+    assert make_cfg("env=pendulum", "loss=shac").train.total_env_steps == budget
+    assert make_cfg("env=pendulum", "loss=shac", "train.total_env_steps=123").train.total_env_steps == 123
+
+
+def test_unknown_env_or_loss_lists_the_valid_choices():
+    with pytest.raises(MissingConfigException) as err:
+        make_cfg("env=atari")
+    assert all(name in str(err.value) for name in list_envs())
+    with pytest.raises(MissingConfigException) as err:
+        make_cfg("loss=dqn")
+    assert all(name in str(err.value) for name in LOSSES)
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["loss=bptt", "loss.actor_lr=-0.001"], "loss.actor_lr=-0.001: a learning rate must be a number > 0"),
+        (["loss=ppo", "loss.lr=0"], "loss.lr=0: a learning rate must be a number > 0"),
+        (["loss=shac", "loss.horizon=0"], "loss.horizon=0: expected an integer >= 1"),
+        (["env.num_envs=0"], "env.num_envs=0: expected an integer >= 1"),
+        (["loss=shac", "loss.gamma=1.5"], "loss.gamma=1.5: expected a number in (0.0, 1.0]"),
+        (["env.name=atari"], "env.name='atari': unknown env; valid: " + ", ".join(list_envs())),
+        (["mode=eval"], "mode=eval needs checkpoint="),
+        (["mode=eval", "checkpoint=/nonexistent/last.pt"], "checkpoint='/nonexistent/last.pt': no such checkpoint"),
+        (["resume=/nonexistent/last.pt"], "resume='/nonexistent/last.pt': no such checkpoint file"),
+        (["logger.mode=sometimes"], "logger.mode='sometimes': valid: offline, online, disabled"),
+        (["env=reacher", "env.options.num_links=0"], "num_links must be an integer >= 1"),
+        (["env=pendulum", "+env.params.gravity=3"], "unknown physical parameter(s) ['gravity']"),
+        (["device=tpu"], "device='tpu'"),
+    ],
+)
+def test_bad_configs_stop_before_training_with_a_clear_message(overrides, message):
+    with pytest.raises(ConfigError) as err:
+        train_script.validate_config(make_cfg(*overrides))
+    assert message in str(err.value)
+
+
+def test_all_problems_are_reported_at_once():
+    cfg = make_cfg("loss=shac", "loss.actor_lr=-1", "loss.horizon=0", "env.num_envs=0")
+    with pytest.raises(ConfigError, match=r"3 problems") as err:
+        train_script.validate_config(cfg)
+    assert "loss.actor_lr" in str(err.value) and "loss.horizon" in str(err.value) and "env.num_envs" in str(err.value)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")
+def test_cuda_without_a_gpu_is_a_clear_error():
+    with pytest.raises(ConfigError, match="torch.cuda.is_available.. is False"):
+        train_script.validate_config(make_cfg("device=cuda"))
+
+
+def test_merge_overrides_keeps_the_saved_run_and_lets_today_win():
+    saved = ["env=swimmer", "loss=bptt", "loss.horizon=16", "resume=old.pt", "hydra.run.dir=x"]
+    current = ["resume=new.pt", "train.total_env_steps=100", "loss.horizon=8"]
+    assert merge_overrides(saved, current) == [
+        "env=swimmer", "loss=bptt", "resume=new.pt", "train.total_env_steps=100", "loss.horizon=8",
+    ]
+
+
+# ---------------------------------------------------------------------- every env x loss trains
+@pytest.mark.parametrize("loss", LOSSES)
+@pytest.mark.parametrize("env", list_envs())
+def test_every_env_and_loss_trains_a_few_iterations(env, loss, tmp_path):
+    result = train_script.run(tiny_cfg(env, loss), tmp_path)
+    assert result["env_steps"] == 2 * STEPS_PER_ITER[loss] and result["iterations"] == 2
+    assert math.isfinite(result["eval/return"]) and math.isfinite(result["eval/random_return"])
+    rows = read_jsonl(tmp_path / "metrics.jsonl")
+    train_rows = [r for r in rows if "train/reward" in r]
+    assert [r["env_steps"] for r in train_rows] == [STEPS_PER_ITER[loss], 2 * STEPS_PER_ITER[loss]]
+    assert all(math.isfinite(r["train/reward"]) and r["time/steps_per_s"] > 0 for r in train_rows)
+    if loss != "sac":  # SAC's first updates wait for init_random_frames
+        assert any(k.startswith("train/grad_norm") for k in train_rows[-1])
+    assert (tmp_path / "checkpoints" / "last.pt").is_file()
+    assert json.loads((tmp_path / "final_metrics.json").read_text())["eval/return"] == result["eval/return"]
+
+
+# ---------------------------------------------------------------------- logging
+def read_wandb_history(run_file: Path) -> dict[str, list]:
+    """Every logged value per key in an offline W&B run file (``run-<id>.wandb``).
+
+    The file is W&B's 7-byte header followed by a LevelDB-style log (32 KiB blocks of records
+    with a 7-byte header: crc32 (4), length (2), type (1: full, 2: first, 3: middle, 4: last)),
+    each record one ``wandb_internal_pb2.Record`` protobuf.
+    """
+    from wandb.proto import wandb_internal_pb2
+
+    data = run_file.read_bytes()
+    assert data[:4] == b":W&B"
+    block, pos, pending, history = 32768, 7, b"", {}
+    while pos + 7 <= len(data):
+        if block - pos % block < 7:  # the block's tail is padding
+            pos += block - pos % block
+            continue
+        length, kind = int.from_bytes(data[pos + 4 : pos + 6], "little"), data[pos + 6]
+        chunk, pos = data[pos + 7 : pos + 7 + length], pos + 7 + length
+        if kind in (2, 3):
+            pending = (pending if kind == 3 else b"") + chunk
+            continue
+        record = wandb_internal_pb2.Record()
+        record.ParseFromString(pending + chunk if kind == 4 else chunk)
+        if record.WhichOneof("record_type") == "history":
+            for item in record.history.item:
+                key = item.key or "/".join(item.nested_key)
+                history.setdefault(key, []).append(json.loads(item.value_json))
+    return history
+
+
+def test_offline_wandb_run_writes_its_run_directory_with_the_metrics(tmp_path):
+    cfg = tiny_cfg("pendulum", "bptt", 2, "logger=wandb", "eval.gif=true", "eval.gif_size=32")
+    result = train_script.run(cfg, tmp_path)
+    wandb_dir = Path(result["wandb_dir"])
+    assert wandb_dir.parent == tmp_path / "wandb" and wandb_dir.name.startswith("offline-run-")
+    (record_file,) = wandb_dir.glob("run-*.wandb")
+    history = read_wandb_history(record_file)
+    assert history["eval/return"][-1] == pytest.approx(result["eval/return"])
+    assert history["eval/step"][-1] == result["env_steps"]
+    assert len(history["train/loss_actor"]) == 2 and "train/grad_norm_actor" in history
+    assert any(wandb_dir.joinpath("files", "media", "videos").glob("final_gif_*.gif"))
+    assert any(wandb_dir.joinpath("files", "media", "images").glob("learning_curve_*.png"))
+
+
+def test_csv_logger_and_run_directory_outputs(tmp_path):
+    pytest.importorskip("matplotlib")
+    pytest.importorskip("PIL")
+    from PIL import Image
+
+    cfg = tiny_cfg("swimmer", "ppo", 2, "logger=csv", "eval.gif=true", "eval.gif_size=32", "eval.interval=16")
+    result = train_script.run(cfg, tmp_path)
+    scalars = tmp_path / "csv" / "swimmer_ppo_seed0" / "scalars"
+    eval_rows = (scalars / "eval" / "return.csv").read_text().splitlines()
+    assert [int(r.split(",")[0]) for r in eval_rows] == [0, 16, 32]  # at the start, every 16 steps, the end
+    assert float(eval_rows[-1].split(",")[1]) == pytest.approx(result["eval/return"])
+    header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert {"env_steps", "train/loss_objective", "train/grad_norm", "eval/return", "time/wall_s"} <= set(header)
+    with Image.open(tmp_path / "final.gif") as gif:
+        assert gif.size == (32, 32) and gif.n_frames > 1
+    assert (tmp_path / "learning_curve.png").stat().st_size > 0
+
+
+def test_episode_returns_counts_only_the_first_episode():
+    from tensordict import TensorDict
+
+    reward = torch.tensor([[1.0, 2.0, 3.0, 4.0], [1.0, 1.0, 1.0, 1.0]]).unsqueeze(-1)
+    done = torch.tensor([[False, True, False, True], [False, False, False, False]]).unsqueeze(-1)
+    rollout = TensorDict({"next": {"reward": reward, "done": done}}, batch_size=[2, 4])
+    assert episode_returns(rollout).tolist() == [3.0, 4.0]
+
+
+# ---------------------------------------------------------------------- checkpoints and resume
+@pytest.mark.parametrize("loss", LOSSES)
+def test_resumed_run_continues_exactly_where_the_stopped_run_was(loss, tmp_path):
+    """Run A trains 4 iterations (checkpoints after 2 and 4); run B resumes A's 2-iteration
+    checkpoint. B must end bit-identical to A: same step, same weights, same metrics, i.e. the
+    same env states and random streams were restored."""
+    steps = STEPS_PER_ITER[loss]
+    extra = [f"train.checkpoint_interval={2 * steps}", "eval.interval=16"]
+    cfg = tiny_cfg("pendulum", loss, 4, *extra)
+    result_a = train_script.run(cfg, tmp_path / "a")
+    stopped = tmp_path / "a" / "checkpoints" / f"ckpt_{2 * steps:012d}.pt"
+    assert load_checkpoint(stopped)["progress"]["env_steps"] == 2 * steps
+
+    result_b = train_script.run(tiny_cfg("pendulum", loss, 4, *extra, f"resume={stopped}"), tmp_path / "b")
+    assert result_b["env_steps"] == result_a["env_steps"] == 4 * steps
+    assert result_b["iterations"] == 4
+    final_a = load_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")
+    final_b = load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")
+    for key, value in final_a["policy"].items():
+        assert torch.equal(value, final_b["policy"][key]), key
+
+    def comparable(rows):  # timings differ between runs, everything else must not
+        return [{k: v for k, v in r.items() if not k.startswith("time/")} for r in rows]
+
+    assert comparable(read_jsonl(tmp_path / "b" / "metrics.jsonl")) == comparable(read_jsonl(tmp_path / "a" / "metrics.jsonl"))
+    assert result_b["eval/return"] == result_a["eval/return"]
+
+
+def test_resume_with_a_different_env_or_learner_is_refused(tmp_path):
+    train_script.run(tiny_cfg("pendulum", "bptt", 1), tmp_path / "a")
+    ckpt = tmp_path / "a" / "checkpoints" / "last.pt"
+    with pytest.raises(ConfigError, match=r"loss.horizon: checkpoint 4, now 8"):
+        train_script.run(tiny_cfg("pendulum", "bptt", 1, "loss.horizon=8", f"resume={ckpt}"), tmp_path / "b")
+
+
+def test_eval_mode_loads_a_checkpoint_and_reproduces_the_final_evaluation(tmp_path):
+    pytest.importorskip("PIL")
+    from PIL import Image
+
+    result = train_script.run(tiny_cfg("reacher", "shac", 2), tmp_path / "train")
+    ckpt = tmp_path / "train" / "checkpoints" / "last.pt"
+    # no env/loss overrides: both come from the checkpoint
+    cfg = make_cfg("mode=eval", f"checkpoint={ckpt}", "eval.num_envs=2", "eval.gif_size=32", "logger=none")
+    evaluation = train_script.run(cfg, tmp_path / "eval")
+    assert evaluation["env"] == "reacher" and evaluation["loss"] == "shac"
+    assert evaluation["eval/return"] == pytest.approx(result["eval/return"], rel=1e-6)
+    with Image.open(tmp_path / "eval" / "eval.gif") as gif:
+        assert gif.n_frames > 1
+    assert json.loads((tmp_path / "eval" / "eval_metrics.json").read_text())["eval_steps"] == 12
+
+
+def test_a_failed_checkpoint_write_never_replaces_a_good_one(tmp_path, monkeypatch):
+    path = tmp_path / "last.pt"
+    save_checkpoint({"value": torch.tensor([1.0])}, path)
+
+    def broken_save(obj, f, *args, **kwargs):
+        f.write(b"half a checkpoint")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", broken_save)
+    with pytest.raises(OSError, match="disk full"):
+        save_checkpoint({"value": torch.tensor([2.0])}, path)
+    monkeypatch.undo()
+    assert torch.equal(load_checkpoint(path)["value"], torch.tensor([1.0]))
+    assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]  # no temporary file left behind
+
+
+def test_corrupt_truncated_or_foreign_checkpoints_give_clear_errors(tmp_path):
+    good = save_checkpoint({"value": torch.arange(1000)}, tmp_path / "good.pt")
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(good.read_bytes()[:100])
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        load_checkpoint(truncated)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"state_dict": {}}, foreign)
+    with pytest.raises(CheckpointError, match="not a checkpoint of sota_scripts/train.py"):
+        load_checkpoint(foreign)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        load_checkpoint(tmp_path / "missing.pt")
+
+
+# ---------------------------------------------------------------------- command line, sweeps
+def _cli(*args: str, cwd: Path, monkeypatch):
+    """Runs ``python sota_scripts/train.py *args`` in this process (Hydra's own argument parsing
+    and launcher; a subprocess would spend most of its time importing torch)."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    monkeypatch.chdir(cwd)
+    monkeypatch.setattr(sys, "argv", [str(SCRIPT), *args])
+    try:
+        return train_script.main()
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def test_command_line_config_error_is_a_message_not_a_traceback(tmp_path, monkeypatch):
+    with pytest.raises(SystemExit) as exit_info:
+        _cli("loss=shac", "loss.horizon=0", "loss.actor_lr=-1", cwd=tmp_path, monkeypatch=monkeypatch)
+    message = str(exit_info.value.code)
+    assert message.startswith("error: invalid configuration (2 problems)")
+    assert "loss.horizon=0" in message and "loss.actor_lr=-1" in message
+    assert not list(tmp_path.rglob("checkpoints"))  # stopped before training
+
+
+def test_command_line_resume_needs_only_the_checkpoint(tmp_path, monkeypatch):
+    """``resume=<path>`` alone continues the run with the overrides it was started with."""
+    steps = STEPS_PER_ITER["shac"]
+    started = ["env=swimmer", "loss=shac", *COMMON, *TINY["shac"], f"train.total_env_steps={2 * steps}",
+               f"train.checkpoint_interval={steps}", "train.keep_checkpoints=5"]
+    _cli(*started, f"hydra.run.dir={tmp_path / 'a'}", cwd=tmp_path, monkeypatch=monkeypatch)
+    stopped = tmp_path / "a" / "checkpoints" / f"ckpt_{steps:012d}.pt"
+    _cli(f"resume={stopped}", "train.total_env_steps=48", f"hydra.run.dir={tmp_path / 'b'}", cwd=tmp_path,
+         monkeypatch=monkeypatch)
+    result = json.loads((tmp_path / "b" / "final_metrics.json").read_text())
+    assert (result["env"], result["loss"], result["env_steps"]) == ("swimmer", "shac", 48)  # today's budget wins
+    assert load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")["config"]["loss"]["horizon"] == 4
+
+
+def test_hydra_multirun_sweep_and_results_table(tmp_path, monkeypatch):
+    sweep_dir = tmp_path / "sweep"
+    tiny = COMMON + TINY["bptt"] + ["train.total_env_steps=32", "train.checkpoint_interval=32"]
+    _cli("-m", "env=pendulum,cartpole", "loss=bptt", "seed=0,1", *tiny, f"hydra.sweep.dir={sweep_dir}",
+         cwd=tmp_path, monkeypatch=monkeypatch)
+    runs = sorted(sweep_dir.glob("*/final_metrics.json"))
+    assert [p.parent.name for p in runs] == [
+        "0_pendulum_bptt_seed0", "1_pendulum_bptt_seed1", "2_cartpole_bptt_seed0", "3_cartpole_bptt_seed1",
+    ]
+    table = results_table.main([str(sweep_dir), "--output", str(tmp_path / "table.md")])
+    assert (tmp_path / "table.md").read_text() == table
+    rows = {tuple(c.strip() for c in line.split("|")[1:3]): line for line in table.splitlines()[2:]}
+    assert len(rows) == len(list_envs()) * len(LOSSES)
+    assert "| 2 | 32 |" in rows[("pendulum", "bptt")] and "| 2 | 32 |" in rows[("cartpole", "bptt")]
+    assert "not run" in rows[("swimmer", "sac")]
+    returns = [json.loads(p.read_text())["eval/return"] for p in runs if "pendulum" in p.parent.name]
+    assert f"{sum(returns) / 2:.4g} +- " in rows[("pendulum", "bptt")]
+
+
+@pytest.mark.parametrize("sweep_file", sorted((CONFIGS / "sweep").glob("*.yaml")), ids=lambda p: p.name)
+def test_wandb_sweep_file_drives_the_same_script_through_hydra_overrides(sweep_file):
+    sweep = yaml.safe_load(sweep_file.read_text())
+    assert sweep["program"] == "sota_scripts/train.py"
+    assert "${args_no_hyphens}" in sweep["command"]
+    # what the W&B agent passes: one key=value per parameter
+    overrides = []
+    for key, spec in sweep["parameters"].items():
+        value = spec["value"] if "value" in spec else spec["values"][0] if "values" in spec else spec["min"]
+        overrides.append(f"{key}={value}")
+    cfg = make_cfg(*overrides)
+    train_script.validate_config(cfg)
+    assert cfg.logger.mode == "online" and cfg.logger.backend == "wandb"
+    assert sweep["metric"]["name"] == "eval/return"
