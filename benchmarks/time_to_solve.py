@@ -100,6 +100,69 @@ def speedup(reference_s: float, time_s: float) -> float | None:
     return reference_s / time_s
 
 
+LEVELS = (1.0, 0.95, 0.9)  # fractions of PPO's final improvement over the random policy
+
+
+def summarise(runs: list[dict], envs: list[str], losses: list[str]) -> tuple[list[dict], str]:
+    """Per env and loss over seeds: final return, wall time, and times to PPO's final level.
+
+    Levels: PPO's final return itself (the median over seeds of its last evaluation), and 95 % /
+    90 % of PPO's final improvement over the random policy (``random + f (ppo_final - random)``):
+    near a task's ceiling, learners that all "solve" it end a fraction of a point apart, and the
+    exact final level alone would call that "never".
+    """
+    summary = []
+    for env in envs:
+        by_loss = {loss: [r for r in runs if r["env"] == env and r["loss"] == loss] for loss in losses}
+        by_loss = {loss: group for loss, group in by_loss.items() if group}
+        levels = {}
+        if by_loss.get("ppo"):
+            ppo_final = statistics.median(r["eval/return"] for r in by_loss["ppo"])
+            random_return = statistics.median(r["eval/random_return"] for r in by_loss["ppo"])
+            for fraction in LEVELS:
+                level = random_return + fraction * (ppo_final - random_return)
+                ppo_time = statistics.median(first_time_at(r["curve"], level) for r in by_loss["ppo"])
+                levels[fraction] = (level, ppo_time)
+        for loss, group in by_loss.items():
+            row = {"env": env, "loss": loss, "seeds": [r["seed"] for r in group],
+                   "final_return": C.spread([r["eval/return"] for r in group]),
+                   "wall_s": C.spread([r["wall_time_s"] for r in group]),
+                   "env_steps": C.spread([r["env_steps"] for r in group]),
+                   "random_return": statistics.median(r["eval/random_return"] for r in group), "levels": {}}
+            for fraction, (level, ppo_time) in levels.items():
+                times = [first_time_at(r["curve"], level) for r in group]
+                row["levels"][fraction] = {
+                    "return": level, "time_s": statistics.median(times),
+                    "reached": f"{sum(math.isfinite(t) for t in times)}/{len(times)}",
+                    "speedup_vs_ppo": speedup(ppo_time, statistics.median(times)),
+                }
+            summary.append(row)
+
+    print("\n## time to solve (median over seeds; min-max in brackets; t: wall s to reach the level, "
+          "seeds that reached it, speed-up vs PPO)")
+
+    def rng(d, fmt):
+        return f"{fmt.format(d['median'])} [{fmt.format(d['min'])}, {fmt.format(d['max'])}]"
+
+    def level_cell(row, fraction):
+        cell = row["levels"].get(fraction)
+        if cell is None:
+            return "-"
+        t = "never" if not math.isfinite(cell["time_s"]) else f"{cell['time_s']:.0f} s"
+        return f"{t} ({cell['reached']}, {C.fmt_ratio(cell['speedup_vs_ppo'])})"
+
+    first = next((r for r in summary if r["levels"]), None)
+    level_names = [f"{'PPO final' if f == 1.0 else f'{f:.0%} of PPO'} = {first['levels'][f]['return']:.3g}"
+                   if first else f"{f:.0%}" for f in LEVELS]
+    table = C.print_table(
+        ["env", "loss", "final eval return", "random policy", "wall s", "env steps", *level_names],
+        [[r["env"], r["loss"], rng(r["final_return"], "{:.3g}"), f"{r['random_return']:.3g}",
+          rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}", *[level_cell(r, f) for f in LEVELS]]
+         for r in summary],
+    )
+    return summary, table
+
+
 def main(argv=None) -> dict:
     parser = C.base_parser(__doc__.splitlines()[0])
     parser.add_argument("--envs", nargs="*", default=None, help="envs (default: pendulum cartpole)")
@@ -110,7 +173,16 @@ def main(argv=None) -> dict:
     parser.add_argument("--eval-interval", type=int, default=None, help="env steps between evaluations")
     parser.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
     parser.add_argument("--keep-runs", type=Path, default=None, help="keep the run directories here")
+    parser.add_argument("--summarise", type=Path, default=None, metavar="JSON",
+                        help="only re-print the summary of an earlier result file")
     args = parser.parse_args(argv)
+    if args.summarise is not None:
+        payload = json.loads(args.summarise.read_text())
+        runs = payload["runs"]
+        envs = list(dict.fromkeys(r["env"] for r in runs))
+        payload["summary"], payload["table"] = summarise(runs, envs, list(dict.fromkeys(r["loss"] for r in runs)))
+        C.write_json("time_to_solve", payload, args.out or args.summarise)
+        return payload
     C.setup_threads(args.threads)
     train_script = load_train_script()
 
@@ -144,41 +216,7 @@ def main(argv=None) -> dict:
                 print(f"# {env} {loss} seed {seed}: eval return {result['eval/return']:.4g} after "
                       f"{result['env_steps']:,} env steps, {result['wall_time_s']:.1f} s")
 
-    summary = []
-    for env in envs:
-        by_loss = {loss: [r for r in runs if r["env"] == env and r["loss"] == loss] for loss in args.losses}
-        threshold = None
-        if by_loss.get("ppo"):
-            threshold = statistics.median(r["eval/return"] for r in by_loss["ppo"])
-            ppo_time = statistics.median(first_time_at(r["curve"], threshold) for r in by_loss["ppo"])
-        for loss, group in by_loss.items():
-            finals = [r["eval/return"] for r in group]
-            row = {"env": env, "loss": loss, "seeds": [r["seed"] for r in group],
-                   "final_return": C.spread(finals), "wall_s": C.spread([r["wall_time_s"] for r in group]),
-                   "env_steps": C.spread([r["env_steps"] for r in group]),
-                   "random_return": statistics.median(r["eval/random_return"] for r in group)}
-            if threshold is not None:
-                times = [first_time_at(r["curve"], threshold) for r in group]
-                row["ppo_final_return"] = threshold
-                row["time_to_ppo_final_s"] = statistics.median(times)
-                row["reached"] = f"{sum(math.isfinite(t) for t in times)}/{len(times)}"
-                row["speedup_vs_ppo"] = speedup(ppo_time, row["time_to_ppo_final_s"])
-            summary.append(row)
-
-    print("\n## time to solve (median over seeds; min-max in brackets)")
-
-    def rng(d, fmt):
-        return f"{fmt.format(d['median'])} [{fmt.format(d['min'])}, {fmt.format(d['max'])}]"
-
-    table = C.print_table(
-        ["env", "loss", "final eval return", "random policy", "wall s", "env steps", "t to PPO's final (s)",
-         "reached", "speed-up vs PPO"],
-        [[r["env"], r["loss"], rng(r["final_return"], "{:.3g}"), f"{r['random_return']:.3g}",
-          rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}",
-          f"{r['time_to_ppo_final_s']:.0f}" if r.get("time_to_ppo_final_s") not in (None, math.inf) else "never",
-          r.get("reached", "-"), C.fmt_ratio(r.get("speedup_vs_ppo"))]
-         for r in summary],
-    )
+    summary, table = summarise(runs, envs, args.losses)
     for r in runs:
         r["curve"] = [list(p) for p in r["curve"]]
     payload = {"benchmark": "time_to_solve", "info": info, "summary": summary, "runs": runs, "table": table}

@@ -67,4 +67,6 @@ def test_time_to_solve_quick(tmp_path):
         assert run["env_steps"] >= 32 and run["curve"], run["loss"]
         assert run["curve"][0][0] == 0  # evaluated before training
     ppo = next(r for r in payload["summary"] if r["loss"] == "ppo")
-    assert ppo["time_to_ppo_final_s"] <= ppo["wall_s"]["max"]
+    assert set(ppo["levels"]) == {1.0, 0.95, 0.9}
+    assert ppo["levels"][1.0]["reached"] == "1/1" and ppo["levels"][1.0]["time_s"] <= ppo["wall_s"]["max"]
+    assert ppo["levels"][0.9]["return"] <= ppo["levels"][1.0]["return"]
