@@ -41,11 +41,13 @@ def _mean_std(values: list[float]) -> str:
 
 
 def markdown_table(runs: list[dict], full_grid: bool = True) -> str:
-    """The table: rows ordered by env (registry order) then loss (bptt, shac, ppo, sac)."""
+    """The table: rows ordered by env (Ivy-style tasks, then Gymnasium ids), then loss (bptt, shac, ppo, sac)."""
     groups: dict[tuple[str, str], list[dict]] = {}
     for run in runs:
         groups.setdefault((run["env"], run["loss"]), []).append(run)
-    envs = list_envs() + sorted({e for e, _ in groups} - set(list_envs()))
+    # Ivy-style tasks (lower case) first, then the Gymnasium-compatible ids, then anything else found
+    registered = sorted(list_envs(), key=lambda name: (name[:1].isupper(), name))
+    envs = registered + sorted({e for e, _ in groups} - set(registered))
     keys = [(e, l) for e in envs for l in LOSSES] if full_grid else sorted(groups)
     lines = [
         "| env | loss | seeds | env steps | final eval return | random policy | wall time (s) |",

@@ -14,6 +14,7 @@ with the default logger, the offline W&B run in wandb/.
 from __future__ import annotations
 
 import json
+import logging
 import random
 import time
 import warnings
@@ -47,6 +48,7 @@ from torchrl_diffenvs.training.config import check_resume_compatible, merge_over
 from torchrl_diffenvs.training.learners import make_policy_from_config
 
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
+log = logging.getLogger("train")  # Hydra sends it to the console and <run dir>/train.log
 
 
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
@@ -96,7 +98,7 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
         learner.load_state_dict(ckpt["learner"])
         progress, history, wandb_run_id = ckpt["progress"], ckpt["history"], ckpt.get("wandb_run_id")
         restore_rng_state(ckpt["rng"], {"env": env.rng})  # last: building the learner drew numbers
-        print(f"resumed {cfg.resume} at env step {progress['env_steps']:,}")
+        log.info(f"resumed {cfg.resume} at env step {progress['env_steps']:,}")
     logger = RunLogger(cfg, run_dir, history, wandb_run_id)
     ckpt_dir = run_dir / "checkpoints"
     last = {"eval/return": float("nan"), "train/return": float("nan")}
@@ -116,7 +118,8 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
         }
         path = save_checkpoint(state, ckpt_dir / f"ckpt_{progress['env_steps']:012d}.pt")
         atomic_copy(path, ckpt_dir / "last.pt")
-        for old in sorted(ckpt_dir.glob("ckpt_*.pt"))[: -cfg.train.keep_checkpoints or None]:
+        numbered = sorted(ckpt_dir.glob("ckpt_*.pt"))
+        for old in numbered[: len(numbered) - cfg.train.keep_checkpoints]:  # the newest keep_checkpoints stay
             old.unlink()
         logger.write_csv()
         return path
@@ -185,15 +188,19 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
             "run_dir": str(run_dir), "wandb_dir": str(logger.wandb_dir) if logger.wandb_dir else None,
         }
         (run_dir / "final_metrics.json").write_text(json.dumps(result, indent=2) + "\n")
-        print(f"{cfg.env.name} {cfg.loss.name}: eval return {result['eval/return']:.4g} "
+        log.info(f"{cfg.env.name} {cfg.loss.name}: eval return {result['eval/return']:.4g} "
               f"(random policy {result['eval/random_return']:.4g}) after {progress['env_steps']:,} env steps "
               f"in {progress['wall_time_s']:.0f} s; outputs in {run_dir}")
         return result
     except KeyboardInterrupt:
         bar.close()
-        saved = sorted(ckpt_dir.glob("ckpt_*.pt"))
-        hint = f"resume=<{saved[-1]}>" if saved else "no checkpoint was written yet"
-        print(f"\ninterrupted at env step {progress['env_steps']:,}; to continue: {hint}")
+        saved = ckpt_dir / "last.pt"
+        if saved.exists():
+            at = load_checkpoint(saved)["progress"]["env_steps"]
+            log.warning(f"interrupted at env step {progress['env_steps']:,}; continue from env step {at:,} with "
+                  f"resume={saved}")
+        else:
+            log.warning(f"interrupted at env step {progress['env_steps']:,}, before the first checkpoint")
         raise
     finally:
         logger.close()
@@ -235,7 +242,7 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path) -> dict:
         gif = write_gif(cfg, env, policy, steps, run_dir / "eval.gif")
         result["gif"] = str(gif) if gif else None
     (run_dir / "eval_metrics.json").write_text(json.dumps(result, indent=2) + "\n")
-    print(f"{cfg.env.name} {cfg.loss.name} ({cfg.checkpoint}): eval return {scores['return']:.4g} "
+    log.info(f"{cfg.env.name} {cfg.loss.name} ({cfg.checkpoint}): eval return {scores['return']:.4g} "
           f"+- {scores['return_std']:.3g} over {cfg.eval.num_envs} envs (random policy "
           f"{result['eval/random_return']:.4g}); outputs in {run_dir}")
     return result

@@ -272,6 +272,28 @@ def test_resumed_run_continues_exactly_where_the_stopped_run_was(loss, tmp_path)
     assert result_b["eval/return"] == result_a["eval/return"]
 
 
+def test_ctrl_c_keeps_the_last_checkpoint_and_closes_the_run(tmp_path, monkeypatch, caplog):
+    from torchrl_diffenvs.training.learners import BPTTLearner
+
+    calls = {"n": 0}
+    original = BPTTLearner.train_iteration
+
+    def interrupted(self):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(BPTTLearner, "train_iteration", interrupted)
+    cfg = tiny_cfg("pendulum", "bptt", 4, "train.checkpoint_interval=16")
+    with pytest.raises(KeyboardInterrupt):
+        train_script.run(cfg, tmp_path)
+    last = tmp_path / "checkpoints" / "last.pt"
+    assert load_checkpoint(last)["progress"]["env_steps"] == 32  # after iteration 2
+    assert f"continue from env step 32 with resume={last}" in caplog.text
+    assert (tmp_path / "metrics.csv").is_file()  # the logger was closed
+
+
 def test_resume_with_a_different_env_or_learner_is_refused(tmp_path):
     train_script.run(tiny_cfg("pendulum", "bptt", 1), tmp_path / "a")
     ckpt = tmp_path / "a" / "checkpoints" / "last.pt"

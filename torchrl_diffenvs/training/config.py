@@ -230,6 +230,8 @@ def validate_config(cfg: DictConfig) -> None:
 
     if loss_name in LOSSES:
         _check_loss(cfg.loss, problems)
+    if loss_name == "sac" and cfg.loss.get("obs_norm"):
+        problems.append("loss.obs_norm=true is not supported by loss=sac (the replay buffer would mix statistics)")
 
     if mode == "eval":
         if cfg.get("checkpoint") is None:
