@@ -126,6 +126,9 @@ def test_unknown_env_or_loss_lists_the_valid_choices():
         (["env=reacher", "env.options.num_links=0"], "num_links must be an integer >= 1"),
         (["env=pendulum", "+env.params.gravity=3"], "unknown physical parameter(s) ['gravity']"),
         (["device=tpu"], "device='tpu'"),
+        (["loss=ppo", "+loss.actor.distribution=deterministic"], "loss=ppo needs a stochastic policy"),
+        (["loss=sac", "+loss.obs_norm=true"], "loss.obs_norm=true is not supported by loss=sac"),
+        (["loss=sac", "loss.buffer_size=10", "loss.batch_size=64"], "loss.buffer_size=10 is smaller than"),
     ],
 )
 def test_bad_configs_stop_before_training_with_a_clear_message(overrides, message):

@@ -230,6 +230,8 @@ def validate_config(cfg: DictConfig) -> None:
 
     if loss_name in LOSSES:
         _check_loss(cfg.loss, problems)
+    if loss_name in ("ppo", "sac") and OmegaConf.select(cfg, "loss.actor.distribution", default="tanh_normal") != "tanh_normal":
+        problems.append(f"loss.actor.distribution: loss={loss_name} needs a stochastic policy (tanh_normal)")
     if loss_name == "sac" and cfg.loss.get("obs_norm"):
         problems.append("loss.obs_norm=true is not supported by loss=sac (the replay buffer would mix statistics)")
 
