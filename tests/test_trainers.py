@@ -87,3 +87,21 @@ def test_evaluate_policy_and_argument_checks():
         GradientTrainer(trainer.collector, trainer.loss, lr_schedule="cosine")
     with pytest.raises(TypeError, match="BPTTLoss or SHACLoss"):
         GradientTrainer(trainer.collector, torch.nn.Linear(1, 1))
+
+
+def test_evaluate_policy_counts_only_the_first_episode():
+    """CartPole-v1 pays +1 per step, so each env's return is the length of its first episode."""
+    from torchrl.envs.utils import RandomPolicy
+
+    env = make_env("CartPole-v1", num_envs=8, dtype=torch.float64, seed=3, max_episode_steps=60)
+    torch.manual_seed(0)
+    stats = evaluate_policy(env, RandomPolicy(env.action_spec))
+    torch.manual_seed(0)
+    env.set_seed(3)
+    done = env.rollout(60, RandomPolicy(env.action_spec), break_when_any_done=False)["next", "done"]
+    lengths = []
+    for row in done.squeeze(-1).tolist():  # hand count: steps up to the first done
+        lengths.append(row.index(True) + 1 if True in row else len(row))
+    assert min(lengths) < 60  # random actions do make some pole fall before the limit
+    assert stats["return_mean"] == pytest.approx(sum(lengths) / len(lengths))
+    assert stats["reward_mean"] == pytest.approx(1.0)

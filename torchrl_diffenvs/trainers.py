@@ -36,9 +36,11 @@ def evaluate_policy(
     """Runs ``policy`` from a fresh reset of every env of ``env`` for ``max_steps`` steps
     (default: one episode, ``env.max_episode_steps``) without gradients.
 
+    Only each env's first episode counts: steps after its first ``done`` (an auto-reset into a
+    new episode, e.g. after a CartPole-v1 termination) are left out, so returns are not inflated.
     Returns ``reward_mean`` (mean per-step reward), ``return_mean`` (mean per-env sum of
-    rewards) and ``tail_reward_mean`` (mean per-step reward over the last ``tail_steps`` steps:
-    how well the task is held once reached, e.g. a pendulum kept upright).
+    rewards) and ``tail_reward_mean`` (mean per-step reward over the last ``tail_steps`` steps
+    of the rollout: how well the task is held once reached, e.g. a pendulum kept upright).
     """
     max_steps = max_steps or env.max_episode_steps
     if max_steps is None:
@@ -46,8 +48,11 @@ def evaluate_policy(
     with set_exploration_type(exploration_type):
         rollout = env.rollout(max_steps, policy, break_when_any_done=False)
     reward = rollout.get(("next", "reward"))  # [N, T, 1]
+    done = rollout.get(("next", "done")).long()
+    in_first_episode = (done.cumsum(-2) - done) == 0  # up to and including the first done
+    reward = reward * in_first_episode
     return {
-        "reward_mean": reward.mean().item(),
+        "reward_mean": (reward.sum() / in_first_episode.sum()).item(),
         "return_mean": reward.sum(-2).mean().item(),
         "tail_reward_mean": reward[:, -tail_steps:].mean().item(),
     }
