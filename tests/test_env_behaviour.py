@@ -458,6 +458,12 @@ def test_bad_params_are_rejected_with_what_is_valid():
         make_env("pendulum", num_envs=3, params={"g": torch.ones(3, 1)})
 
 
+@pytest.mark.parametrize("value", ["abc", None, {"a": 1}])
+def test_non_numeric_param_value_names_the_parameter(value):
+    with pytest.raises(TypeError, match=r"pendulum: parameter 'g' must be a number or a tensor .*shape \(3,\)\), got"):
+        make_env("pendulum", num_envs=3, params={"g": value})
+
+
 @pytest.mark.parametrize("max_steps", [0, -1, 2.5, True])
 def test_bad_max_episode_steps(max_steps):
     with pytest.raises(ValueError, match=r"max_episode_steps must be a positive integer or None"):

@@ -156,7 +156,7 @@ class DiffWindowCollector:
         self.episode_returns.extend(state["episode_returns"])
         self.windows = int(state["windows"])
         if state.get("env_rng") is not None and isinstance(getattr(self.env, "rng", None), torch.Generator):
-            self.env.rng.set_state(state["env_rng"])
+            self.env.rng.set_state(state["env_rng"].cpu())  # generator states are CPU byte tensors, also for CUDA
 
     # ------------------------------------------------------------------ collection
     def rollout(self) -> TensorDictBase:

@@ -133,7 +133,14 @@ class DiffEnv(EnvBase):
         values = {}
         for key, default in self.default_params.items():
             default_t = torch.as_tensor(default, dtype=self.float_dtype, device=self.device)
-            value = torch.as_tensor(overrides.get(key, default_t), dtype=self.float_dtype, device=self.device)
+            raw = overrides.get(key, default_t)
+            try:
+                value = torch.as_tensor(raw, dtype=self.float_dtype, device=self.device)
+            except (TypeError, ValueError, RuntimeError) as err:
+                raise TypeError(
+                    f"{self.name}: parameter {key!r} must be a number or a tensor (one value per env: shape "
+                    f"({n},)), got {type(raw).__name__} {raw!r}"
+                ) from err
             if value.shape == default_t.shape:
                 value = value.expand(n, *default_t.shape)
             elif value.shape != (n, *default_t.shape):
