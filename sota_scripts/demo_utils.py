@@ -4,6 +4,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import torch
+from torchrl_diffenvs import list_envs
+
 
 def parse_args(defaults: dict, argv: list[str] | None = None, usage: str = "") -> dict:
     """Parses ``key=value`` arguments, converting each value to the type of its default."""
@@ -29,6 +32,22 @@ def parse_args(defaults: dict, argv: list[str] | None = None, usage: str = "") -
             except ValueError:
                 raise SystemExit(f"{key} expects a {kind.__name__}, got {value!r}") from None
     return args
+
+
+def start_demo(
+    defaults: dict, argv: list[str] | None = None, usage: str = "", choices: dict[str, tuple] | None = None
+) -> tuple[dict, Path]:
+    """Parses the arguments, checks the env name and the ``choices`` (key -> valid values), seeds
+    torch and creates ``out_dir``; returns the arguments and ``out_dir``."""
+    args = parse_args(defaults, argv, usage)
+    valid = {"env": tuple(list_envs()), **(choices or {})}
+    for key, values in valid.items():
+        if args[key] not in values:
+            raise SystemExit(f"unknown {key} {args[key]!r}; valid: {', '.join(values)}")
+    torch.manual_seed(args["seed"])
+    out_dir = Path(args["out_dir"])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return args, out_dir
 
 
 def plot_curve(path: Path, curves: dict[str, tuple[list, list]], xlabel: str, ylabel: str, title: str) -> Path:

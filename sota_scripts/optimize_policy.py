@@ -20,13 +20,12 @@ trained policy in a grid of ``gif_envs`` envs) to ``out_dir``.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import torch
 from tqdm.auto import tqdm
 
-from demo_utils import parse_args, plot_curve
-from torchrl_diffenvs import list_envs, make_env
+from demo_utils import plot_curve, start_demo
+from torchrl_diffenvs import make_env
 from torchrl_diffenvs.collectors import DiffWindowCollector
 from torchrl_diffenvs.modules import ObservationNormalizer, make_actor, make_critic
 from torchrl_diffenvs.objectives import BPTTLoss, SHACLoss
@@ -54,14 +53,8 @@ DEFAULTS = {
 
 
 def main(argv: list[str] | None = None) -> dict:
-    args = parse_args(DEFAULTS, argv, usage=__doc__)
-    if args["env"] not in list_envs():
-        raise SystemExit(f"unknown env {args['env']!r}; valid: {', '.join(list_envs())}")
-    if args["loss"] not in ("bptt", "shac") or args["policy"] not in ("deterministic", "stochastic"):
-        raise SystemExit("loss must be bptt or shac; policy must be deterministic or stochastic")
-    torch.manual_seed(args["seed"])
-    out_dir = Path(args["out_dir"])
-    out_dir.mkdir(parents=True, exist_ok=True)
+    choices = {"loss": ("bptt", "shac"), "policy": ("deterministic", "stochastic")}
+    args, out_dir = start_demo(DEFAULTS, argv, usage=__doc__, choices=choices)
 
     env = make_env(args["env"], num_envs=args["num_envs"], seed=args["seed"], max_episode_steps=args["steps"])
     eval_env = make_env(args["env"], num_envs=args["eval_envs"], seed=args["seed"] + 10_000, max_episode_steps=args["steps"])

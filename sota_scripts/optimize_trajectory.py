@@ -16,13 +16,12 @@ episode) to ``out_dir``. Any ``key=value`` below can be overridden.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import torch
 from tqdm.auto import tqdm
 
-from demo_utils import parse_args, plot_curve
-from torchrl_diffenvs import list_envs, make_env
+from demo_utils import plot_curve, start_demo
+from torchrl_diffenvs import make_env
 from torchrl_diffenvs.collectors import DiffWindowCollector
 from torchrl_diffenvs.modules import OpenLoopActor
 from torchrl_diffenvs.objectives import BPTTLoss
@@ -42,12 +41,7 @@ DEFAULTS = {
 
 
 def main(argv: list[str] | None = None) -> dict:
-    args = parse_args(DEFAULTS, argv, usage=__doc__)
-    if args["env"] not in list_envs():
-        raise SystemExit(f"unknown env {args['env']!r}; valid: {', '.join(list_envs())}")
-    torch.manual_seed(args["seed"])
-    out_dir = Path(args["out_dir"])
-    out_dir.mkdir(parents=True, exist_ok=True)
+    args, out_dir = start_demo(DEFAULTS, argv, usage=__doc__)
 
     env = make_env(args["env"], num_envs=1, seed=args["seed"], max_episode_steps=args["steps"])
     start = env.reset()  # the one fixed start state

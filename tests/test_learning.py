@@ -116,4 +116,11 @@ def test_demo_scripts_write_a_learning_curve_and_a_gif(tmp_path, monkeypatch, sc
     assert summary["iterations"] == 2 and summary["skipped_steps"] == 0
     with pytest.raises(SystemExit, match="unknown argument"):
         module.main(["nonsense=1"])
+    not_created = tmp_path / "not_created"
+    with pytest.raises(SystemExit, match="unknown env 'Swimmer'; valid: .*swimmer"):
+        module.main(["env=Swimmer", f"out_dir={not_created}"])
+    if script == "optimize_policy":
+        with pytest.raises(SystemExit, match="unknown loss 'ppo'; valid: bptt, shac"):
+            module.main(["loss=ppo", f"out_dir={not_created}"])
+    assert not not_created.exists()
     sys.modules.pop(script, None)
