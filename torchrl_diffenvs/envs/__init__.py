@@ -1,6 +1,7 @@
 """Differentiable batched environments (TorchRL ``EnvBase`` subclasses)."""
 from .base import DiffEnv
 from .cartpole import CartPoleEnv
+from .fast_rollout import compile_physics, eager_physics
 from .gym_classic import CartPoleV1Env, MountainCarContinuousV0Env, PendulumV1Env
 from .mountaincar import MountainCarEnv
 from .pendulum import PendulumEnv
@@ -17,5 +18,5 @@ for _cls in (CartPoleV1Env, PendulumV1Env, MountainCarContinuousV0Env):
 __all__ = [
     "DiffEnv", "CartPoleEnv", "PendulumEnv", "MountainCarEnv", "ReacherEnv", "SwimmerEnv",
     "CartPoleV1Env", "PendulumV1Env", "MountainCarContinuousV0Env",
-    "list_envs", "make_env", "register_env",
+    "list_envs", "make_env", "register_env", "compile_physics", "eager_physics",
 ]
