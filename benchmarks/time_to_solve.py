@@ -17,6 +17,12 @@ the pendulum.
     python benchmarks/time_to_solve.py                          # pendulum + cartpole, seeds 0 1 2
     python benchmarks/time_to_solve.py --envs pendulum --seeds 0 --steps ppo=500000
     python benchmarks/time_to_solve.py --quick                  # a few iterations each: smoke run
+    # a sweep: variants of one learner against fixed return levels (no PPO needed)
+    python benchmarks/time_to_solve.py --envs pendulum --losses shac --seeds 0 1 --eval-interval 20000 \
+        --variant "default=" "H8=loss.horizon=8 loss.actor_lr=2e-2" --levels 74.2 72.3 70.4
+
+A variant (``--variant LABEL=OVERRIDE ...``) runs every loss again with those Hydra overrides and
+is reported as ``loss:LABEL``; ``--levels`` adds columns with the time to reach fixed returns.
 """
 from __future__ import annotations
 
@@ -103,7 +109,26 @@ def speedup(reference_s: float, time_s: float) -> float | None:
 LEVELS = (1.0, 0.95, 0.9)  # fractions of PPO's final improvement over the random policy
 
 
-def summarise(runs: list[dict], envs: list[str], losses: list[str]) -> tuple[list[dict], str]:
+def run_label(run: dict) -> str:
+    """``loss`` or ``loss:variant``: the rows of the summary."""
+    return f"{run['loss']}:{run['variant']}" if run.get("variant") else run["loss"]
+
+
+def parse_variants(items: list[str]) -> list[tuple[str, list[str]]]:
+    """``["H8=loss.horizon=8 loss.actor_lr=2e-2", ...]`` -> ``[("H8", [overrides]), ...]``."""
+    variants = []
+    for item in items:
+        label, sep, overrides = item.partition("=")
+        if not sep or not label or ":" in label:
+            raise SystemExit(f"time_to_solve: --variant expects LABEL=OVERRIDES (LABEL without ':'), got {item!r}")
+        variants.append((label, overrides.split()))
+    if len({label for label, _ in variants}) != len(variants):
+        raise SystemExit(f"time_to_solve: --variant labels must be distinct, got {[v[0] for v in variants]}")
+    return variants
+
+
+def summarise(runs: list[dict], envs: list[str], losses: list[str],
+              fixed_levels: list[float] = ()) -> tuple[list[dict], str]:
     """Per env and loss over seeds: final return, wall time, and times to PPO's final level.
 
     Levels: PPO's final return itself (the median over seeds of its last evaluation), and 95 % /
@@ -112,9 +137,10 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str]) -> tuple[lis
     exact final level alone would call that "never".
     """
     summary = []
+    labels = list(dict.fromkeys(run_label(r) for r in runs if r["loss"] in losses))
     for env in envs:
-        by_loss = {loss: [r for r in runs if r["env"] == env and r["loss"] == loss] for loss in losses}
-        by_loss = {loss: group for loss, group in by_loss.items() if group}
+        by_loss = {label: [r for r in runs if r["env"] == env and run_label(r) == label] for label in labels}
+        by_loss = {label: group for label, group in by_loss.items() if group}
         levels = {}
         if by_loss.get("ppo"):
             ppo_final = statistics.median(r["eval/return"] for r in by_loss["ppo"])
@@ -136,6 +162,13 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str]) -> tuple[lis
                     "reached": f"{sum(math.isfinite(t) for t in times)}/{len(times)}",
                     "speedup_vs_ppo": speedup(ppo_time, statistics.median(times)),
                 }
+            row["fixed_levels"] = {}
+            for level in fixed_levels:
+                times = [first_time_at(r["curve"], level) for r in group]
+                row["fixed_levels"][level] = {
+                    "time_s": statistics.median(times), "reached": f"{sum(math.isfinite(t) for t in times)}/{len(times)}",
+                    "times_s": times,
+                }
             summary.append(row)
 
     print("\n## time to solve (median over seeds; min-max in brackets; t: wall s to reach the level, "
@@ -151,13 +184,21 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str]) -> tuple[lis
         t = "never" if not math.isfinite(cell["time_s"]) else f"{cell['time_s']:.0f} s"
         return f"{t} ({cell['reached']}, {C.fmt_ratio(cell['speedup_vs_ppo'])})"
 
+    def fixed_cell(row, level):
+        cell = row["fixed_levels"][level]
+        times = ", ".join("never" if not math.isfinite(t) else f"{t:.1f}" for t in cell["times_s"])
+        median = "never" if not math.isfinite(cell["time_s"]) else f"{cell['time_s']:.1f} s"
+        return f"{median} ({cell['reached']}: {times})"
+
     first = next((r for r in summary if r["levels"]), None)
     level_names = [f"{'PPO final' if f == 1.0 else f'{f:.0%} of PPO'} = {first['levels'][f]['return']:.3g}"
-                   if first else f"{f:.0%}" for f in LEVELS]
+                   if first else f"{f:.0%}" for f in LEVELS] if first else []
     table = C.print_table(
-        ["env", "loss", "final eval return", "random policy", "wall s", "env steps", *level_names],
+        ["env", "loss", "final eval return", "random policy", "wall s", "env steps", *level_names,
+         *[f"return >= {level:g}" for level in fixed_levels]],
         [[r["env"], r["loss"], rng(r["final_return"], "{:.3g}"), f"{r['random_return']:.3g}",
-          rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}", *[level_cell(r, f) for f in LEVELS]]
+          rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}",
+          *[level_cell(r, f) for f in (LEVELS if first else ())], *[fixed_cell(r, lv) for lv in fixed_levels]]
          for r in summary],
     )
     return summary, table
@@ -172,6 +213,10 @@ def main(argv=None) -> dict:
                         help="env-step budget per loss (default: each pair's configured train.total_env_steps)")
     parser.add_argument("--eval-interval", type=int, default=None, help="env steps between evaluations")
     parser.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
+    parser.add_argument("--variant", nargs="*", default=[], metavar="LABEL=OVERRIDES",
+                        help="run every loss once per variant, with these space-separated Hydra overrides")
+    parser.add_argument("--levels", nargs="*", type=float, default=[], metavar="RETURN",
+                        help="also report the wall time to reach these evaluation returns")
     parser.add_argument("--keep-runs", type=Path, default=None, help="keep the run directories here")
     parser.add_argument("--summarise", type=Path, default=None, metavar="JSON",
                         help="only re-print the summary of an earlier result file")
@@ -180,7 +225,8 @@ def main(argv=None) -> dict:
         payload = json.loads(args.summarise.read_text())
         runs = payload["runs"]
         envs = list(dict.fromkeys(r["env"] for r in runs))
-        payload["summary"], payload["table"] = summarise(runs, envs, list(dict.fromkeys(r["loss"] for r in runs)))
+        payload["summary"], payload["table"] = summarise(runs, envs, list(dict.fromkeys(r["loss"] for r in runs)),
+                                                         args.levels)
         C.write_json("time_to_solve", payload, args.out or args.summarise)
         return payload
     C.setup_threads(args.threads)
@@ -190,6 +236,7 @@ def main(argv=None) -> dict:
     envs = args.envs or (["pendulum"] if quick else ["pendulum", "cartpole"])
     seeds = args.seeds if args.seeds is not None else ([0] if quick else [0, 1, 2])
     budgets = dict(item.split("=", 1) for item in args.steps)
+    variants = parse_variants(args.variant) or [("", [])]
     info = C.versions()
     C.print_header("time to solve (sota_scripts/train.py, interleaved runs)", info)
     runs_root = args.keep_runs or Path(tempfile.mkdtemp(prefix="time_to_solve_"))
@@ -197,7 +244,7 @@ def main(argv=None) -> dict:
     runs = []
     for seed in seeds:
         for env in envs:
-            for loss in args.losses:
+            for loss, (variant, variant_overrides) in ((lo, v) for lo in args.losses for v in variants):
                 overrides = [f"env={env}", f"loss={loss}", f"seed={seed}", "logger=none",
                              "train.progress_bar=false", "eval.gif=false"]
                 if quick:
@@ -206,17 +253,18 @@ def main(argv=None) -> dict:
                     overrides.append(f"eval.interval={args.eval_interval}")
                 if loss in budgets:
                     overrides.append(f"train.total_env_steps={budgets[loss]}")
-                overrides += args.override
-                run_dir = runs_root / f"{env}_{loss}_seed{seed}"
+                overrides += args.override + variant_overrides
+                run_dir = runs_root / f"{env}_{loss}{'_' + variant if variant else ''}_seed{seed}"
                 cfg = compose(overrides)
                 wall, cpu = C.timed(lambda: runs.append(train_script.run(cfg, run_dir, overrides)))
                 result = runs[-1]
-                result.update({"overrides": overrides, "curve": eval_curve(run_dir), "process_wall_s": wall,
+                result.update({"overrides": overrides, "variant": variant, "curve": eval_curve(run_dir),
+                               "process_wall_s": wall,
                                "process_cpu_s": cpu, "total_env_steps": int(cfg.train.total_env_steps)})
-                print(f"# {env} {loss} seed {seed}: eval return {result['eval/return']:.4g} after "
+                print(f"# {env} {run_label(result)} seed {seed}: eval return {result['eval/return']:.4g} after "
                       f"{result['env_steps']:,} env steps, {result['wall_time_s']:.1f} s")
 
-    summary, table = summarise(runs, envs, args.losses)
+    summary, table = summarise(runs, envs, args.losses, args.levels)
     for r in runs:
         r["curve"] = [list(p) for p in r["curve"]]
     payload = {"benchmark": "time_to_solve", "info": info, "summary": summary, "runs": runs, "table": table}

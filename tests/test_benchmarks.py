@@ -70,3 +70,21 @@ def test_time_to_solve_quick(tmp_path):
     assert set(ppo["levels"]) == {1.0, 0.95, 0.9}
     assert ppo["levels"][1.0]["reached"] == "1/1" and ppo["levels"][1.0]["time_s"] <= ppo["wall_s"]["max"]
     assert ppo["levels"][0.9]["return"] <= ppo["levels"][1.0]["return"]
+
+
+def test_time_to_solve_variants_and_fixed_levels(tmp_path):
+    tts = load("time_to_solve")
+    payload = tts.main(["--quick", "--losses", "shac", "--variant", "default=", "fast=loss.actor_lr=2e-2",
+                        "--levels", "0", "1e9", "--out", str(tmp_path / "tts.json")])
+    assert [r["loss"] for r in payload["summary"]] == ["shac:default", "shac:fast"]
+    assert [r["variant"] for r in payload["runs"]] == ["default", "fast"]
+    assert "loss.actor_lr=2e-2" in payload["runs"][1]["overrides"]
+    assert "loss.actor_lr=2e-2" not in payload["runs"][0]["overrides"]
+    for row in payload["summary"]:
+        assert row["levels"] == {}  # no PPO run: no PPO-relative levels
+        assert row["fixed_levels"][0.0]["reached"] == "1/1" and row["fixed_levels"][0.0]["time_s"] == 0.0  # rewards >= 0
+        assert row["fixed_levels"][1e9]["reached"] == "0/1" and math.isinf(row["fixed_levels"][1e9]["time_s"])
+    with pytest.raises(SystemExit, match="LABEL=OVERRIDES"):
+        tts.parse_variants(["no-label"])
+    with pytest.raises(SystemExit, match="must be distinct"):
+        tts.parse_variants(["a=x=1", "a=y=2"])
