@@ -27,6 +27,7 @@ is reported as ``loss:LABEL``; ``--levels`` adds columns with the time to reach 
 from __future__ import annotations
 
 import importlib.util
+import itertools
 import math
 import shutil
 import statistics
@@ -109,6 +110,11 @@ def speedup(reference_s: float, time_s: float) -> float | None:
 LEVELS = (1.0, 0.95, 0.9)  # fractions of PPO's final improvement over the random policy
 
 
+def reached(times: list[float]) -> str:
+    """``"k/n"``: how many of the runs reached a level (a finite time)."""
+    return f"{sum(math.isfinite(t) for t in times)}/{len(times)}"
+
+
 def run_label(run: dict) -> str:
     """``loss`` or ``loss:variant``: the rows of the summary."""
     return f"{run['loss']}:{run['variant']}" if run.get("variant") else run["loss"]
@@ -159,16 +165,14 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
                 times = [first_time_at(r["curve"], level) for r in group]
                 row["levels"][fraction] = {
                     "return": level, "time_s": statistics.median(times),
-                    "reached": f"{sum(math.isfinite(t) for t in times)}/{len(times)}",
+                    "reached": reached(times),
                     "speedup_vs_ppo": speedup(ppo_time, statistics.median(times)),
                 }
             row["fixed_levels"] = {}
             for level in fixed_levels:
                 times = [first_time_at(r["curve"], level) for r in group]
-                row["fixed_levels"][level] = {
-                    "time_s": statistics.median(times), "reached": f"{sum(math.isfinite(t) for t in times)}/{len(times)}",
-                    "times_s": times,
-                }
+                row["fixed_levels"][level] = {"time_s": statistics.median(times), "reached": reached(times),
+                                              "times_s": times}
             summary.append(row)
 
     print("\n## time to solve (median over seeds; min-max in brackets; t: wall s to reach the level, "
@@ -191,14 +195,15 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
         return f"{median} ({cell['reached']}: {times})"
 
     first = next((r for r in summary if r["levels"]), None)
+    ppo_levels = LEVELS if first else ()  # PPO-relative levels need a PPO run
     level_names = [f"{'PPO final' if f == 1.0 else f'{f:.0%} of PPO'} = {first['levels'][f]['return']:.3g}"
-                   if first else f"{f:.0%}" for f in LEVELS] if first else []
+                   for f in ppo_levels]
     table = C.print_table(
         ["env", "loss", "final eval return", "random policy", "wall s", "env steps", *level_names,
          *[f"return >= {level:g}" for level in fixed_levels]],
         [[r["env"], r["loss"], rng(r["final_return"], "{:.3g}"), f"{r['random_return']:.3g}",
           rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}",
-          *[level_cell(r, f) for f in (LEVELS if first else ())], *[fixed_cell(r, lv) for lv in fixed_levels]]
+          *[level_cell(r, f) for f in ppo_levels], *[fixed_cell(r, lv) for lv in fixed_levels]]
          for r in summary],
     )
     return summary, table
@@ -244,7 +249,7 @@ def main(argv=None) -> dict:
     runs = []
     for seed in seeds:
         for env in envs:
-            for loss, (variant, variant_overrides) in ((lo, v) for lo in args.losses for v in variants):
+            for loss, (variant, variant_overrides) in itertools.product(args.losses, variants):
                 overrides = [f"env={env}", f"loss={loss}", f"seed={seed}", "logger=none",
                              "train.progress_bar=false", "eval.gif=false"]
                 if quick:
@@ -259,8 +264,8 @@ def main(argv=None) -> dict:
                 wall, cpu = C.timed(lambda: runs.append(train_script.run(cfg, run_dir, overrides)))
                 result = runs[-1]
                 result.update({"overrides": overrides, "variant": variant, "curve": eval_curve(run_dir),
-                               "process_wall_s": wall,
-                               "process_cpu_s": cpu, "total_env_steps": int(cfg.train.total_env_steps)})
+                               "process_wall_s": wall, "process_cpu_s": cpu,
+                               "total_env_steps": int(cfg.train.total_env_steps)})
                 print(f"# {env} {run_label(result)} seed {seed}: eval return {result['eval/return']:.4g} after "
                       f"{result['env_steps']:,} env steps, {result['wall_time_s']:.1f} s")
 

@@ -69,8 +69,14 @@ def test_calls_the_direct_path_does_not_cover_use_probabilistic_actor():
     assert torch.equal(out["action_log_prob"], ref["action_log_prob"])
     # the log-probability is TanhNormal's, of that action
     assert torch.allclose(out["action_log_prob"], actor.get_dist(out).log_prob(out["action"]), atol=1e-5)
-    # MEAN is not a direct mode: ProbabilisticActor estimates it by sampling
+    # MEAN is not a direct mode: ProbabilisticActor estimates it from many samples
+    plain = make_actor(env)
     with set_interaction_type(InteractionType.MEAN):
         torch.manual_seed(2)
-        mean = make_actor(env)(td.clone())["action"]
-    assert mean.shape == (4, 1)
+        mean = plain(td.clone())["action"]
+        torch.manual_seed(2)
+        ref_mean = ProbabilisticActor.forward(plain, td.clone())["action"]
+    assert torch.equal(mean, ref_mean)
+    with set_interaction_type(InteractionType.DETERMINISTIC):
+        squashed_loc = plain(td.clone())["action"]
+    assert not torch.equal(mean, squashed_loc)  # an empirical mean, not the direct path's squashed loc

@@ -196,9 +196,10 @@ class TanhNormalActor(ProbabilisticActor):
     A rollout calls the policy once per step. ``ProbabilisticActor.forward`` builds a
     ``TanhNormal`` (with its transforms and argument checks) and runs tensordict's generic
     sampling machinery: about 0.5 ms per call on top of the network here, more than a 64-64 MLP
-    or a pendulum step costs at N = 64. For the common calls (sampling under ``ExplorationType.RANDOM``, or the squashed
-    mean under ``DETERMINISTIC``, without a log-probability, an output TensorDict or a per-call
-    generator) :meth:`forward` computes the same thing directly: ``loc + eps * scale`` with
+    or a pendulum step costs at N = 64. For the common calls (sampling under
+    ``ExplorationType.RANDOM``, or the squashed mean under ``DETERMINISTIC``, without a
+    log-probability, an output TensorDict or a per-call generator) :meth:`forward` computes the
+    same thing directly: ``loc + eps * scale`` with
     ``eps`` drawn exactly as ``Normal.rsample`` draws it, then TorchRL's ``SafeTanhTransform``
     and the affine map into the bounds. Same values, same gradients, same random stream
     (``tests/test_modules.py`` checks them bit for bit against ``ProbabilisticActor.forward``).
@@ -222,11 +223,13 @@ class TanhNormalActor(ProbabilisticActor):
 
     def _direct_mode(self, tensordict, tensordict_out, kwargs) -> InteractionType | None:
         sampler = self.module[-1]
-        if tensordict_out is not None or kwargs or sampler.return_log_prob or not isinstance(tensordict, TensorDictBase):
+        # anything ProbabilisticActor would do beyond "sample, squash, write": leave it to it
+        # (these are attributes, not constructor constants: users may change them later)
+        if tensordict_out is not None or kwargs or not isinstance(tensordict, TensorDictBase):
             return None
-        if getattr(sampler, "_generator", None) is not None or getattr(sampler, "_generator_key", None) is not None:
+        if sampler.return_log_prob or getattr(sampler, "safe", False) or len(self.module) != 2:
             return None
-        if getattr(sampler, "num_samples", None) is not None or getattr(sampler, "safe", False) or len(self.module) != 2:
+        if any(getattr(sampler, name, None) is not None for name in ("num_samples", "_generator", "_generator_key")):
             return None
         mode = interaction_type()
         if mode is None:
@@ -247,7 +250,7 @@ class TanhNormalActor(ProbabilisticActor):
         action = self._tanh(pre_tanh)
         if self._affine is not None:
             action = self._affine(action)
-        tensordict.set(self.module[-1].out_keys[0], action)
+        tensordict.set(self.module[-1].out_keys[0], action)  # "action"
         return tensordict
 
 
