@@ -1,0 +1,437 @@
+"""Batched, differentiable rigid-body dynamics of kinematic trees, in pure torch.
+
+Everything here is a pure function of tensors with a leading batch dimension ``N``: the same code
+serves the TorchRL step, the lean rollout path, ``torch.compile``, CPU and CUDA, float32 and
+float64. The physics follows MuJoCo's definitions so that contact-free models match MuJoCo to
+rounding error:
+
+* kinematics: MuJoCo's joint composition (hinge about its anchor, slide along its axis, ``ref``);
+* mass matrix and bias forces (Coriolis, centrifugal, gravity) from spatial vectors expressed in
+  the world frame at the origin: with every body Jacobian ``J_b`` (6 x nv, angular part first),
+  ``M = sum_b J_b^T I_b J_b + diag(armature)`` and ``bias = sum_b J_b^T (I_b a_b + v_b x* I_b v_b)``
+  with ``a_b`` the velocity-product acceleration (the recursive Newton-Euler terms, as masked sums
+  over the tree instead of a Python recursion over bodies);
+* passive forces ``-damping qvel - stiffness (qpos - springref)``, motors ``gear * clamp(ctrl)``;
+* joint limits as MuJoCo's soft constraints (solref/solimp impedance, reference acceleration,
+  regulariser from ``dof_invweight0``), solved row by row: exact when one limit is active at a
+  time, MuJoCo's coupled solve otherwise;
+* smooth penalty contact between geoms and ground planes (:func:`contact_force`), not MuJoCo's
+  convex solver: see :mod:`torchrl_diffenvs.articulated` for the difference;
+* MuJoCo's integrators: semi-implicit Euler with implicit joint damping, and classic RK4.
+
+Physical parameters come per env in a mapping (``body_mass [N, nbody]``, ``body_inertia
+[N, nbody, 3, 3]``, ``damping``/``armature``/``stiffness [N, nv]``, ``gravity [N, 3]``,
+``contact_stiffness``/``contact_damping [N]``, ``contact_friction [N, ncontact]``), so they can be
+randomised or differentiated like any other input.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .mjcf import ArticulatedModel
+
+__all__ = ["RigidBodyTree", "Kinematics", "forward_kinematics", "mass_matrix_and_bias", "accelerations", "step"]
+
+Params = Mapping[str, torch.Tensor]
+_MINVAL = 1e-15  # MuJoCo's mjMINVAL
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    # torch.linalg.cross dispatches per call; this is cheaper for the many tiny [.., 3] crosses here
+    a0, a1, a2 = a.unbind(-1)
+    b0, b1, b2 = b.unbind(-1)
+    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim=-1)
+
+
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    """``[.., 3] -> [.., 3, 3]`` such that ``skew(v) @ u == v x u``."""
+    z = torch.zeros_like(v[..., 0])
+    x, y, w = v.unbind(-1)
+    return torch.stack([z, -w, y, w, z, -x, -y, x, z], dim=-1).reshape(*v.shape, 3)
+
+
+def cross_motion(v: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Spatial motion cross product ``v x u`` of ``[.., 6]`` (angular, linear) vectors."""
+    w, vl = v[..., :3], v[..., 3:]
+    a, ul = u[..., :3], u[..., 3:]
+    return torch.cat([_cross(w, a), _cross(w, ul) + _cross(vl, a)], dim=-1)
+
+
+def cross_force(v: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+    """Spatial force cross product ``v x* f`` (``[.., 6]``: torque about the origin, force)."""
+    w, vl = v[..., :3], v[..., 3:]
+    n, fl = f[..., :3], f[..., 3:]
+    return torch.cat([_cross(w, n) + _cross(vl, fl), _cross(w, fl)], dim=-1)
+
+
+@dataclass
+class RigidBodyTree:
+    """The constant (non-parameter) part of an :class:`ArticulatedModel`, as tensors.
+
+    Built once per env (device, dtype); the per-env physical parameters travel separately.
+    """
+
+    model: ArticulatedModel
+    body_parent: list[int]
+    body_pos: torch.Tensor  # [nbody, 3]
+    body_rot: torch.Tensor  # [nbody, 3, 3]
+    body_com: torch.Tensor  # [nbody, 3]
+    body_joints: list[list[int]]  # joints of each body, in order
+    joint_is_hinge: list[bool]
+    joint_axis: torch.Tensor  # [nv, 3] body frame
+    joint_pos: torch.Tensor  # [nv, 3]
+    joint_skew: torch.Tensor  # [nv, 3, 3] skew(axis), for Rodrigues
+    qpos0: torch.Tensor  # [nv]
+    qpos_spring: torch.Tensor
+    body_dof_mask: torch.Tensor  # [nbody, nv]: dof d moves body b
+    dof_pre_mask: torch.Tensor  # [nv, nv]: dof d' moves the frame dof d is attached to (d' before d)
+    # joint limits (rows for the lower and upper side of every limited joint)
+    limit_dof: torch.Tensor  # [nlimit] long
+    limit_sign: torch.Tensor  # [nlimit] +1 lower side, -1 upper side (the constraint Jacobian)
+    limit_value: torch.Tensor  # [nlimit] the range end
+    limit_margin: torch.Tensor
+    limit_solref: torch.Tensor  # [nlimit, 2]
+    limit_solimp: torch.Tensor  # [nlimit, 5]
+    dof_invweight0: torch.Tensor  # [nv] MuJoCo's diag(M^-1) at qpos0 (the regulariser's scale)
+    # motors
+    actuator_dof: torch.Tensor  # [nu] long
+    actuator_gear: torch.Tensor
+    ctrl_low: torch.Tensor
+    ctrl_high: torch.Tensor
+    force_low: torch.Tensor
+    force_high: torch.Tensor
+    # contact: points (capsule end spheres, spheres, box corners) against the ground planes
+    contact_body: torch.Tensor  # [npoint] long
+    contact_local: torch.Tensor  # [npoint, 3] body frame
+    contact_radius: torch.Tensor  # [npoint]
+    contact_slot: torch.Tensor  # [npoint] long: which contact pair (friction entry) it belongs to
+    contact_plane_point: torch.Tensor  # [npoint, 3]
+    contact_plane_normal: torch.Tensor  # [npoint, 3]
+    contact_pairs: list[tuple[str, str]]  # (geom, plane) of each slot
+    contact_pair_friction: np.ndarray  # [npair] MuJoCo's max of the two geoms' sliding friction
+
+    @property
+    def nv(self) -> int:
+        return self.model.nv
+
+    @property
+    def nbody(self) -> int:
+        return self.model.nbody
+
+    @classmethod
+    def from_model(cls, model: ArticulatedModel, dtype=torch.float64, device="cpu") -> RigidBodyTree:
+        t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
+        idx = lambda a: torch.as_tensor(np.asarray(a, dtype=np.int64), device=device)  # noqa: E731
+        nb, nv = model.nbody, model.nv
+        body_joints = [[j for j in range(nv) if model.joint_body[j] == b] for b in range(nb)]
+        # dof d moves body b when d belongs to b or to one of its ancestors
+        moves = np.zeros((nb, nv))
+        pre = np.zeros((nv, nv))
+        for b in range(1, nb):
+            chain, a = [], b
+            while a > 0:
+                chain.append(a)
+                a = model.body_parent[a]
+            for a in chain:
+                moves[b, body_joints[a]] = 1.0
+        for d in range(nv):
+            b = model.joint_body[d]
+            pre[d] = moves[model.body_parent[b]]
+            pre[d, [j for j in body_joints[b] if j < d]] = 1.0
+        axis = model.joint_axis
+        skew = np.stack([np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]]) for a in axis]) \
+            if nv else np.zeros((0, 3, 3))
+        # joint limits: one row per side
+        rows = [(j, side) for j in range(nv) if model.limited[j] for side in (0, 1)]
+        limit_dof = [j for j, _ in rows]
+        # contact points against each plane of the world body
+        points, pairs, pair_friction = [], [], []
+        planes = [g for g in range(len(model.geom_names)) if model.geom_type[g] == "plane"]
+        for p in planes:
+            if model.geom_body[p] != 0:
+                raise ValueError(f"{model.path}: plane {model.geom_names[p]!r} must belong to the world body")
+        for g in range(len(model.geom_names)):
+            if model.geom_body[g] == 0 or model.geom_type[g] == "plane":
+                continue
+            for p in planes:
+                collide = (model.geom_contype[g] & model.geom_conaffinity[p]) or (
+                    model.geom_contype[p] & model.geom_conaffinity[g])
+                if not collide:
+                    continue
+                local = _contact_points(model, g)
+                normal = model.geom_rot[p][:, 2]
+                slot = len(pairs)
+                pairs.append((model.geom_names[g], model.geom_names[p]))
+                pair_friction.append(max(model.geom_friction[g, 0], model.geom_friction[p, 0]))
+                for offset, radius in local:
+                    points.append((model.geom_body[g], offset, radius, slot, model.geom_pos[p], normal))
+        tree = cls(
+            model=model, body_parent=[int(p) for p in model.body_parent], body_pos=t(model.body_pos),
+            body_rot=t(model.body_rot), body_com=t(model.body_com), body_joints=body_joints,
+            joint_is_hinge=[k == "hinge" for k in model.joint_type], joint_axis=t(axis).reshape(nv, 3),
+            joint_pos=t(model.joint_pos).reshape(nv, 3), joint_skew=t(skew), qpos0=t(model.qpos0),
+            qpos_spring=t(model.qpos_spring), body_dof_mask=t(moves), dof_pre_mask=t(pre),
+            limit_dof=idx(limit_dof), limit_sign=t([1.0 if s == 0 else -1.0 for _, s in rows]),
+            limit_value=t([model.joint_range[j, s] for j, s in rows]),
+            limit_margin=t([model.limit_margin[j] for j, _ in rows]),
+            # MuJoCo's "refsafe": a time constant below two physics steps is raised to two steps
+            limit_solref=t([[max(model.limit_solref[j, 0], 2 * model.timestep), model.limit_solref[j, 1]]
+                            for j, _ in rows]).reshape(len(rows), 2),
+            limit_solimp=t([model.limit_solimp[j] for j, _ in rows]).reshape(len(rows), 5),
+            dof_invweight0=t(np.zeros(nv)),
+            actuator_dof=idx(model.actuator_joint), actuator_gear=t(model.actuator_gear),
+            ctrl_low=t(np.where(model.ctrl_limited, model.ctrl_range[:, 0], -np.inf)),
+            ctrl_high=t(np.where(model.ctrl_limited, model.ctrl_range[:, 1], np.inf)),
+            force_low=t(np.where(model.force_limited, model.force_range[:, 0], -np.inf)),
+            force_high=t(np.where(model.force_limited, model.force_range[:, 1], np.inf)),
+            contact_body=idx([p[0] for p in points]), contact_local=t([p[1] for p in points]).reshape(-1, 3),
+            contact_radius=t([p[2] for p in points]), contact_slot=idx([p[3] for p in points]),
+            contact_plane_point=t([p[4] for p in points]).reshape(-1, 3),
+            contact_plane_normal=t([p[5] for p in points]).reshape(-1, 3),
+            contact_pairs=pairs, contact_pair_friction=np.array(pair_friction),
+        )
+        if nv:
+            # MuJoCo's dof_invweight0: diag(M^-1) at qpos0 with the file's masses (float64)
+            params = {k: v.unsqueeze(0).to(dtype) for k, v in default_params(model).items()}
+            kin = forward_kinematics(tree, tree.qpos0.unsqueeze(0))
+            mass, _ = mass_matrix_and_bias(tree, kin, torch.zeros(1, nv, dtype=dtype, device=device), params)
+            tree.dof_invweight0 = torch.linalg.inv(mass)[0].diagonal()
+        return tree
+
+
+def _contact_points(model: ArticulatedModel, g: int) -> list[tuple[np.ndarray, float]]:
+    """Sphere-swept points (body-frame centre, radius) whose distance to a plane is the geom's."""
+    kind, size, pos, rot = model.geom_type[g], model.geom_size[g], model.geom_pos[g], model.geom_rot[g]
+    if kind == "sphere":
+        return [(pos, size[0])]
+    if kind == "capsule":
+        half = rot[:, 2] * size[1]
+        return [(pos - half, size[0]), (pos + half, size[0])]
+    if kind == "box":
+        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * size
+        return [(pos + rot @ c, 0.0) for c in corners]
+    raise ValueError(
+        f"{model.path}: geom {model.geom_names[g]!r} of type {kind} can touch the ground plane, but ground "
+        "contact is only modelled for spheres, capsules and boxes (set contype/conaffinity to exclude it)"
+    )
+
+
+def default_params(model: ArticulatedModel) -> dict[str, torch.Tensor]:
+    """The model file's physical parameters (float64, unbatched): the per-env ``params`` defaults."""
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
+    return {
+        "body_mass": t(model.body_mass), "body_inertia": t(model.body_inertia), "gravity": t(model.gravity),
+        "damping": t(model.damping), "armature": t(model.armature), "stiffness": t(model.stiffness),
+    }
+
+
+@dataclass
+class Kinematics:
+    """World-frame poses for one batch of configurations."""
+
+    body_rot: torch.Tensor  # [N, nbody, 3, 3]
+    body_pos: torch.Tensor  # [N, nbody, 3] body frame origins
+    motion: torch.Tensor  # [N, nv, 6] each dof's motion subspace (angular, linear at the world origin)
+
+
+def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
+    """Body poses and dof motion subspaces for ``qpos [N, nv]`` (MuJoCo's mj_kinematics)."""
+    n = qpos.shape[0]
+    eye = torch.eye(3, dtype=qpos.dtype, device=qpos.device).expand(n, 3, 3)
+    rots, poss = [eye], [torch.zeros(n, 3, dtype=qpos.dtype, device=qpos.device)]
+    motion = [None] * tree.nv
+    q = qpos - tree.qpos0
+    sin, cos = torch.sin(q), torch.cos(q)
+    for b in range(1, tree.nbody):
+        parent_rot, parent_pos = rots[tree.body_parent[b]], poss[tree.body_parent[b]]
+        rot = parent_rot @ tree.body_rot[b]
+        pos = parent_pos + parent_rot @ tree.body_pos[b]
+        for j in tree.body_joints[b]:
+            axis = rot @ tree.joint_axis[j]
+            if tree.joint_is_hinge[j]:
+                anchor = pos + rot @ tree.joint_pos[j]
+                k = tree.joint_skew[j]
+                local = eye + sin[:, j, None, None] * k + (1 - cos[:, j, None, None]) * (k @ k)  # Rodrigues
+                rot = rot @ local
+                pos = anchor - rot @ tree.joint_pos[j]
+                motion[j] = torch.cat([axis, _cross(anchor, axis)], dim=-1)
+            else:
+                pos = pos + axis * q[:, j, None]
+                motion[j] = torch.cat([torch.zeros_like(axis), axis], dim=-1)
+        rots.append(rot)
+        poss.append(pos)
+    motion_t = torch.stack(motion, dim=1) if tree.nv else qpos.new_zeros(n, 0, 6)
+    return Kinematics(torch.stack(rots, dim=1), torch.stack(poss, dim=1), motion_t)
+
+
+def _spatial_inertia(tree: RigidBodyTree, kin: Kinematics, params: Params) -> torch.Tensor:
+    """``[N, nbody, 6, 6]`` body inertias in the world frame about the origin."""
+    rot, mass = kin.body_rot, params["body_mass"]
+    com = kin.body_pos + (rot @ tree.body_com.unsqueeze(-1)).squeeze(-1)
+    inertia = rot @ params["body_inertia"] @ rot.transpose(-1, -2)
+    c = _skew(com)
+    m = mass[..., None, None]
+    top = torch.cat([inertia - m * (c @ c), m * c], dim=-1)
+    eye = torch.eye(3, dtype=mass.dtype, device=mass.device)
+    bottom = torch.cat([-m * c, m * eye], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
+
+
+def body_jacobians(tree: RigidBodyTree, kin: Kinematics) -> torch.Tensor:
+    """``[N, nbody, 6, nv]``: the spatial velocity of every body (at the origin) per unit qvel."""
+    return tree.body_dof_mask[None, :, None, :] * kin.motion.transpose(-1, -2).unsqueeze(1)
+
+
+def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Params, jac=None):
+    """Joint-space mass matrix ``[N, nv, nv]`` (armature included) and bias force ``[N, nv]``.
+
+    The bias force is MuJoCo's ``qfrc_bias``: Coriolis, centrifugal and gravity terms.
+    """
+    inertia = _spatial_inertia(tree, kin, params)
+    jac = body_jacobians(tree, kin) if jac is None else jac
+    inertia_jac = inertia @ jac
+    mass = (jac.transpose(-1, -2) @ inertia_jac).sum(1)
+    mass = mass + torch.diag_embed(params["armature"])
+    # velocity-product accelerations; gravity enters as an upward acceleration of the world
+    body_vel = (jac @ qvel[:, None, :, None]).squeeze(-1)  # [N, nbody, 6]
+    dof_motion = kin.motion * qvel.unsqueeze(-1)  # [N, nv, 6]
+    pre_vel = tree.dof_pre_mask @ dof_motion
+    motion_dot = cross_motion(pre_vel, dof_motion)  # [N, nv, 6] d(S_d)/dt qvel_d
+    gravity = torch.cat([torch.zeros_like(params["gravity"]), -params["gravity"]], dim=-1)
+    body_acc = gravity.unsqueeze(1) + tree.body_dof_mask @ motion_dot
+    momentum = (inertia @ body_vel.unsqueeze(-1)).squeeze(-1)
+    force = (inertia @ body_acc.unsqueeze(-1)).squeeze(-1) + cross_force(body_vel, momentum)
+    bias = (jac.transpose(-1, -2) @ force.unsqueeze(-1)).squeeze(-1).sum(1)
+    return mass, bias
+
+
+def actuator_force(tree: RigidBodyTree, ctrl: torch.Tensor, nv: int) -> torch.Tensor:
+    """``[N, nv]`` generalised motor forces: ``gear * clamp(ctrl)`` (force range applied before the gear)."""
+    force = torch.clamp(torch.clamp(ctrl, tree.ctrl_low, tree.ctrl_high), tree.force_low, tree.force_high)
+    out = ctrl.new_zeros(ctrl.shape[0], nv)
+    return out.index_add(1, tree.actuator_dof, force * tree.actuator_gear)
+
+
+def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, jac) -> torch.Tensor:
+    """``[N, nv]`` generalised force of the smooth ground contacts.
+
+    Each contact point (a capsule end, a sphere, a box corner) with signed distance ``d`` to a
+    ground plane gets a normal force ``k * s(-d) + c * sigmoid(-d / w) * (-v_n)`` (clamped at 0),
+    where ``s`` is a softplus of width ``w = contact_width`` (the smooth penetration depth), and a
+    friction force ``-mu f_n v_t / sqrt(|v_t|^2 + v_eps^2)``: Coulomb's law with the stick-slip
+    corner rounded off over ``v_eps = friction_velocity``. Every term is smooth in the state, and
+    the forces grow linearly with the depth, so gradients stay finite at deep penetration.
+    """
+    if tree.contact_body.numel() == 0:
+        return qvel.new_zeros(qvel.shape)
+    rot = kin.body_rot[:, tree.contact_body]  # [N, P, 3, 3]
+    centre = kin.body_pos[:, tree.contact_body] + (rot @ tree.contact_local.unsqueeze(-1)).squeeze(-1)
+    normal = tree.contact_plane_normal
+    dist = ((centre - tree.contact_plane_point) * normal).sum(-1) - tree.contact_radius  # [N, P]
+    point = centre - tree.contact_radius.unsqueeze(-1) * normal
+    point_jac = jac[:, tree.contact_body]  # [N, P, 6, nv]
+    body_vel = (point_jac @ qvel[:, None, :, None]).squeeze(-1)
+    vel = body_vel[..., 3:] + _cross(body_vel[..., :3], point)  # velocity of the body point at the contact
+    normal_vel = (vel * normal).sum(-1)
+    tangent_vel = vel - normal_vel.unsqueeze(-1) * normal
+    width = params["contact_width"].unsqueeze(-1)
+    depth = F.softplus(-dist / width) * width
+    touching = torch.sigmoid(-dist / width)
+    stiffness, damping = params["contact_stiffness"].unsqueeze(-1), params["contact_damping"].unsqueeze(-1)
+    normal_force = torch.clamp(stiffness * depth - damping * touching * normal_vel, min=0.0)
+    mu = params["contact_friction"][:, tree.contact_slot]
+    eps = params["friction_velocity"].unsqueeze(-1)
+    slip = torch.sqrt((tangent_vel * tangent_vel).sum(-1) + eps * eps)
+    force = normal_force.unsqueeze(-1) * (normal - (mu / slip).unsqueeze(-1) * tangent_vel)
+    spatial = torch.cat([_cross(point, force), force], dim=-1)  # wrench about the world origin
+    return (point_jac.transpose(-1, -2) @ spatial.unsqueeze(-1)).squeeze(-1).sum(1)
+
+
+def _impedance(solimp: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
+    """MuJoCo's impedance ``d(r)`` in ``(0, 1)`` (solimp: dmin, dmax, width, midpoint, power)."""
+    dmin, dmax, width, mid, power = solimp.unbind(-1)
+    x = torch.clamp(violation.abs() / width.clamp(min=_MINVAL), max=1.0)
+    low = x.clamp(min=_MINVAL) ** power / mid ** (power - 1)
+    high = 1 - (1 - x).clamp(min=_MINVAL) ** power / (1 - mid) ** (power - 1)
+    y = torch.where(x <= mid, low, high)
+    y = torch.where(x >= 1, torch.ones_like(y), torch.where(x <= 0, torch.zeros_like(y), y))
+    imp = dmin + y * (dmax - dmin)
+    flat = (dmin == dmax) | (width <= 1e-15)
+    return torch.where(flat, (dmin + dmax) / 2, imp)
+
+
+def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv) -> torch.Tensor:
+    """``[N, nv]`` joint-limit forces: MuJoCo's soft constraint, one row per active limit side.
+
+    For row ``i`` with distance ``r`` (negative when violated), velocity ``v = J qvel`` and
+    unconstrained acceleration ``a0 = J qacc_smooth``: ``aref = -B v - K d(r) (r - margin)``,
+    ``R = (1 - d) / d * invweight0`` and ``f = max(0, -(a0 - aref) / (A + R))`` with
+    ``A = J M^-1 J^T``, applied as ``J^T f``. Rows are solved independently (MuJoCo solves active
+    rows jointly; the two agree whenever at most one limit of the model is active).
+    """
+    if tree.limit_dof.numel() == 0:
+        return torch.zeros_like(qvel)
+    dof, sign = tree.limit_dof, tree.limit_sign
+    dist = sign * (qpos[:, dof] - tree.limit_value)
+    active = dist < tree.limit_margin
+    imp = _impedance(tree.limit_solimp, dist - tree.limit_margin)
+    timeconst, dampratio = tree.limit_solref.unbind(-1)
+    dmax = tree.limit_solimp[:, 1]
+    stiffness = 1 / (dmax * dmax * timeconst * timeconst * dampratio * dampratio).clamp(min=_MINVAL)
+    damping = 2 / (dmax * timeconst).clamp(min=_MINVAL)
+    aref = -damping * sign * qvel[:, dof] - stiffness * imp * (dist - tree.limit_margin)
+    regulariser = torch.clamp((1 - imp) * tree.dof_invweight0[dof] / imp, min=_MINVAL)
+    diag = mass_inv.diagonal(dim1=-2, dim2=-1)[:, dof]
+    force = torch.clamp(-(sign * smooth_acc[:, dof] - aref) / (diag + regulariser), min=0.0)
+    force = torch.where(active, force, torch.zeros_like(force))
+    return torch.zeros_like(qvel).index_add(1, dof, sign * force)
+
+
+def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, implicit_damping_dt=None):
+    """``qacc [N, nv]`` of MuJoCo's forward dynamics (smooth forces, contact, joint limits).
+
+    ``implicit_damping_dt = h`` gives the acceleration of MuJoCo's Euler integrator, which solves
+    with ``M + h diag(damping)`` (joint damping treated implicitly).
+    """
+    kin = forward_kinematics(tree, qpos)
+    jac = body_jacobians(tree, kin)
+    mass, bias = mass_matrix_and_bias(tree, kin, qvel, params, jac)
+    passive = -params["damping"] * qvel - params["stiffness"] * (qpos - tree.qpos_spring)
+    force = actuator_force(tree, ctrl, tree.nv) + passive - bias
+    if "contact_stiffness" in params:
+        force = force + contact_force(tree, kin, qvel, params, jac)
+    if tree.limit_dof.numel():
+        mass_inv = torch.linalg.inv(mass)
+        smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
+        force = force + limit_force(tree, qpos, qvel, smooth_acc, mass_inv)
+    if implicit_damping_dt is not None:
+        mass = mass + implicit_damping_dt * torch.diag_embed(params["damping"])
+    return torch.linalg.solve(mass, force)
+
+
+def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt, integrator: str):
+    """One physics step of MuJoCo's ``integrator`` (``"euler"`` or ``"rk4"``), ``dt`` a float or ``[N]``."""
+    h = dt if isinstance(dt, float) else dt.unsqueeze(-1)
+    if integrator == "euler":
+        hd = dt if isinstance(dt, float) else dt[:, None, None]
+        qacc = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=hd)
+        qvel = qvel + h * qacc
+        return qpos + h * qvel, qvel
+    if integrator != "rk4":
+        raise ValueError(f"unknown integrator {integrator!r}; valid: 'euler', 'rk4'")
+    # MuJoCo's mj_RungeKutta with the classic tableau
+    acc1 = accelerations(tree, qpos, qvel, ctrl, params)
+    vel2 = qvel + 0.5 * h * acc1
+    acc2 = accelerations(tree, qpos + 0.5 * h * qvel, vel2, ctrl, params)
+    vel3 = qvel + 0.5 * h * acc2
+    acc3 = accelerations(tree, qpos + 0.5 * h * vel2, vel3, ctrl, params)
+    vel4 = qvel + h * acc3
+    acc4 = accelerations(tree, qpos + h * vel3, vel4, ctrl, params)
+    new_qpos = qpos + h / 6 * (qvel + 2 * vel2 + 2 * vel3 + vel4)
+    new_qvel = qvel + h / 6 * (acc1 + 2 * acc2 + 2 * acc3 + acc4)
+    return new_qpos, new_qvel

@@ -1,0 +1,603 @@
+"""An MJCF reader for the subset of MuJoCo's XML that Gymnasium's own model files use.
+
+:func:`load_mjcf` turns a model file into an :class:`ArticulatedModel`: plain float64 numpy arrays
+(bodies, joints, geoms, motors) that :mod:`torchrl_diffenvs.articulated.dynamics` turns into
+tensors. It follows MuJoCo's compiler where it matters for the dynamics:
+
+* ``<compiler>``: ``angle`` (degree by default), ``eulerseq``, ``inertiafromgeom``,
+  ``settotalmass``; ``coordinate="local"`` only;
+* ``<option>``: ``timestep``, ``integrator`` (Euler, RK4), ``gravity``;
+* ``<default>`` classes (nested, inherited; ``class`` and ``childclass``);
+* bodies with ``pos`` and any orientation (``quat``, ``axisangle``, ``euler``, ``xyaxes``,
+  ``zaxis``), ``<inertial>`` or inertia from geoms (sphere, capsule, cylinder, ellipsoid, box;
+  ``mass`` or ``density``), hinge and slide joints (armature, damping, stiffness, springref, ref,
+  range/limited with solreflimit/solimplimit and margin), geoms (``fromto`` too) with their contact
+  attributes, and ``<motor>`` actuators (gear, ctrlrange/ctrllimited, forcerange/forcelimited).
+
+Anything else that would change the dynamics (free/ball joints, tendons, equality constraints,
+other actuators, fluid forces, joint friction loss, ...) raises :class:`MJCFError` naming the
+element, the attribute and the file. Purely visual things (materials, textures, lights, cameras,
+sites, colours, sensors) are ignored.
+"""
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["ArticulatedModel", "MJCFError", "gymnasium_asset", "load_mjcf"]
+
+
+class MJCFError(ValueError):
+    """A model file uses something this reader does not support (or gets wrong)."""
+
+
+# ------------------------------------------------------------------ what the reader accepts
+# Per element: attributes that change the dynamics and are read, and attributes that are ignored
+# because they are visual or bookkeeping. Any other attribute raises.
+_VISUAL = {"name", "rgba", "material", "group", "user", "class"}
+_ORIENT = {"quat", "axisangle", "euler", "xyaxes", "zaxis"}
+_READ = {
+    "compiler": {"angle", "coordinate", "inertiafromgeom", "settotalmass", "eulerseq", "autolimits"},
+    "option": {"timestep", "integrator", "gravity", "density", "viscosity"},
+    "body": {"pos", "childclass"} | _ORIENT,
+    "inertial": {"pos", "mass", "diaginertia", "fullinertia"} | _ORIENT,
+    "joint": {
+        "type", "axis", "pos", "range", "limited", "damping", "stiffness", "springref", "armature", "ref",
+        "margin", "solreflimit", "solimplimit", "frictionloss",
+    },
+    "geom": {
+        "type", "size", "pos", "fromto", "mass", "density", "friction", "contype", "conaffinity", "condim",
+        "solref", "solimp", "margin", "solmix", "priority",
+    } | _ORIENT,
+    "motor": {"joint", "gear", "ctrlrange", "ctrllimited", "forcerange", "forcelimited"},
+}
+_IGNORED_ATTRS = {
+    "compiler": {"meshdir", "texturedir", "assetdir"},
+    "option": {"magnetic"},  # only read by magnetometer sensors
+    "body": {"name"},
+    "geom": {"gap"},  # checked separately: only 0 is supported
+}
+# elements that never change the dynamics
+_IGNORED_ELEMENTS = {"size", "visual", "asset", "custom", "light", "camera", "site", "sensor", "statistic",
+                     "keyframe", "extension"}
+_DEFAULT_TAGS = {"joint", "geom", "motor", "general", "site", "camera", "light", "tendon", "mesh", "material",
+                 "position", "velocity"}
+
+_DEFAULT_SOLREF = (0.02, 1.0)
+_DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)
+
+
+@dataclass
+class ArticulatedModel:
+    """A kinematic tree of rigid bodies, read from an MJCF file (float64 numpy arrays).
+
+    Index 0 of the body arrays is the world. Every joint is a hinge or a slide (one qpos and one
+    dof each, in file order, as MuJoCo numbers them). Frames are given relative to the parent
+    body, orientations as rotation matrices; inertias are full 3x3 tensors about the body's
+    centre of mass, in the body frame.
+    """
+
+    name: str
+    path: str
+    timestep: float
+    integrator: str  # "euler" | "rk4"
+    gravity: np.ndarray  # [3]
+    # bodies [nbody] (0 = world)
+    body_names: list[str]
+    body_parent: np.ndarray  # int
+    body_pos: np.ndarray  # [nbody, 3] in the parent frame
+    body_rot: np.ndarray  # [nbody, 3, 3] in the parent frame
+    body_mass: np.ndarray
+    body_com: np.ndarray  # [nbody, 3] centre of mass in the body frame
+    body_inertia: np.ndarray  # [nbody, 3, 3] about the com, body frame
+    # joints [njnt] == dofs
+    joint_names: list[str]
+    joint_type: list[str]  # "hinge" | "slide"
+    joint_body: np.ndarray  # int
+    joint_axis: np.ndarray  # [njnt, 3] unit, body frame
+    joint_pos: np.ndarray  # [njnt, 3] anchor, body frame
+    qpos0: np.ndarray  # MuJoCo's ``ref``: the joint value at which the body sits at its file pose
+    qpos_spring: np.ndarray  # ``springref``
+    stiffness: np.ndarray
+    damping: np.ndarray
+    armature: np.ndarray
+    limited: np.ndarray  # bool
+    joint_range: np.ndarray  # [njnt, 2]
+    limit_margin: np.ndarray
+    limit_solref: np.ndarray  # [njnt, 2]
+    limit_solimp: np.ndarray  # [njnt, 5]
+    # geoms [ngeom]
+    geom_names: list[str]
+    geom_type: list[str]
+    geom_body: np.ndarray
+    geom_pos: np.ndarray  # [ngeom, 3] body frame
+    geom_rot: np.ndarray  # [ngeom, 3, 3] body frame
+    geom_size: np.ndarray  # [ngeom, 3]
+    geom_friction: np.ndarray  # [ngeom, 3]
+    geom_contype: np.ndarray
+    geom_conaffinity: np.ndarray
+    # motors [nu]
+    actuator_names: list[str]
+    actuator_joint: np.ndarray
+    actuator_gear: np.ndarray
+    ctrl_limited: np.ndarray
+    ctrl_range: np.ndarray  # [nu, 2]
+    force_limited: np.ndarray
+    force_range: np.ndarray  # [nu, 2]
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def nbody(self) -> int:
+        return len(self.body_names)
+
+    @property
+    def nq(self) -> int:
+        return len(self.joint_names)
+
+    nv = nq
+
+    @property
+    def nu(self) -> int:
+        return len(self.actuator_names)
+
+    def joint_index(self, name: str) -> int:
+        return self._index(self.joint_names, name, "joint")
+
+    def body_index(self, name: str) -> int:
+        return self._index(self.body_names, name, "body")
+
+    def geom_index(self, name: str) -> int:
+        return self._index(self.geom_names, name, "geom")
+
+    def _index(self, names, name, what):
+        try:
+            return names.index(name)
+        except ValueError:
+            raise KeyError(f"{self.path}: no {what} named {name!r}; {what}s: {names}") from None
+
+
+def gymnasium_asset(filename: str) -> Path:
+    """The path of one of the model files that ship inside gymnasium (``envs/mujoco/assets``)."""
+    import gymnasium
+
+    path = Path(gymnasium.__file__).parent / "envs" / "mujoco" / "assets" / filename
+    if not path.is_file():
+        raise FileNotFoundError(f"gymnasium {gymnasium.__version__} ships no MuJoCo model file {filename!r} ({path})")
+    return path
+
+
+# ------------------------------------------------------------------ small geometry helpers
+def _floats(text: str, n: int | None = None, where: str = "") -> np.ndarray:
+    try:
+        values = np.array([float(v) for v in text.split()], dtype=np.float64)
+    except ValueError:
+        raise MJCFError(f"{where}: expected numbers, got {text!r}") from None
+    if n is not None and values.size != n:
+        raise MJCFError(f"{where}: expected {n} numbers, got {values.size} ({text!r})")
+    return values
+
+
+def quat_to_mat(q) -> np.ndarray:
+    """MuJoCo's ``(w, x, y, z)`` quaternion (normalised here) -> rotation matrix."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def axis_angle_to_mat(axis, angle: float) -> np.ndarray:
+    axis = np.asarray(axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
+
+
+def _z_to_vec(vec) -> np.ndarray:
+    """The minimal rotation taking +z onto ``vec`` (MuJoCo's frame for ``zaxis`` and ``fromto``)."""
+    v = np.asarray(vec, dtype=np.float64)
+    v = v / np.linalg.norm(v)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, v)
+    s = np.linalg.norm(axis)
+    if s < 1e-14:
+        return np.eye(3) if v[2] > 0 else axis_angle_to_mat([1.0, 0.0, 0.0], math.pi)
+    return axis_angle_to_mat(axis / s, math.atan2(s, v[2]))
+
+
+# ------------------------------------------------------------------ inertia of geom primitives
+def geom_volume_inertia(kind: str, size: np.ndarray) -> tuple[float, np.ndarray]:
+    """Volume and the principal inertia per unit density ``[3]`` of a primitive, MuJoCo's formulas."""
+    if kind == "sphere":
+        r = size[0]
+        vol = 4.0 / 3.0 * math.pi * r**3
+        return vol, np.full(3, 0.4 * vol * r * r)
+    if kind == "capsule":
+        r, h = size[0], 2.0 * size[1]
+        v_cyl, v_sph = math.pi * r * r * h, 4.0 / 3.0 * math.pi * r**3
+        ixy = v_cyl * (3 * r * r + h * h) / 12.0 + v_sph * (0.4 * r * r + h * h / 4.0 + 3.0 * h * r / 8.0)
+        return v_cyl + v_sph, np.array([ixy, ixy, v_cyl * r * r / 2.0 + v_sph * 0.4 * r * r])
+    if kind == "cylinder":
+        r, h = size[0], 2.0 * size[1]
+        vol = math.pi * r * r * h
+        ixy = vol * (3 * r * r + h * h) / 12.0
+        return vol, np.array([ixy, ixy, vol * r * r / 2.0])
+    if kind == "ellipsoid":
+        a, b, c = size
+        vol = 4.0 / 3.0 * math.pi * a * b * c
+        return vol, vol / 5.0 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
+    if kind == "box":
+        a, b, c = size
+        vol = 8.0 * a * b * c
+        return vol, vol / 3.0 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
+    raise MJCFError(f"no inertia for geom type {kind!r}")
+
+
+# ------------------------------------------------------------------ the reader
+class _Reader:
+    def __init__(self, path: Path):
+        self.path = str(path)
+        self.root = ET.parse(path).getroot()
+        if self.root.tag != "mujoco":
+            raise MJCFError(f"{self.path}: the root element must be <mujoco>, got <{self.root.tag}>")
+        self.angle_scale = math.pi / 180.0
+        self.eulerseq = "xyz"
+        self.inertia_from_geom = "auto"
+        self.total_mass = None
+        self.defaults: dict[str, dict[str, dict[str, str]]] = {}
+
+    # ---------------------------------------------------------- checks
+    def fail(self, element: ET.Element, message: str) -> MJCFError:
+        name = element.get("name")
+        what = f"<{element.tag}{' name=' + repr(name) if name else ''}>"
+        return MJCFError(f"{self.path}: {what}: {message}")
+
+    def check_attrs(self, element: ET.Element, tag: str | None = None) -> None:
+        tag = tag or element.tag
+        allowed = _READ.get(tag, set()) | _VISUAL | _IGNORED_ATTRS.get(tag, set())
+        for attr in element.attrib:
+            if attr not in allowed:
+                raise self.fail(
+                    element,
+                    f"attribute {attr!r} is not supported (it would change the dynamics); supported: "
+                    f"{sorted(_READ.get(tag, set()))}",
+                )
+
+    def attrs(self, element: ET.Element, tag: str, cls: str) -> dict[str, str]:
+        """The element's attributes over its default class's (``class`` wins over ``childclass``)."""
+        cls = element.get("class", cls)
+        if cls not in self.defaults:
+            raise self.fail(element, f"unknown default class {cls!r}; defined: {sorted(self.defaults)}")
+        merged = dict(self.defaults[cls].get(tag, {}))
+        merged.update(element.attrib)
+        return merged
+
+    # ---------------------------------------------------------- top level
+    def read(self) -> ArticulatedModel:
+        handlers = {"compiler": self.compiler, "option": self.option, "default": None,
+                    "worldbody": None, "actuator": None}
+        self.timestep, self.integrator, self.gravity = 0.002, "euler", np.array([0.0, 0.0, -9.81])
+        for child in self.root:
+            if not isinstance(child.tag, str):  # comments
+                continue
+            if child.tag in _IGNORED_ELEMENTS:
+                continue
+            if child.tag not in handlers:
+                raise self.fail(child, "element not supported (it would change the dynamics)")
+            if handlers[child.tag] is not None:
+                handlers[child.tag](child)
+        self.defaults = {}
+        for child in self.root.findall("default"):
+            self.default(child, parent={})
+        self.defaults.setdefault("main", {})
+        self.bodies = dict(names=["world"], parent=[-1], pos=[np.zeros(3)], rot=[np.eye(3)], mass=[0.0],
+                           com=[np.zeros(3)], inertia=[np.zeros((3, 3))])
+        self.joints: list[dict] = []
+        self.geoms: list[dict] = []
+        worlds = self.root.findall("worldbody")
+        for world in worlds:
+            self.body_children(world, body=0, cls="main")
+        if self.total_mass is not None:
+            scale = self.total_mass / sum(self.bodies["mass"][1:])
+            self.bodies["mass"] = [m * scale for m in self.bodies["mass"]]
+            self.bodies["inertia"] = [i * scale for i in self.bodies["inertia"]]
+        self.motors = []
+        for actuators in self.root.findall("actuator"):
+            for element in actuators:
+                if isinstance(element.tag, str):
+                    self.motor(element)
+        return self.model()
+
+    def compiler(self, element):
+        self.check_attrs(element)
+        angle = element.get("angle", "degree")
+        if angle not in ("degree", "radian"):
+            raise self.fail(element, f"angle must be 'degree' or 'radian', got {angle!r}")
+        self.angle_scale = math.pi / 180.0 if angle == "degree" else 1.0
+        if element.get("coordinate", "local") != "local":
+            raise self.fail(element, "only coordinate='local' is supported (MuJoCo removed 'global')")
+        self.eulerseq = element.get("eulerseq", "xyz")
+        self.inertia_from_geom = element.get("inertiafromgeom", "auto")
+        if element.get("settotalmass") is not None:
+            total = float(element.get("settotalmass"))
+            self.total_mass = total if total > 0 else None
+
+    def option(self, element):
+        self.check_attrs(element)
+        for child in element:
+            if isinstance(child.tag, str):
+                raise self.fail(child, "<option> children (flags) are not supported")
+        self.timestep = float(element.get("timestep", 0.002))
+        integrator = element.get("integrator", "Euler")
+        if integrator not in ("Euler", "RK4"):
+            raise self.fail(element, f"integrator {integrator!r} is not supported; supported: 'Euler', 'RK4'")
+        self.integrator = integrator.lower()
+        self.gravity = _floats(element.get("gravity", "0 0 -9.81"), 3, f"{self.path}: <option gravity>")
+        for attr in ("density", "viscosity"):
+            if float(element.get(attr, 0.0)) != 0.0:
+                raise self.fail(element, f"{attr}={element.get(attr)!r}: fluid forces are not supported")
+
+    def default(self, element, parent):
+        name = element.get("class", "main")
+        own = {tag: dict(attrs) for tag, attrs in parent.items()}
+        for child in element:
+            if not isinstance(child.tag, str) or child.tag == "default":
+                continue
+            if child.tag not in _DEFAULT_TAGS:
+                raise self.fail(child, "default for this element is not supported")
+            tag = "motor" if child.tag in ("general", "position", "velocity") else child.tag
+            own.setdefault(tag, {}).update(child.attrib)
+        self.defaults[name] = own
+        for child in element.findall("default"):
+            self.default(child, own)
+
+    # ---------------------------------------------------------- frames
+    def orientation(self, element, attrs) -> np.ndarray:
+        given = [k for k in _ORIENT if k in attrs]
+        if len(given) > 1:
+            raise self.fail(element, f"more than one orientation given: {given}")
+        where = f"{self.path}: <{element.tag}>"
+        if not given:
+            return np.eye(3)
+        kind = given[0]
+        if kind == "quat":
+            return quat_to_mat(_floats(attrs["quat"], 4, where))
+        if kind == "axisangle":
+            v = _floats(attrs["axisangle"], 4, where)
+            return axis_angle_to_mat(v[:3], v[3] * self.angle_scale)
+        if kind == "euler":
+            angles = _floats(attrs["euler"], 3, where) * self.angle_scale
+            rot = np.eye(3)
+            for axis_name, angle in zip(self.eulerseq, angles):
+                axis = np.eye(3)["xyz".index(axis_name.lower())]
+                step = axis_angle_to_mat(axis, angle)
+                # lower case: rotations about the moving (intrinsic) axes; upper case: fixed axes
+                rot = rot @ step if axis_name.islower() else step @ rot
+            return rot
+        if kind == "xyaxes":
+            v = _floats(attrs["xyaxes"], 6, where)
+            x = v[:3] / np.linalg.norm(v[:3])
+            y = v[3:] - x * (x @ v[3:])
+            y = y / np.linalg.norm(y)
+            return np.stack([x, y, np.cross(x, y)], axis=1)
+        return _z_to_vec(_floats(attrs["zaxis"], 3, where))
+
+    # ---------------------------------------------------------- bodies
+    def body_children(self, element, body: int, cls: str):
+        for child in element:
+            if not isinstance(child.tag, str) or child.tag in _IGNORED_ELEMENTS:
+                continue
+            if child.tag == "body":
+                self.body(child, parent=body, cls=cls)
+            elif child.tag == "geom":
+                self.geom(child, body, cls)
+            elif child.tag == "joint":
+                if body == 0:
+                    raise self.fail(child, "a joint cannot belong to the world body")
+                self.joint(child, body, cls)
+            elif child.tag == "inertial":
+                pass  # read by body()
+            elif child.tag in ("freejoint",):
+                raise self.fail(child, "free joints are not supported yet (hinge and slide joints only)")
+            else:
+                raise self.fail(child, "element not supported inside a body (it would change the dynamics)")
+
+    def body(self, element, parent: int, cls: str):
+        self.check_attrs(element)
+        if element.get("mocap", "false") == "true":
+            raise self.fail(element, "mocap bodies are not supported")
+        cls = element.get("childclass", cls)
+        index = len(self.bodies["names"])
+        self.bodies["names"].append(element.get("name", f"body{index}"))
+        self.bodies["parent"].append(parent)
+        self.bodies["pos"].append(_floats(element.get("pos", "0 0 0"), 3, f"{self.path}: <body pos>"))
+        self.bodies["rot"].append(self.orientation(element, element.attrib))
+        for key in ("mass", "com", "inertia"):  # filled in below, once the children are read
+            self.bodies[key].append(None)
+        first_geom = len(self.geoms)
+        self.body_children(element, index, cls)
+        inertial = element.find("inertial")
+        use_geoms = self.inertia_from_geom == "true" or (self.inertia_from_geom == "auto" and inertial is None)
+        if use_geoms:
+            mass, com, inertia = self.inertia_of_geoms([g for g in self.geoms[first_geom:] if g["body"] == index])
+        elif inertial is not None:
+            mass, com, inertia = self.inertial(inertial)
+        else:
+            mass, com, inertia = 0.0, np.zeros(3), np.zeros((3, 3))
+        self.bodies["mass"][index], self.bodies["com"][index], self.bodies["inertia"][index] = mass, com, inertia
+
+    def inertial(self, element):
+        self.check_attrs(element)
+        where = f"{self.path}: <inertial>"
+        mass = float(element.get("mass"))
+        com = _floats(element.get("pos", "0 0 0"), 3, where)
+        if "fullinertia" in element.attrib:
+            v = _floats(element.get("fullinertia"), 6, where)  # ixx iyy izz ixy ixz iyz
+            inertia = np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])
+        else:
+            inertia = np.diag(_floats(element.get("diaginertia"), 3, where))
+        rot = self.orientation(element, element.attrib)
+        return mass, com, rot @ inertia @ rot.T
+
+    def inertia_of_geoms(self, geoms):
+        """Body mass, com and inertia about the com from its geoms (MuJoCo's inertiafromgeom)."""
+        parts = []
+        for g in geoms:
+            if g["type"] == "plane":
+                continue
+            vol, unit_inertia = geom_volume_inertia(g["type"], g["size"])
+            density = g["mass"] / vol if g["mass"] is not None else g["density"]
+            parts.append((density * vol, g["pos"], g["rot"] @ np.diag(density * unit_inertia) @ g["rot"].T))
+        mass = sum(p[0] for p in parts)
+        if mass <= 0:
+            return 0.0, np.zeros(3), np.zeros((3, 3))
+        com = sum(m * pos for m, pos, _ in parts) / mass
+        inertia = np.zeros((3, 3))
+        for m, pos, own in parts:
+            d = pos - com
+            inertia += own + m * (d @ d * np.eye(3) - np.outer(d, d))
+        return mass, com, inertia
+
+    def joint(self, element, body: int, cls: str):
+        a = self.attrs(element, "joint", cls)
+        self.check_attrs(element)
+        for attr in a:
+            if attr not in _READ["joint"] | _VISUAL:
+                raise self.fail(element, f"attribute {attr!r} (from its default class) is not supported")
+        kind = a.get("type", "hinge")
+        if kind not in ("hinge", "slide"):
+            raise self.fail(element, f"joint type {kind!r} is not supported yet; supported: hinge, slide")
+        if float(a.get("frictionloss", 0.0)) != 0.0:
+            raise self.fail(element, "frictionloss (dry joint friction) is not supported")
+        where = f"{self.path}: <joint {a.get('name', '')}>"
+        scale = self.angle_scale if kind == "hinge" else 1.0
+        rng = _floats(a.get("range", "0 0"), 2, where) * scale
+        limited = a.get("limited", "auto")
+        limited = (rng[0] < rng[1]) if limited == "auto" else limited == "true"
+        if limited and not rng[0] < rng[1]:
+            raise self.fail(element, f"a limited joint needs range with lower < upper, got {a.get('range')!r}")
+        axis = _floats(a.get("axis", "0 0 1"), 3, where)
+        self.joints.append(dict(
+            name=a.get("name", f"joint{len(self.joints)}"), type=kind, body=body,
+            axis=axis / np.linalg.norm(axis), pos=_floats(a.get("pos", "0 0 0"), 3, where),
+            ref=float(a.get("ref", 0.0)) * scale, springref=float(a.get("springref", 0.0)) * scale,
+            stiffness=float(a.get("stiffness", 0.0)), damping=float(a.get("damping", 0.0)),
+            armature=float(a.get("armature", 0.0)), limited=limited, range=rng,
+            margin=float(a.get("margin", 0.0)),
+            solref=_floats(a.get("solreflimit", "0.02 1"), 2, where),
+            solimp=self.solimp(a.get("solimplimit"), where),
+        ))
+
+    @staticmethod
+    def solimp(text, where):
+        values = list(_DEFAULT_SOLIMP)
+        if text is not None:
+            given = _floats(text, None, where)
+            values[: given.size] = given.tolist()
+        return np.array(values)
+
+    def geom(self, element, body: int, cls: str):
+        a = self.attrs(element, "geom", cls)
+        self.check_attrs(element)
+        for attr in a:
+            if attr not in _READ["geom"] | _VISUAL | _IGNORED_ATTRS["geom"]:
+                raise self.fail(element, f"attribute {attr!r} (from its default class) is not supported")
+        if float(a.get("gap", 0.0)) != 0.0:
+            raise self.fail(element, "a non-zero contact gap is not supported")
+        where = f"{self.path}: <geom {a.get('name', '')}>"
+        kind = a.get("type", "sphere")
+        if kind not in ("plane", "sphere", "capsule", "cylinder", "ellipsoid", "box"):
+            raise self.fail(element, f"geom type {kind!r} is not supported; supported: plane, sphere, capsule, "
+                                     "cylinder, ellipsoid, box")
+        size = np.zeros(3)
+        given = _floats(a.get("size", "0"), None, where)
+        size[: given.size] = given
+        if "fromto" in a:
+            if kind not in ("capsule", "cylinder"):
+                raise self.fail(element, f"fromto is only supported for capsules and cylinders, not {kind}")
+            v = _floats(a["fromto"], 6, where)
+            pos, rot = (v[:3] + v[3:]) / 2.0, _z_to_vec(v[3:] - v[:3])
+            size[1] = np.linalg.norm(v[3:] - v[:3]) / 2.0
+        else:
+            pos, rot = _floats(a.get("pos", "0 0 0"), 3, where), self.orientation(element, a)
+        friction = np.array([1.0, 0.005, 0.0001])
+        fgiven = _floats(a.get("friction", "1"), None, where)
+        friction[: fgiven.size] = fgiven
+        self.geoms.append(dict(
+            name=a.get("name", f"geom{len(self.geoms)}"), type=kind, body=body, pos=pos, rot=rot, size=size,
+            mass=float(a["mass"]) if "mass" in a else None, density=float(a.get("density", 1000.0)),
+            friction=friction, contype=int(a.get("contype", 1)), conaffinity=int(a.get("conaffinity", 1)),
+        ))
+
+    def motor(self, element):
+        if element.tag != "motor":
+            raise self.fail(element, "actuator type not supported; supported: <motor>")
+        a = self.attrs(element, "motor", "main")
+        self.check_attrs(element)
+        for attr in a:
+            if attr not in _READ["motor"] | _VISUAL:
+                raise self.fail(element, f"attribute {attr!r} (from its default class) is not supported")
+        where = f"{self.path}: <motor {a.get('name', '')}>"
+        if "joint" not in a:
+            raise self.fail(element, "a motor needs a joint (other transmissions are not supported)")
+        names = [j["name"] for j in self.joints]
+        if a["joint"] not in names:
+            raise self.fail(element, f"unknown joint {a['joint']!r}; joints: {names}")
+
+        def limits(flag, rng):
+            values = _floats(a.get(rng, "0 0"), 2, where)
+            on = a.get(flag, "auto")
+            return ((values[0] < values[1]) if on == "auto" else on == "true"), values
+
+        ctrl_limited, ctrl_range = limits("ctrllimited", "ctrlrange")
+        force_limited, force_range = limits("forcelimited", "forcerange")
+        gear = _floats(a.get("gear", "1"), None, where)
+        if np.any(gear[1:] != 0):
+            raise self.fail(element, "only the first gear component is supported (joint transmission)")
+        self.motors.append(dict(
+            name=a.get("name", f"actuator{len(self.motors)}"), joint=names.index(a["joint"]), gear=gear[0],
+            ctrl_limited=ctrl_limited, ctrl_range=ctrl_range, force_limited=force_limited, force_range=force_range,
+        ))
+
+    # ---------------------------------------------------------- assembly
+    def model(self) -> ArticulatedModel:
+        b, j, g, m = self.bodies, self.joints, self.geoms, self.motors
+
+        def col(items, key, dtype=np.float64, shape=()):
+            return np.array([it[key] for it in items], dtype=dtype).reshape(len(items), *shape)
+
+        return ArticulatedModel(
+            name=self.root.get("model", Path(self.path).stem), path=self.path, timestep=self.timestep,
+            integrator=self.integrator, gravity=self.gravity,
+            body_names=b["names"], body_parent=np.array(b["parent"], dtype=np.int64),
+            body_pos=np.array(b["pos"]), body_rot=np.array(b["rot"]), body_mass=np.array(b["mass"]),
+            body_com=np.array(b["com"]), body_inertia=np.array(b["inertia"]),
+            joint_names=[x["name"] for x in j], joint_type=[x["type"] for x in j],
+            joint_body=col(j, "body", np.int64), joint_axis=col(j, "axis", shape=(3,)),
+            joint_pos=col(j, "pos", shape=(3,)), qpos0=col(j, "ref"), qpos_spring=col(j, "springref"),
+            stiffness=col(j, "stiffness"), damping=col(j, "damping"), armature=col(j, "armature"),
+            limited=col(j, "limited", bool), joint_range=col(j, "range", shape=(2,)),
+            limit_margin=col(j, "margin"), limit_solref=col(j, "solref", shape=(2,)),
+            limit_solimp=col(j, "solimp", shape=(5,)),
+            geom_names=[x["name"] for x in g], geom_type=[x["type"] for x in g], geom_body=col(g, "body", np.int64),
+            geom_pos=col(g, "pos", shape=(3,)), geom_rot=col(g, "rot", shape=(3, 3)),
+            geom_size=col(g, "size", shape=(3,)), geom_friction=col(g, "friction", shape=(3,)),
+            geom_contype=col(g, "contype", np.int64), geom_conaffinity=col(g, "conaffinity", np.int64),
+            actuator_names=[x["name"] for x in m], actuator_joint=col(m, "joint", np.int64),
+            actuator_gear=col(m, "gear"), ctrl_limited=col(m, "ctrl_limited", bool),
+            ctrl_range=col(m, "ctrl_range", shape=(2,)), force_limited=col(m, "force_limited", bool),
+            force_range=col(m, "force_range", shape=(2,)),
+        )
+
+
+def load_mjcf(path: str | Path) -> ArticulatedModel:
+    """Reads an MJCF model file (see the module docstring for the supported subset)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no MJCF file at {path}")
+    return _Reader(path).read()
