@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -35,7 +36,10 @@ import torch.nn.functional as F
 
 from .mjcf import ArticulatedModel
 
-__all__ = ["RigidBodyTree", "Kinematics", "forward_kinematics", "mass_matrix_and_bias", "accelerations", "step"]
+__all__ = [
+    "RigidBodyTree", "Kinematics", "StepResult", "forward_kinematics", "mass_matrix_and_bias", "accelerations", "step",
+    "constraint_force", "site_positions", "default_params",
+]
 
 Params = Mapping[str, torch.Tensor]
 _MINVAL = 1e-15  # MuJoCo's mjMINVAL
@@ -392,6 +396,15 @@ def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv) -> torch.
     return torch.zeros_like(qvel).index_add(1, dof, sign * force)
 
 
+def _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias):
+    """Motors + passive joint forces + ground contact - bias: every force but the joint limits."""
+    passive = -params["damping"] * qvel - params["stiffness"] * (qpos - tree.qpos_spring)
+    force = actuator_force(tree, ctrl, tree.nv) + passive - bias
+    if "contact_stiffness" in params:
+        force = force + contact_force(tree, kin, qvel, params, jac)
+    return force
+
+
 def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, implicit_damping_dt=None):
     """``qacc [N, nv]`` of MuJoCo's forward dynamics (smooth forces, contact, joint limits).
 
@@ -401,10 +414,7 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     kin = forward_kinematics(tree, qpos)
     jac = body_jacobians(tree, kin)
     mass, bias = mass_matrix_and_bias(tree, kin, qvel, params, jac)
-    passive = -params["damping"] * qvel - params["stiffness"] * (qpos - tree.qpos_spring)
-    force = actuator_force(tree, ctrl, tree.nv) + passive - bias
-    if "contact_stiffness" in params:
-        force = force + contact_force(tree, kin, qvel, params, jac)
+    force = _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias)
     if tree.limit_dof.numel():
         mass_inv = torch.linalg.inv(mass)
         smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
@@ -414,24 +424,56 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     return torch.linalg.solve(mass, force)
 
 
-def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt, integrator: str):
-    """One physics step of MuJoCo's ``integrator`` (``"euler"`` or ``"rk4"``), ``dt`` a float or ``[N]``."""
-    h = dt if isinstance(dt, float) else dt.unsqueeze(-1)
+class StepResult(NamedTuple):
+    """One physics step: the new state, and the state MuJoCo last evaluated (see :func:`step`)."""
+
+    qpos: torch.Tensor
+    qvel: torch.Tensor
+    eval_qpos: torch.Tensor
+    eval_qvel: torch.Tensor
+
+
+def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str) -> StepResult:
+    """One physics step of MuJoCo's ``integrator`` (``"euler"`` or ``"rk4"``).
+
+    Besides the new state, returns the state at which MuJoCo evaluated the forward dynamics last
+    (the start state for Euler, the fourth stage for RK4): after ``mj_step`` MuJoCo's derived
+    quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
+    observations and rewards read some of them.
+    """
     if integrator == "euler":
-        hd = dt if isinstance(dt, float) else dt[:, None, None]
-        qacc = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=hd)
-        qvel = qvel + h * qacc
-        return qpos + h * qvel, qvel
+        qacc = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt)
+        new_qvel = qvel + dt * qacc
+        return StepResult(qpos + dt * new_qvel, new_qvel, qpos, qvel)
     if integrator != "rk4":
         raise ValueError(f"unknown integrator {integrator!r}; valid: 'euler', 'rk4'")
     # MuJoCo's mj_RungeKutta with the classic tableau
     acc1 = accelerations(tree, qpos, qvel, ctrl, params)
-    vel2 = qvel + 0.5 * h * acc1
-    acc2 = accelerations(tree, qpos + 0.5 * h * qvel, vel2, ctrl, params)
-    vel3 = qvel + 0.5 * h * acc2
-    acc3 = accelerations(tree, qpos + 0.5 * h * vel2, vel3, ctrl, params)
-    vel4 = qvel + h * acc3
-    acc4 = accelerations(tree, qpos + h * vel3, vel4, ctrl, params)
-    new_qpos = qpos + h / 6 * (qvel + 2 * vel2 + 2 * vel3 + vel4)
-    new_qvel = qvel + h / 6 * (acc1 + 2 * acc2 + 2 * acc3 + acc4)
-    return new_qpos, new_qvel
+    vel2 = qvel + 0.5 * dt * acc1
+    acc2 = accelerations(tree, qpos + 0.5 * dt * qvel, vel2, ctrl, params)
+    vel3 = qvel + 0.5 * dt * acc2
+    acc3 = accelerations(tree, qpos + 0.5 * dt * vel2, vel3, ctrl, params)
+    vel4 = qvel + dt * acc3
+    pos4 = qpos + dt * vel3
+    acc4 = accelerations(tree, pos4, vel4, ctrl, params)
+    new_qpos = qpos + dt / 6 * (qvel + 2 * vel2 + 2 * vel3 + vel4)
+    new_qvel = qvel + dt / 6 * (acc1 + 2 * acc2 + 2 * acc3 + acc4)
+    return StepResult(new_qpos, new_qvel, pos4, vel4)
+
+
+def constraint_force(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params) -> torch.Tensor:
+    """MuJoCo's ``qfrc_constraint [N, nv]`` at a state: the joint-limit forces (contact is a smooth force here)."""
+    kin = forward_kinematics(tree, qpos)
+    jac = body_jacobians(tree, kin)
+    mass, bias = mass_matrix_and_bias(tree, kin, qvel, params, jac)
+    force = _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias)
+    mass_inv = torch.linalg.inv(mass)
+    return limit_force(tree, qpos, qvel, (mass_inv @ force.unsqueeze(-1)).squeeze(-1), mass_inv)
+
+
+def site_positions(tree: RigidBodyTree, kin: Kinematics, sites) -> torch.Tensor:
+    """World positions ``[N, len(sites), 3]`` of the model's sites with these indices."""
+    model = tree.model
+    body = torch.as_tensor(model.site_body[list(sites)], device=kin.body_pos.device)
+    local = torch.as_tensor(model.site_pos[list(sites)], dtype=kin.body_pos.dtype, device=kin.body_pos.device)
+    return kin.body_pos[:, body] + (kin.body_rot[:, body] @ local.unsqueeze(-1)).squeeze(-1)

@@ -62,7 +62,7 @@ _IGNORED_ATTRS = {
     "geom": {"gap"},  # checked separately: only 0 is supported
 }
 # elements that never change the dynamics
-_IGNORED_ELEMENTS = {"size", "visual", "asset", "custom", "light", "camera", "site", "sensor", "statistic",
+_IGNORED_ELEMENTS = {"size", "visual", "asset", "custom", "light", "camera", "sensor", "statistic",
                      "keyframe", "extension"}
 _DEFAULT_TAGS = {"joint", "geom", "motor", "general", "site", "camera", "light", "tendon", "mesh", "material",
                  "position", "velocity"}
@@ -128,7 +128,10 @@ class ArticulatedModel:
     ctrl_range: np.ndarray  # [nu, 2]
     force_limited: np.ndarray
     force_range: np.ndarray  # [nu, 2]
-    extras: dict = field(default_factory=dict)
+    # sites (named points on bodies; no dynamics)
+    site_names: list[str] = field(default_factory=list)
+    site_body: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    site_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def nbody(self) -> int:
@@ -149,6 +152,9 @@ class ArticulatedModel:
 
     def body_index(self, name: str) -> int:
         return self._index(self.body_names, name, "body")
+
+    def site_index(self, name: str) -> int:
+        return self._index(self.site_names, name, "site")
 
     def geom_index(self, name: str) -> int:
         return self._index(self.geom_names, name, "geom")
@@ -299,6 +305,7 @@ class _Reader:
                            com=[np.zeros(3)], inertia=[np.zeros((3, 3))])
         self.joints: list[dict] = []
         self.geoms: list[dict] = []
+        self.sites: list[tuple] = []
         worlds = self.root.findall("worldbody")
         for world in worlds:
             self.body_children(world, body=0, cls="main")
@@ -400,6 +407,10 @@ class _Reader:
                 if body == 0:
                     raise self.fail(child, "a joint cannot belong to the world body")
                 self.joint(child, body, cls)
+            elif child.tag == "site":
+                where = f"{self.path}: <site {child.get('name', '')}>"
+                self.sites.append((child.get("name", f"site{len(self.sites)}"), body,
+                                   _floats(child.get("pos", "0 0 0"), 3, where)))
             elif child.tag == "inertial":
                 pass  # read by body()
             elif child.tag in ("freejoint",):
@@ -592,6 +603,8 @@ class _Reader:
             actuator_gear=col(m, "gear"), ctrl_limited=col(m, "ctrl_limited", bool),
             ctrl_range=col(m, "ctrl_range", shape=(2,)), force_limited=col(m, "force_limited", bool),
             force_range=col(m, "force_range", shape=(2,)),
+            site_names=[x[0] for x in self.sites], site_body=np.array([x[1] for x in self.sites], dtype=np.int64),
+            site_pos=np.array([x[2] for x in self.sites]).reshape(-1, 3),
         )
 
 

@@ -1,0 +1,137 @@
+"""The MuJoCo-model core and the contact-free tasks against MuJoCo and Gymnasium's own v5 envs.
+
+Oracles: mujoco's compiled model (masses, inertias), ``mj_fullM`` and ``qfrc_bias`` at random
+states, ``mj_step``, and gymnasium's ``InvertedPendulum-v5``, ``InvertedDoublePendulum-v5`` and
+``Reacher-v5`` driven from the same states with the same actions (float64).
+"""
+import numpy as np
+import pytest
+import torch
+
+mujoco = pytest.importorskip("mujoco")
+gym = pytest.importorskip("gymnasium")
+
+from torchrl_diffenvs.articulated import RigidBodyTree, forward_kinematics, gymnasium_asset, load_mjcf, mass_matrix_and_bias, step  # noqa: E402
+from torchrl_diffenvs.articulated.dynamics import default_params  # noqa: E402
+from torchrl_diffenvs.articulated.mjcf import quat_to_mat  # noqa: E402
+from torchrl_diffenvs.envs import make_env  # noqa: E402
+
+ASSETS = ["inverted_pendulum.xml", "inverted_double_pendulum.xml", "reacher.xml", "half_cheetah.xml", "hopper.xml",
+          "walker2d_v5.xml"]
+
+
+def mj_model(filename):
+    return mujoco.MjModel.from_xml_path(str(gymnasium_asset(filename)))
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("filename", ASSETS)
+def test_loader_matches_mujoco_compiler(filename):
+    model, mm = load_mjcf(gymnasium_asset(filename)), mj_model(filename)
+    assert model.body_names == [mm.body(i).name for i in range(mm.nbody)]
+    inertia = np.stack([quat_to_mat(q) @ np.diag(i) @ quat_to_mat(q).T for q, i in zip(mm.body_iquat, mm.body_inertia)])
+    np.testing.assert_allclose(model.body_mass, mm.body_mass, atol=1e-12)
+    np.testing.assert_allclose(model.body_inertia, inertia, atol=1e-12)
+    np.testing.assert_allclose(model.body_com, mm.body_ipos, atol=1e-12)
+    np.testing.assert_allclose(model.qpos0, mm.qpos0, atol=1e-12)
+    np.testing.assert_allclose(model.joint_range, mm.jnt_range, atol=1e-12)
+    np.testing.assert_array_equal(model.limited, mm.jnt_limited.astype(bool))
+    for ours, theirs in [(model.armature, mm.dof_armature), (model.damping, mm.dof_damping),
+                         (model.stiffness, mm.jnt_stiffness), (model.limit_solimp, mm.jnt_solimp),
+                         (model.limit_solref, mm.jnt_solref), (model.actuator_gear, mm.actuator_gear[:, 0]),
+                         (model.ctrl_range, mm.actuator_ctrlrange), (model.timestep, mm.opt.timestep),
+                         (model.gravity, mm.opt.gravity)]:
+        np.testing.assert_allclose(ours, theirs, atol=1e-12)
+    assert model.integrator == ("rk4" if mm.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4 else "euler")
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("filename", ASSETS)
+def test_mass_matrix_and_bias_forces_match_mujoco(filename):
+    model, mm = load_mjcf(gymnasium_asset(filename)), mj_model(filename)
+    data = mujoco.MjData(mm)
+    tree = RigidBodyTree.from_model(model)
+    params = {k: v.unsqueeze(0) for k, v in default_params(model).items()}
+    rng = np.random.default_rng(0)
+    np.testing.assert_allclose(tree.dof_invweight0.numpy(), mm.dof_invweight0, rtol=1e-10)
+    for _ in range(10):
+        data.qpos[:] = mm.qpos0 + rng.normal(size=mm.nq)
+        data.qvel[:] = rng.normal(size=mm.nv) * 2
+        mujoco.mj_forward(mm, data)
+        full = np.zeros((mm.nv, mm.nv))
+        mujoco.mj_fullM(mm, data, full)
+        kin = forward_kinematics(tree, torch.tensor(data.qpos[None]))
+        mass, bias = mass_matrix_and_bias(tree, kin, torch.tensor(data.qvel[None]), params)
+        np.testing.assert_allclose(kin.body_pos[0].numpy(), data.xpos, atol=1e-12)
+        np.testing.assert_allclose(mass[0].numpy(), full, atol=1e-11)
+        np.testing.assert_allclose(bias[0].numpy(), data.qfrc_bias, atol=1e-10)
+
+
+@pytest.mark.parametrize("filename,scale", [("inverted_double_pendulum.xml", 0.3), ("reacher.xml", 1.0)])
+def test_integrators_and_joint_limits_match_mj_step(filename, scale):
+    """300 physics steps with random controls, joint limits hit repeatedly (counted)."""
+    model, mm = load_mjcf(gymnasium_asset(filename)), mj_model(filename)
+    data = mujoco.MjData(mm)
+    tree = RigidBodyTree.from_model(model)
+    params = {k: v.unsqueeze(0) for k, v in default_params(model).items()}
+    rng = np.random.default_rng(1)
+    data.qpos[:] = mm.qpos0 + rng.uniform(-scale, scale, size=mm.nq)
+    data.qvel[:] = rng.uniform(-scale, scale, size=mm.nv)
+    qpos, qvel = torch.tensor(data.qpos[None].copy()), torch.tensor(data.qvel[None].copy())
+    limit_steps = 0
+    for _ in range(300):
+        ctrl = rng.uniform(-2, 2, size=mm.nu)
+        data.ctrl[:] = ctrl
+        mujoco.mj_step(mm, data)
+        limit_steps += data.nefc > 0
+        qpos, qvel, *_ = step(tree, qpos, qvel, torch.tensor(ctrl[None]), params, model.timestep, model.integrator)
+        np.testing.assert_allclose(qpos[0].numpy(), data.qpos, atol=1e-6, rtol=1e-6)
+        np.testing.assert_allclose(qvel[0].numpy(), data.qvel, atol=1e-6, rtol=1e-6)
+    assert limit_steps >= 10  # the soft joint limit was exercised
+
+
+def _gym_state(task, data):
+    """Our state TensorDict entries for gymnasium's current MuJoCo data."""
+    state = {"qpos": data.qpos.copy(), "qvel": data.qvel.copy()}
+    if task == "InvertedDoublePendulum-v5":
+        state["qfrc_constraint"] = data.qfrc_constraint.copy()
+    if task == "Reacher-v5":
+        state["fingertip_to_target"] = data.body("fingertip").xpos - data.body("target").xpos
+    return {k: torch.tensor(v[None]) for k, v in state.items()}
+
+
+@pytest.mark.parametrize("task,action_scale", [
+    ("InvertedPendulum-v5", 3.0), ("InvertedDoublePendulum-v5", 1.0), ("Reacher-v5", 1.5),
+])
+def test_contact_free_tasks_match_gymnasium(task, action_scale):
+    """>= 120 steps over several episodes: observations, rewards, terminated, truncated (float64, 1e-6).
+
+    Actions go past the ctrlrange (MuJoCo clamps them) and Reacher runs through its 50-step limit.
+    """
+    genv = gym.make(task)
+    env = make_env(task, num_envs=1, dtype=torch.float64, seed=0)
+    rng = np.random.default_rng(2)
+    compared, episodes = 0, 0
+    while compared < 120:
+        gobs, _ = genv.reset(seed=episodes)
+        episodes += 1
+        data = genv.unwrapped.data
+        td = env.reset()
+        td["state"].update(_gym_state(task, data))
+        td = env.reset(td, set_state=True)
+        np.testing.assert_allclose(td["observation"][0].numpy(), gobs, atol=1e-6)
+        while True:
+            action = rng.uniform(-action_scale, action_scale, size=env.action_dim)
+            gobs, greward, gterm, gtrunc, _ = genv.step(action)
+            td["action"] = torch.tensor(action[None])
+            td = env.step(td)
+            nxt = td["next"]
+            np.testing.assert_allclose(nxt["observation"][0].numpy(), gobs, atol=1e-6, rtol=1e-6)
+            assert nxt["reward"].item() == pytest.approx(greward, abs=1e-6)
+            assert nxt["terminated"].item() == gterm
+            assert nxt["truncated"].item() == gtrunc
+            compared += 1
+            if gterm or gtrunc:
+                break
+            td = nxt.clone()
+    genv.close()

@@ -1,0 +1,14 @@
+"""Tasks built on MuJoCo model files (Gymnasium's v5 MuJoCo envs), simulated in pure torch."""
+from .base import MuJoCoModelEnv
+from .half_cheetah import HalfCheetahV5Env
+from .hopper import HopperV5Env
+from .inverted_double_pendulum import InvertedDoublePendulumV5Env
+from .inverted_pendulum import InvertedPendulumV5Env
+from .reacher import ReacherV5Env
+from .walker2d import Walker2dV5Env
+
+MUJOCO_TASKS = (
+    InvertedPendulumV5Env, InvertedDoublePendulumV5Env, ReacherV5Env, HalfCheetahV5Env, HopperV5Env, Walker2dV5Env,
+)
+
+__all__ = ["MuJoCoModelEnv", "MUJOCO_TASKS", *(cls.__name__ for cls in MUJOCO_TASKS)]

@@ -1,0 +1,100 @@
+"""The base class of the tasks built on a MuJoCo model file: Gymnasium's MuJoCo envs in pure torch.
+
+A task names its model file (one that ships with gymnasium, or a path), its ``frame_skip`` and its
+task constants, and writes its reset noise, reward, termination and observation like Gymnasium's
+v5 class; the model's physics (:mod:`torchrl_diffenvs.articulated`) and every TorchRL concern
+(:class:`~torchrl_diffenvs.envs.base.DiffEnv`) live elsewhere.
+
+State: MuJoCo's coordinates ``("state", "qpos")`` and ``("state", "qvel")`` ``[N, nq]``, plus
+task extras. Params (per env, float or ``[num_envs, ...]``): the model's ``body_mass [nbody]``,
+``body_inertia [nbody, 3, 3]``, ``gravity [3]``, ``damping``/``armature``/``stiffness [nv]``; for
+models with ground contact ``contact_stiffness``, ``contact_damping``, ``contact_width``,
+``friction_velocity`` and ``contact_friction [ncontact]`` (one per geom-plane pair, MuJoCo's
+sliding friction by default); and the task's constants (reward weights, healthy ranges, reset
+noise). Truncation follows Gymnasium's ``TimeLimit`` (as the classic Gymnasium tasks).
+"""
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import torch
+
+from ...articulated import RigidBodyTree, load_mjcf, step
+from ...articulated.dynamics import StepResult, default_params
+from ...articulated.mjcf import ArticulatedModel, gymnasium_asset
+from ..gym_classic import GymnasiumClassicEnv
+
+__all__ = ["MuJoCoModelEnv"]
+
+
+@functools.lru_cache(maxsize=None)
+def _load(model_file: str) -> ArticulatedModel:
+    path = Path(model_file)
+    return load_mjcf(path if path.is_file() else gymnasium_asset(model_file))
+
+
+#: Smooth ground-contact defaults (see ``articulated.dynamics.contact_force``); a task may override.
+CONTACT_DEFAULTS = {"contact_stiffness": 2e4, "contact_damping": 500.0, "contact_width": 0.002,
+                    "friction_velocity": 0.01}
+
+
+class MuJoCoModelEnv(GymnasiumClassicEnv):
+    """A batched, differentiable env simulating a MuJoCo model file (hinge and slide joints).
+
+    Subclasses set ``name``, ``model_file``, ``frame_skip``, ``task_params`` (constants that are
+    per-env params too) and write ``initial_state``, ``transition`` (calling :meth:`simulate`)
+    and ``observation``; the action is MuJoCo's ``ctrl`` (its spec is the model's ctrlrange;
+    MuJoCo clamps out-of-range controls, so their gradient is zero).
+
+    Args:
+        num_envs, device, dtype, seed, max_episode_steps, params: as :class:`DiffEnv`.
+    """
+
+    model_file: str = ""
+    frame_skip: int = 1
+    task_params: dict = {}
+    contact_params: dict = CONTACT_DEFAULTS
+    default_max_episode_steps = 1000
+
+    def __init__(self, num_envs: int = 1, **kwargs):
+        model = _load(self.model_file)
+        self.model = model
+        self.action_dim = model.nu
+        low, high = model.ctrl_range[:, 0], model.ctrl_range[:, 1]
+        if not (low == low[0]).all() and (high == high[0]).all():
+            raise ValueError(f"{self.model_file}: motors with different ctrlranges are not supported yet")
+        self.action_low, self.action_high = float(low[0]), float(high[0])
+        self.dt = model.timestep * self.frame_skip  # one env step, as Gymnasium's env.dt
+        defaults = dict(default_params(model))
+        tree64 = RigidBodyTree.from_model(model)
+        if tree64.contact_body.numel():
+            defaults.update(self.contact_params)
+            defaults["contact_friction"] = torch.as_tensor(tree64.contact_pair_friction)
+        defaults.update(self.task_params)
+        self.default_params = defaults
+        dtype = kwargs.get("dtype", torch.float32)
+        device = torch.device(kwargs.get("device") or "cpu")
+        self.tree = RigidBodyTree.from_model(model, dtype=dtype, device=device)
+        super().__init__(num_envs, **kwargs)
+
+    # ------------------------------------------------------------------ helpers for tasks
+    def normal(self, *shape: int) -> torch.Tensor:
+        """Standard normal samples from this env's seeded generator."""
+        return torch.randn(shape, generator=self.rng, device=self.device, dtype=self.float_dtype)
+
+    def init_qpos(self, n: int) -> torch.Tensor:
+        """MuJoCo's ``qpos0`` (Gymnasium's ``init_qpos``) for ``n`` envs."""
+        return self.tree.qpos0.expand(n, -1)
+
+    def simulate(self, state, action, params) -> StepResult:
+        """``frame_skip`` physics steps with ``ctrl = action`` (Gymnasium's ``do_simulation``).
+
+        Returns the last step's :class:`~torchrl_diffenvs.articulated.dynamics.StepResult`: the new
+        ``qpos``/``qvel`` and the state MuJoCo's derived quantities belong to after ``mj_step``.
+        """
+        qpos, qvel = state["qpos"], state["qvel"]
+        for _ in range(self.frame_skip):
+            result = step(self.tree, qpos, qvel, action, params, self.model.timestep, self.model.integrator)
+            qpos, qvel = result.qpos, result.qvel
+        return result

@@ -1,0 +1,69 @@
+"""What Gymnasium's planar runners share: forward reward, control cost, healthy checks, observation."""
+import torch
+
+from .base import MuJoCoModelEnv
+
+
+class PlanarLocomotionEnv(MuJoCoModelEnv):
+    """A planar robot (root joints ``rootx``, ``rootz``, ``rooty``) rewarded for running forward.
+
+    Reward ``forward_reward_weight * (x_after - x_before) / dt + healthy_reward * healthy
+    - ctrl_cost_weight * |a|^2``; terminated when unhealthy (if ``terminate_when_unhealthy``);
+    observation ``[qpos[1:], clip(qvel, -clip_velocity, clip_velocity)]``, with ``qpos[0]`` too when
+    ``exclude_current_positions_from_observation=False``. ``healthy`` is always true for a task
+    without healthy ranges (HalfCheetah). Start: ``qpos0 + U(-s, s)`` and ``qvel ~ U(-s, s)``
+    (``qvel ~ s N(0, 1)`` where ``velocity_noise = "normal"``), ``s = reset_noise_scale``.
+
+    Dynamics: MuJoCo's model and integrator, with a smooth penalty contact instead of MuJoCo's
+    soft-constraint solver (see the README, "Articulated robots"): trajectories differ from
+    Gymnasium's once a foot touches the ground.
+    """
+
+    velocity_noise = "uniform"
+    clip_velocity: float | None = None
+    healthy_ranges: dict = {}  # name -> what it bounds: "z" (qpos[1]), "angle" (qpos[2]), "state" (state[2:])
+
+    def __init__(self, num_envs: int = 1, *, exclude_current_positions_from_observation: bool = True, **kwargs):
+        self.exclude_current_positions = bool(exclude_current_positions_from_observation)
+        super().__init__(num_envs, **kwargs)
+
+    def initial_state(self, params, n):
+        noise = params["reset_noise_scale"].unsqueeze(-1)
+        qpos = self.init_qpos(n) + (2 * self.uniform(0.0, 1.0, n, self.model.nq) - 1) * noise
+        if self.velocity_noise == "normal":
+            qvel = self.normal(n, self.model.nv) * noise
+        else:
+            qvel = (2 * self.uniform(0.0, 1.0, n, self.model.nv) - 1) * noise
+        return {"qpos": qpos, "qvel": qvel}
+
+    def healthy(self, qpos, qvel, params):
+        """``[N]`` bool: Gymnasium's open-interval checks of the task's healthy ranges."""
+        ok = torch.ones_like(qpos[:, 0], dtype=torch.bool)
+        for name, what in self.healthy_ranges.items():
+            low, high = params[f"healthy_{name}_low"], params[f"healthy_{name}_high"]
+            if what == "state":
+                value = torch.cat([qpos, qvel], dim=-1)[:, 2:]
+                ok = ok & ((low.unsqueeze(-1) < value) & (value < high.unsqueeze(-1))).all(-1)
+            else:
+                value = qpos[:, 1] if what == "z" else qpos[:, 2]
+                ok = ok & (low < value) & (value < high)
+        return ok
+
+    def transition(self, state, action, params):
+        result = self.simulate(state, action, params)
+        x_velocity = (result.qpos[:, 0] - state["qpos"][:, 0]) / self.dt
+        reward = params["forward_reward_weight"] * x_velocity - params["ctrl_cost_weight"] * (action**2).sum(-1)
+        terminated = None
+        if self.healthy_ranges:
+            healthy = self.healthy(result.qpos, result.qvel, params)
+            reward = reward + params["healthy_reward"] * healthy.to(reward.dtype)
+            terminated = ~healthy & (params["terminate_when_unhealthy"] > 0)
+        return {"qpos": result.qpos, "qvel": result.qvel}, reward, terminated
+
+    def observation(self, state, params):
+        qpos, qvel = state["qpos"], state["qvel"]
+        if self.exclude_current_positions:
+            qpos = qpos[:, 1:]
+        if self.clip_velocity is not None:
+            qvel = torch.clamp(qvel, -self.clip_velocity, self.clip_velocity)
+        return torch.cat([qpos, qvel], dim=-1)
