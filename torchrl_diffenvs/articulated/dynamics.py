@@ -321,7 +321,7 @@ def actuator_force(tree: RigidBodyTree, ctrl: torch.Tensor, nv: int) -> torch.Te
     return out.index_add(1, tree.actuator_dof, force * tree.actuator_gear)
 
 
-def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, jac) -> torch.Tensor:
+def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, jac, with_damping=False):
     """``[N, nv]`` generalised force of the smooth ground contacts.
 
     Each contact point (a capsule end, a sphere, a box corner) with signed distance ``d`` to a
@@ -330,9 +330,14 @@ def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, para
     friction force ``-mu f_n v_t / sqrt(|v_t|^2 + v_eps^2)``: Coulomb's law with the stick-slip
     corner rounded off over ``v_eps = friction_velocity``. Every term is smooth in the state, and
     the forces grow linearly with the depth, so gradients stay finite at deep penetration.
+
+    ``with_damping=True`` also returns ``C [N, nv, nv]``, the (positive semi-definite) velocity
+    damping of these forces, ``-d(force)/d(qvel)`` with the friction direction held fixed: the
+    Euler integrator treats it implicitly, as MuJoCo treats joint damping.
     """
     if tree.contact_body.numel() == 0:
-        return qvel.new_zeros(qvel.shape)
+        zero = qvel.new_zeros(qvel.shape)
+        return (zero, qvel.new_zeros(*qvel.shape, qvel.shape[-1])) if with_damping else zero
     rot = kin.body_rot[:, tree.contact_body]  # [N, P, 3, 3]
     centre = kin.body_pos[:, tree.contact_body] + (rot @ tree.contact_local.unsqueeze(-1)).squeeze(-1)
     normal = tree.contact_plane_normal
@@ -353,7 +358,18 @@ def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, para
     slip = torch.sqrt((tangent_vel * tangent_vel).sum(-1) + eps * eps)
     force = normal_force.unsqueeze(-1) * (normal - (mu / slip).unsqueeze(-1) * tangent_vel)
     spatial = torch.cat([_cross(point, force), force], dim=-1)  # wrench about the world origin
-    return (point_jac.transpose(-1, -2) @ spatial.unsqueeze(-1)).squeeze(-1).sum(1)
+    generalised = (point_jac.transpose(-1, -2) @ spatial.unsqueeze(-1)).squeeze(-1).sum(1)
+    if not with_damping:
+        return generalised
+    # linear velocity Jacobian of each contact point: v = v_O + w x p = v_O - p x w
+    lin_jac = point_jac[..., 3:, :] - _skew(point) @ point_jac[..., :3, :]  # [N, P, 3, nv]
+    nn = normal.unsqueeze(-1) * normal.unsqueeze(-2)
+    pushing = (normal_force > 0).to(qvel.dtype)
+    eye = torch.eye(3, dtype=qvel.dtype, device=qvel.device)
+    point_damping = ((damping * touching * pushing)[..., None, None] * nn
+                     + (mu * normal_force / slip)[..., None, None] * (eye - nn))
+    damping_matrix = (lin_jac.transpose(-1, -2) @ point_damping @ lin_jac).sum(1)
+    return generalised, damping_matrix
 
 
 def _impedance(solimp: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
@@ -396,31 +412,44 @@ def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv) -> torch.
     return torch.zeros_like(qvel).index_add(1, dof, sign * force)
 
 
-def _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias):
-    """Motors + passive joint forces + ground contact - bias: every force but the joint limits."""
+def _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias, with_damping=False):
+    """Motors + passive joint forces + ground contact - bias: every force but the joint limits.
+
+    ``with_damping``: also the velocity damping of these forces that an implicit integrator
+    uses (joint damping plus the contact's, see :func:`contact_force`).
+    """
     passive = -params["damping"] * qvel - params["stiffness"] * (qpos - tree.qpos_spring)
     force = actuator_force(tree, ctrl, tree.nv) + passive - bias
-    if "contact_stiffness" in params:
-        force = force + contact_force(tree, kin, qvel, params, jac)
-    return force
+    damping = torch.diag_embed(params["damping"]) if with_damping else None
+    if tree.contact_body.numel():
+        contact = contact_force(tree, kin, qvel, params, jac, with_damping=with_damping)
+        if with_damping:
+            contact, contact_damping = contact
+            damping = damping + contact_damping
+        force = force + contact
+    return (force, damping) if with_damping else force
 
 
 def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, implicit_damping_dt=None):
     """``qacc [N, nv]`` of MuJoCo's forward dynamics (smooth forces, contact, joint limits).
 
     ``implicit_damping_dt = h`` gives the acceleration of MuJoCo's Euler integrator, which solves
-    with ``M + h diag(damping)`` (joint damping treated implicitly).
+    with ``M + h D``: joint damping treated implicitly (MuJoCo), and here the contact's velocity
+    damping too (explicit contact friction and damping at MuJoCo's 0.01 s steps would be unstable).
     """
     kin = forward_kinematics(tree, qpos)
     jac = body_jacobians(tree, kin)
     mass, bias = mass_matrix_and_bias(tree, kin, qvel, params, jac)
-    force = _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias)
+    implicit = implicit_damping_dt is not None
+    force = _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias, with_damping=implicit)
+    if implicit:
+        force, damping = force
     if tree.limit_dof.numel():
         mass_inv = torch.linalg.inv(mass)
         smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
         force = force + limit_force(tree, qpos, qvel, smooth_acc, mass_inv)
-    if implicit_damping_dt is not None:
-        mass = mass + implicit_damping_dt * torch.diag_embed(params["damping"])
+    if implicit:
+        mass = mass + implicit_damping_dt * damping
     return torch.linalg.solve(mass, force)
 
 

@@ -1,0 +1,168 @@
+"""Gradients of the MuJoCo-model tasks: gradcheck of one step (contact active), 15-step rollouts
+against central finite differences through contact, finite gradients at deep penetration, at rest
+and at touch-down (float64)."""
+import pytest
+import torch
+
+from torchrl_diffenvs.envs import make_env
+
+MUJOCO_TASKS = ["InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", "HalfCheetah-v5", "Hopper-v5",
+                "Walker2d-v5"]
+CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5"]
+
+
+def standing_state(env, n, depth=0.0, mid_range=False):
+    """Start states with the robot lowered onto the floor until its lowest contact point is ``depth`` deep.
+
+    ``depth = 0``: exactly at touch-down; ``> 0``: penetrating. ``mid_range``: limited joints start
+    in the middle of their range, away from MuJoCo's joint-limit constraint, whose force switches on
+    with a jump (a discontinuity no finite difference can follow).
+    """
+    from torchrl_diffenvs.articulated import forward_kinematics
+
+    state = env.initial_state(env.params, n)
+    if mid_range:
+        model = env.model
+        middle = torch.as_tensor(model.joint_range.mean(1), dtype=state["qpos"].dtype)
+        limited = torch.as_tensor(model.limited)
+        state["qpos"] = torch.where(limited, middle + 0.01 * state["qpos"], state["qpos"])
+    kin = forward_kinematics(env.tree, state["qpos"])
+    tree = env.tree
+    centre = kin.body_pos[:, tree.contact_body] + (kin.body_rot[:, tree.contact_body] @ tree.contact_local.unsqueeze(-1)).squeeze(-1)
+    lowest = (centre[..., 2] - tree.contact_radius).min(dim=1).values
+    qpos = state["qpos"].clone()
+    qpos[:, 1] = qpos[:, 1] - lowest - depth  # rootz slides the whole robot
+    state["qpos"] = qpos
+    return state
+
+
+def step_fn(env, state_keys, param_key=None):
+    """One env step as a function of (action, qpos, qvel[, param]) -> (reward, next qpos, next qvel)."""
+    base_params = env.params.clone()
+
+    def fn(action, qpos, qvel, *param):
+        params = base_params.clone()
+        if param_key is not None:
+            params[param_key] = param[0]
+        state = {"qpos": qpos, "qvel": qvel}
+        for k in state_keys:
+            if k not in state:
+                state[k] = fixed_extras[k]
+        next_state, reward, _ = env.transition(state, action, params)
+        return reward, next_state["qpos"], next_state["qvel"]
+
+    fixed_extras = {}
+    return fn, fixed_extras
+
+
+@pytest.mark.parametrize("name", MUJOCO_TASKS)
+def test_gradcheck_one_step(name):
+    env = make_env(name, num_envs=2, dtype=torch.float64, seed=0)
+    state = standing_state(env, 2, depth=0.01) if name in CONTACT_TASKS else env.initial_state(env.params, 2)
+    fn, extras = step_fn(env, list(state.keys()), param_key="body_mass")
+    extras.update({k: v for k, v in state.items() if k not in ("qpos", "qvel")})
+    action = (0.3 * torch.randn(2, env.action_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))
+    inputs = (action.requires_grad_(), state["qpos"].clone().requires_grad_(), state["qvel"].clone().requires_grad_(),
+              env.params["body_mass"].clone().requires_grad_())
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def rollout_return(env, state, actions, params):
+    total = 0.0
+    for t in range(actions.shape[1]):
+        state, reward, _ = env.transition(state, actions[:, t], params)
+        total = total + reward.sum()
+    return total
+
+
+@pytest.mark.parametrize("name", CONTACT_TASKS)
+def test_15_step_rollout_matches_finite_differences_through_contact(name):
+    """Directional derivatives of a 15-step return w.r.t. actions, the start state and params.
+
+    The robot starts 5 mm inside the floor and bounces: the return is stiff (directional
+    derivatives up to ~1e4), hence the extrapolated differences.
+    """
+    env = make_env(name, num_envs=2, dtype=torch.float64, seed=0)
+    state0 = standing_state(env, 2, depth=0.005, mid_range=True)
+    g = torch.Generator().manual_seed(1)
+    actions = 0.5 * torch.randn(2, 15, env.action_dim, dtype=torch.float64, generator=g)
+    params0 = env.params.clone()
+
+    def total(actions, qpos, qvel, stiffness, friction):
+        params = params0.clone()
+        params["contact_stiffness"] = stiffness
+        params["contact_friction"] = friction
+        return rollout_return(env, {"qpos": qpos, "qvel": qvel}, actions, params)
+
+    inputs = [actions, state0["qpos"], state0["qvel"], params0["contact_stiffness"], params0["contact_friction"]]
+    inputs = [x.clone().requires_grad_() for x in inputs]
+    value = total(*inputs)
+    grads = torch.autograd.grad(value, inputs)
+    assert all(torch.isfinite(gr).all() for gr in grads)
+    for i, x in enumerate(inputs):
+        direction = torch.randn(x.shape, dtype=torch.float64, generator=g)
+        direction = direction / direction.norm() * (1.0 if i != 3 else 100.0)
+        with torch.no_grad():  # Richardson-extrapolated central differences: error O(eps^4)
+            def central(eps):
+                plus = [y + (eps * direction if j == i else 0) for j, y in enumerate(inputs)]
+                minus = [y - (eps * direction if j == i else 0) for j, y in enumerate(inputs)]
+                return (total(*plus) - total(*minus)) / (2 * eps)
+
+            fd = (4 * central(5e-7) - central(1e-6)) / 3
+        analytic = (grads[i] * direction).sum()
+        assert analytic.item() == pytest.approx(fd.item(), rel=1e-4, abs=1e-6), f"input {i}"
+
+
+@pytest.mark.parametrize("name", CONTACT_TASKS)
+@pytest.mark.parametrize("depth", [-0.001, 0.0, 0.05, 0.5])
+def test_gradients_finite_at_touchdown_rest_and_deep_penetration(name, depth):
+    """Above the floor, at touch-down, resting in contact, and half a metre inside the floor."""
+    env = make_env(name, num_envs=3, dtype=torch.float32, seed=0)
+    state = standing_state(env, 3, depth=depth)
+    state["qvel"] = torch.zeros_like(state["qvel"])
+    state["qvel"][:, 1] = -1.0  # moving into the floor
+    action = torch.zeros(3, env.action_dim, requires_grad=True)
+    qpos = state["qpos"].clone().requires_grad_()
+    next_state, reward, _ = env.transition({"qpos": qpos, "qvel": state["qvel"]}, action, env.params)
+    (reward.sum() + next_state["qpos"].sum() + next_state["qvel"].sum()).backward()
+    assert torch.isfinite(next_state["qvel"]).all()
+    assert torch.isfinite(action.grad).all() and torch.isfinite(qpos.grad).all()
+    if depth > 0:  # the floor pushes back: the torso accelerates upwards
+        assert (next_state["qvel"][:, 1] > state["qvel"][:, 1]).all()
+
+
+@pytest.mark.parametrize("name", CONTACT_TASKS)
+def test_long_random_rollouts_stay_finite(name):
+    """1000 steps (one full HalfCheetah episode) of random actions in float32 never produce NaN."""
+    env = make_env(name, num_envs=16, seed=0, max_episode_steps=1000)
+    with torch.no_grad():
+        td = env.rollout(1000 if name == "HalfCheetah-v5" else 300, break_when_any_done=False)
+    assert torch.isfinite(td["next", "observation"]).all()
+    assert torch.isfinite(td["next", "reward"]).all()
+
+
+def test_gradient_is_zero_across_an_auto_reset():
+    """Hopper with random actions falls and resets: rewards after the reset do not depend on earlier actions."""
+    env = make_env("Hopper-v5", num_envs=4, dtype=torch.float64, seed=0, params={"healthy_angle_high": 0.02,
+                                                                                    "healthy_angle_low": -0.02})
+    g = torch.Generator().manual_seed(0)
+    actions = torch.randn(4, 40, env.action_dim, dtype=torch.float64, generator=g).requires_grad_()
+    td = env.rollout(40, policy=_OpenLoop(actions), break_when_any_done=False)
+    done = td["next", "done"][..., 0]
+    env_i, t_done = [int(v) for v in done.nonzero()[0]]
+    assert t_done < 38
+    later = td["next", "reward"][env_i, t_done + 1:].sum()
+    (grad,) = torch.autograd.grad(later, actions)
+    assert grad[env_i, : t_done + 1].abs().max() == 0
+    assert grad[env_i, t_done + 1:].abs().max() > 0
+
+
+class _OpenLoop(torch.nn.Module):
+    def __init__(self, actions):
+        super().__init__()
+        self.actions, self.t = actions, 0
+
+    def forward(self, td):
+        td["action"] = self.actions[:, self.t]
+        self.t += 1
+        return td
