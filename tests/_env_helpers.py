@@ -9,9 +9,22 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import step_mdp
 
-from torchrl_diffenvs import make_env
+from torchrl_diffenvs import list_envs, make_env
 
 F64 = torch.float64
+
+
+def classic_envs() -> list[str]:
+    """Every registered env but the MuJoCo-model tasks.
+
+    The table-driven suites (behaviour, composition, gradients, rendering) describe these tasks
+    one by one; the MuJoCo-model tasks have their own suites (test_mujoco_parity.py,
+    test_mujoco_gradients.py) with MuJoCo and Gymnasium as the references.
+    """
+    from torchrl_diffenvs.envs.mujoco import MUJOCO_TASKS
+
+    mujoco_names = {cls.name for cls in MUJOCO_TASKS}
+    return [name for name in list_envs() if name not in mujoco_names]
 
 
 def is_gymnasium_variant(name: str) -> bool:

@@ -17,10 +17,10 @@ from torchrl.envs import (
 from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type, step_mdp
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
-from _env_helpers import F64, ReplayPolicy, in_spec_actions, make, obs_weights, signal, use_rollout_path
+from _env_helpers import classic_envs, F64, ReplayPolicy, in_spec_actions, make, obs_weights, signal, use_rollout_path
 from torchrl_diffenvs import list_envs
 
-ALL_ENVS = list_envs()
+ALL_ENVS = classic_envs()
 
 
 def _norm_params(env, dtype=None):

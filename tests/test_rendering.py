@@ -13,6 +13,7 @@ import pytest
 import torch
 from PIL import Image
 
+from _env_helpers import classic_envs
 from torchrl_diffenvs import DiffEnv, list_envs, make_env
 from torchrl_diffenvs.envs import CartPoleEnv
 from torchrl_diffenvs.rendering import get_drawer, register_drawer, render_frame, rollout_frames, save_gif
@@ -60,7 +61,7 @@ def with_state(env, td, **state):
 
 
 # ---------------------------------------------------------------------------- every env
-@pytest.mark.parametrize("name", list_envs())
+@pytest.mark.parametrize("name", classic_envs())
 def test_every_env_renders_a_frame_coloured_by_reward(name):
     env, nxt = stepped(name)
     frame = env.render()  # the latest step output
@@ -84,7 +85,7 @@ def test_every_env_renders_a_frame_coloured_by_reward(name):
     assert count(frame_reset, rendering_core.NO_REWARD_COLOR) > 20 and count(frame_reset, GREEN) == 0
 
 
-@pytest.mark.parametrize("name", list_envs())
+@pytest.mark.parametrize("name", classic_envs())
 def test_grid_of_several_envs(name):
     env, nxt = stepped(name, num_envs=5)
     grid = env.render(env_index="all", size=64)

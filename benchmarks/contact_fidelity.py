@@ -1,0 +1,100 @@
+"""The MuJoCo-model tasks against gymnasium's own MuJoCo envs: contact fidelity and speed.
+
+Fidelity (float64): the torso height after 2 s at zero action (a dropped robot coming to rest),
+and the gap after 1 s of the same random actions from the same start (no reset noise).
+``--speed``: env-steps/s of gymnasium's single env and of ours at N = 64 and 1024 (no grad),
+in one process, one torch thread. Needs ``pip install "torchrl_diffenvs[mujoco]"``.
+
+    OMP_NUM_THREADS=1 python benchmarks/contact_fidelity.py [--speed]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+
+import numpy as np
+import torch
+
+from torchrl_diffenvs import make_env
+
+CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5"]
+
+
+def _gym(task):
+    import gymnasium as gym
+
+    kwargs = {} if task == "HalfCheetah-v5" else {"terminate_when_unhealthy": False}
+    env = gym.make(task, reset_noise_scale=0.0, **kwargs)
+    env.reset(seed=0)
+    return env
+
+
+def _ours(task):
+    env = make_env(task, num_envs=1, dtype=torch.float64, seed=0, max_episode_steps=None,
+                   params={"reset_noise_scale": 0.0, **({} if task == "HalfCheetah-v5" else {"terminate_when_unhealthy": 0.0})})
+    return env, env.reset()
+
+
+def fidelity(task, seconds_rest=2.0, seconds_open_loop=1.0):
+    genv, (env, td) = _gym(task), _ours(task)
+    for _ in range(int(round(seconds_rest / env.dt))):
+        genv.step(np.zeros(env.action_dim))
+        td["action"] = torch.zeros(1, env.action_dim, dtype=torch.float64)
+        td = env.step(td)["next"].clone()
+    rest = (genv.unwrapped.data.qpos[1], td["state", "qpos"][0, 1].item())
+    genv, (env, td) = _gym(task), _ours(task)
+    rng, theirs, ours = np.random.default_rng(0), [], []
+    for _ in range(int(round(seconds_open_loop / env.dt))):
+        action = rng.uniform(-1, 1, env.action_dim)
+        genv.step(action)
+        td["action"] = torch.tensor(action[None])
+        td = env.step(td)["next"].clone()
+        theirs.append(genv.unwrapped.data.qpos.copy())
+        ours.append(td["state", "qpos"][0].numpy().copy())
+    theirs, ours = np.array(theirs), np.array(ours)
+    return {
+        "rest_z_mujoco": rest[0], "rest_z_ours": rest[1],
+        "x_gap": abs(theirs[-1, 0] - ours[-1, 0]), "z_gap_max": np.abs(theirs[:, 1] - ours[:, 1]).max(),
+        "angle_gap_max": np.abs(theirs[:, 2] - ours[:, 2]).max(),
+        "joint_rms_gap": float(np.sqrt(((theirs[:, 3:] - ours[:, 3:]) ** 2).mean())),
+    }
+
+
+def speed(task, sizes=(64, 1024), steps=10, seconds=2.0):
+    import gymnasium as gym
+
+    genv = gym.make(task)
+    genv.reset(seed=0)
+    start, count = time.perf_counter(), 0
+    while time.perf_counter() - start < seconds:
+        _, _, terminated, truncated, _ = genv.step(genv.action_space.sample())
+        count += 1
+        if terminated or truncated:
+            genv.reset()
+    row = {"gymnasium_1env": count / (time.perf_counter() - start)}
+    for n in sizes:
+        env = make_env(task, num_envs=n, seed=0)
+        with torch.no_grad():
+            env.rollout(2, break_when_any_done=False)  # warm-up
+            start = time.perf_counter()
+            env.rollout(steps, break_when_any_done=False)
+            row[f"ours_N{n}"] = n * steps / (time.perf_counter() - start)
+    return row
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--speed", action="store_true", help="also measure env-steps/s")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    warnings.filterwarnings("ignore")
+    for task in CONTACT_TASKS:
+        print(task, {k: round(float(v), 4) for k, v in fidelity(task).items()}, flush=True)
+    if args.speed:
+        for task in CONTACT_TASKS + ["InvertedDoublePendulum-v5"]:
+            print(task, {k: f"{v / 1e3:.1f}k" for k, v in speed(task).items()}, flush=True)
+
+
+if __name__ == "__main__":
+    main()
