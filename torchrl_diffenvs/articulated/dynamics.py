@@ -201,7 +201,7 @@ class RigidBodyTree:
         )
         if nv:
             # MuJoCo's dof_invweight0: diag(M^-1) at qpos0 with the file's masses (float64)
-            params = {k: v.unsqueeze(0).to(dtype) for k, v in default_params(model).items()}
+            params = {k: v.unsqueeze(0).to(dtype=dtype, device=device) for k, v in default_params(model).items()}
             kin = forward_kinematics(tree, tree.qpos0.unsqueeze(0))
             mass, _ = mass_matrix_and_bias(tree, kin, torch.zeros(1, nv, dtype=dtype, device=device), params)
             tree.dof_invweight0 = torch.linalg.inv(mass)[0].diagonal()
