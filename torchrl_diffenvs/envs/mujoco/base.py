@@ -62,20 +62,19 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         self.model = model
         self.action_dim = model.nu
         low, high = model.ctrl_range[:, 0], model.ctrl_range[:, 1]
-        if not (low == low[0]).all() and (high == high[0]).all():
+        if not ((low == low[0]).all() and (high == high[0]).all()):
             raise ValueError(f"{self.model_file}: motors with different ctrlranges are not supported yet")
         self.action_low, self.action_high = float(low[0]), float(high[0])
         self.dt = model.timestep * self.frame_skip  # one env step, as Gymnasium's env.dt
-        defaults = dict(default_params(model))
-        tree64 = RigidBodyTree.from_model(model)
-        if tree64.contact_body.numel():
-            defaults.update(self.contact_params)
-            defaults["contact_friction"] = torch.as_tensor(tree64.contact_pair_friction)
-        defaults.update(self.task_params)
-        self.default_params = defaults
         dtype = kwargs.get("dtype", torch.float32)
         device = torch.device(kwargs.get("device") or "cpu")
         self.tree = RigidBodyTree.from_model(model, dtype=dtype, device=device)
+        defaults = dict(default_params(model))
+        if self.tree.contact_body.numel():
+            defaults.update(self.contact_params)
+            defaults["contact_friction"] = torch.as_tensor(self.tree.contact_pair_friction)
+        defaults.update(self.task_params)
+        self.default_params = defaults
         super().__init__(num_envs, **kwargs)
 
     # ------------------------------------------------------------------ helpers for tasks
