@@ -19,7 +19,7 @@ def classic_envs() -> list[str]:
 
     The table-driven suites (behaviour, composition, gradients, rendering) describe these tasks
     one by one; the MuJoCo-model tasks have their own suites (test_mujoco_parity.py,
-    test_mujoco_gradients.py) with MuJoCo and Gymnasium as the references.
+    test_mujoco_gradients.py, test_rendering_mujoco.py) with MuJoCo and Gymnasium as the references.
     """
     from torchrl_diffenvs.envs.mujoco import MUJOCO_TASKS
 

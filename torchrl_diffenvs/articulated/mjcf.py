@@ -532,7 +532,8 @@ class _Reader:
             if kind not in ("capsule", "cylinder"):
                 raise self.fail(element, f"fromto is only supported for capsules and cylinders, not {kind}")
             v = _floats(a["fromto"], 6, where)
-            pos, rot = (v[:3] + v[3:]) / 2.0, _z_to_vec(v[3:] - v[:3])
+            # MuJoCo points the geom's z axis from the second point to the first
+            pos, rot = (v[:3] + v[3:]) / 2.0, _z_to_vec(v[:3] - v[3:])
             size[1] = np.linalg.norm(v[3:] - v[:3]) / 2.0
         else:
             pos, rot = _floats(a.get("pos", "0 0 0"), 3, where), self.orientation(element, a)

@@ -22,14 +22,18 @@ def list_envs() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def env_class(name: str) -> type[DiffEnv]:
+    """The class :func:`make_env` builds for ``name``."""
+    try:
+        return _REGISTRY[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown env {name!r}; valid names: {', '.join(list_envs())}") from None
+
+
 def make_env(name: str, num_envs: int = 1, **kwargs) -> DiffEnv:
     """Builds a batched differentiable env by name, e.g. ``make_env("swimmer", num_envs=64)``.
 
     Keyword arguments go to the env class: ``device``, ``dtype``, ``seed``,
     ``max_episode_steps``, ``params`` and task options (``num_links``, ``num_urchins``, ...).
     """
-    try:
-        cls = _REGISTRY[name]
-    except (KeyError, TypeError):
-        raise ValueError(f"unknown env {name!r}; valid names: {', '.join(list_envs())}") from None
-    return cls(num_envs, **kwargs)
+    return env_class(name)(num_envs, **kwargs)

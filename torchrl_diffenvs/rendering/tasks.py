@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from .core import Canvas, register_drawer, transform
+from .mujoco import VIEWS as MUJOCO_VIEWS
 
 INK = (0, 0, 0)
 JOINT = (128, 128, 128)
@@ -152,7 +153,9 @@ def register_task_drawers() -> None:
     ``Pendulum-v1`` maps its reward range ``[-16.27, 0]`` linearly (upright and still is
     green; its reward is computed on the pre-step state, so the colour lags one step);
     ``MountainCarContinuous-v0`` maps ``[0, 100]`` (red while driving, whose reward is only the
-    small action cost, green on the step that reaches the flag).
+    small action cost, green on the step that reaches the flag). The MuJoCo-model tasks' ranges
+    are in :data:`torchrl_diffenvs.rendering.mujoco.VIEWS` (HalfCheetah: ``[-1, 5]``, about its
+    forward speed; Hopper ``[0, 4]``; Walker2d ``[0, 5]``; Reacher ``[-0.5, 0]``).
     """
     square = lambda r: (-r, r, -r, r)  # noqa: E731
     register_drawer("cartpole", draw_cartpole, bounds=square(2.7))
@@ -164,3 +167,6 @@ def register_task_drawers() -> None:
     register_drawer("MountainCarContinuous-v0", draw_mountaincar, bounds=(-1.2, 0.6, 0.0, 1.25), reward_range=(0.0, 100.0))
     register_drawer("reacher", draw_reacher, bounds=_reacher_bounds)
     register_drawer("swimmer", draw_swimmer, bounds=square(1.5))
+    # the MuJoCo-model tasks: every geom projected on the side (or, for Reacher, the top) plane
+    for view in MUJOCO_VIEWS:
+        register_drawer(view.task, view.draw, bounds=view.view_bounds, reward_range=view.reward_range)
