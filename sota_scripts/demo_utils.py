@@ -1,4 +1,4 @@
-"""Small helpers shared by optimize_trajectory.py and optimize_policy.py (argument parsing, plots)."""
+"""Small helpers shared by the demo scripts (argument parsing, plots)."""
 from __future__ import annotations
 
 import sys
@@ -35,15 +35,19 @@ def parse_args(defaults: dict, argv: list[str] | None = None, usage: str = "") -
 
 
 def start_demo(
-    defaults: dict, argv: list[str] | None = None, usage: str = "", choices: dict[str, tuple] | None = None
+    defaults: dict, argv: list[str] | None = None, usage: str = "", choices: dict[str, tuple] | None = None,
+    check=None,
 ) -> tuple[dict, Path]:
-    """Parses the arguments, checks the env name and the ``choices`` (key -> valid values), seeds
-    torch and creates ``out_dir``; returns the arguments and ``out_dir``."""
+    """Parses the arguments, checks the env name, the ``choices`` (key -> valid values) and
+    ``check(args)`` (raises ``SystemExit`` on a bad value), seeds torch and creates ``out_dir``;
+    returns the arguments and ``out_dir``."""
     args = parse_args(defaults, argv, usage)
-    valid = {"env": tuple(list_envs()), **(choices or {})}
+    valid = {**({"env": tuple(list_envs())} if "env" in defaults else {}), **(choices or {})}
     for key, values in valid.items():
         if args[key] not in values:
             raise SystemExit(f"unknown {key} {args[key]!r}; valid: {', '.join(values)}")
+    if check is not None:
+        check(args)
     torch.manual_seed(args["seed"])
     out_dir = Path(args["out_dir"])
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -124,3 +124,30 @@ def test_demo_scripts_write_a_learning_curve_and_a_gif(tmp_path, monkeypatch, sc
             module.main(["loss=ppo", f"out_dir={not_created}"])
     assert not not_created.exists()
     sys.modules.pop(script, None)
+
+
+def test_system_identification_recovers_edited_masses_and_damping(tmp_path, monkeypatch):
+    """The demo end to end, small: MuJoCo (gymnasium's env) records a model file whose masses and
+    damping were edited; our model, fitted by L-BFGS through autograd, recovers them."""
+    pytest.importorskip("mujoco")
+    pytest.importorskip("matplotlib")
+    import importlib
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "sota_scripts"))
+    module = importlib.import_module("system_identification")
+    summary = module.main(["trajectories=3", "steps=8", "iterations=8", "true_mass=7,5,2", "true_damping=0.4,0.2,0.3",
+                           f"out_dir={tmp_path}", "progress=false"])
+    assert 'mass="7.0"' in (tmp_path / "edited_model.xml").read_text()
+    by_name = {p["name"]: p for p in summary["parameters"]}
+    assert by_name["mass cart"]["true"] == 7.0 and by_name["damping hinge2"]["true"] == 0.3
+    for p in summary["parameters"]:
+        assert p["relative_error"] < 1e-5, p
+        assert abs(p["initial"] - p["true"]) / p["true"] > 0.1  # the fit had something to find
+    assert summary["loss"][-1] < 1e-12 * summary["loss"][0]
+    not_created = tmp_path / "not_created"
+    with pytest.raises(SystemExit, match="true_mass expects 3 positive numbers"):
+        module.main(["true_mass=1,2", f"out_dir={not_created}"])
+    with pytest.raises(SystemExit, match="steps >= segment"):
+        module.main(["steps=1", "segment=2", f"out_dir={not_created}"])
+    assert not not_created.exists()

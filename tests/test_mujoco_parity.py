@@ -12,7 +12,7 @@ mujoco = pytest.importorskip("mujoco")
 gym = pytest.importorskip("gymnasium")
 
 from torchrl_diffenvs.articulated import RigidBodyTree, forward_kinematics, gymnasium_asset, load_mjcf, mass_matrix_and_bias, step  # noqa: E402
-from torchrl_diffenvs.articulated.dynamics import default_params  # noqa: E402
+from torchrl_diffenvs.articulated.dynamics import default_params, dof_invweight0  # noqa: E402
 from torchrl_diffenvs.articulated.mjcf import quat_to_mat  # noqa: E402
 from torchrl_diffenvs.envs import make_env  # noqa: E402
 
@@ -53,7 +53,7 @@ def test_mass_matrix_and_bias_forces_match_mujoco(filename):
     tree = RigidBodyTree.from_model(model)
     params = {k: v.unsqueeze(0) for k, v in default_params(model).items()}
     rng = np.random.default_rng(0)
-    np.testing.assert_allclose(tree.dof_invweight0.numpy(), mm.dof_invweight0, rtol=1e-10)
+    np.testing.assert_allclose(dof_invweight0(tree, params)[0].numpy(), mm.dof_invweight0, rtol=1e-10)
     for _ in range(10):
         data.qpos[:] = mm.qpos0 + rng.normal(size=mm.nq)
         data.qvel[:] = rng.normal(size=mm.nv) * 2
@@ -88,6 +88,47 @@ def test_integrators_and_joint_limits_match_mj_step(filename, scale):
         np.testing.assert_allclose(qpos[0].numpy(), data.qpos, atol=1e-6, rtol=1e-6)
         np.testing.assert_allclose(qvel[0].numpy(), data.qvel, atol=1e-6, rtol=1e-6)
     assert limit_steps >= 10  # the soft joint limit was exercised
+
+
+def test_params_act_as_an_edited_model_file(tmp_path):
+    """Masses and damping given as params equal a model file edited to them, joint limits included
+    (MuJoCo's limit regulariser scales with diag(M^-1) at qpos0, which the masses change)."""
+    import xml.etree.ElementTree as ET
+
+    tree_xml = ET.parse(gymnasium_asset("inverted_double_pendulum.xml"))
+    for body, mass in (("cart", 6.0), ("pole", 2.0), ("pole2", 7.0)):
+        tree_xml.find(f".//body[@name='{body}']/geom").set("mass", str(mass))
+    for joint, damping in (("slider", 0.8), ("hinge", 0.3), ("hinge2", 0.02)):
+        tree_xml.find(f".//joint[@name='{joint}']").set("damping", str(damping))
+    edited = tmp_path / "edited.xml"
+    tree_xml.write(edited)
+    mm = mujoco.MjModel.from_xml_path(str(edited))
+    data = mujoco.MjData(mm)
+
+    model = load_mjcf(gymnasium_asset("inverted_double_pendulum.xml"))  # the unedited file
+    tree = RigidBodyTree.from_model(model)
+    params = {k: v.unsqueeze(0) for k, v in default_params(model).items()}
+    rot = np.stack([quat_to_mat(q) for q in mm.body_iquat])
+    params["body_mass"] = torch.tensor(mm.body_mass[None])
+    params["body_inertia"] = torch.tensor((rot * mm.body_inertia[:, None, :]) @ rot.transpose(0, 2, 1))[None]
+    params["damping"] = torch.tensor(mm.dof_damping[None])
+    assert not np.allclose(mm.dof_invweight0, dof_invweight0(tree, {k: v.unsqueeze(0) for k, v in
+                                                                   default_params(model).items()})[0].numpy())
+    np.testing.assert_allclose(dof_invweight0(tree, params)[0].numpy(), mm.dof_invweight0, rtol=1e-10)
+    rng = np.random.default_rng(2)
+    data.qpos[:] = rng.uniform(-0.5, 0.5, size=mm.nq)
+    qpos, qvel = torch.tensor(data.qpos[None].copy()), torch.tensor(data.qvel[None].copy())
+    limit_steps = 0
+    for i in range(300):
+        # pushes held for 0.6 s drive the cart into both ends of its rail
+        ctrl = (1.0 if (i // 60) % 2 == 0 else -1.0) + rng.uniform(-0.3, 0.3, size=mm.nu)
+        data.ctrl[:] = ctrl
+        mujoco.mj_step(mm, data)
+        limit_steps += data.nefc > 0
+        qpos, qvel, *_ = step(tree, qpos, qvel, torch.tensor(ctrl[None]), params, model.timestep, model.integrator)
+        np.testing.assert_allclose(qpos[0].numpy(), data.qpos, atol=1e-6, rtol=1e-6)
+        np.testing.assert_allclose(qvel[0].numpy(), data.qvel, atol=1e-6, rtol=1e-6)
+    assert limit_steps >= 10
 
 
 def _gym_state(task, data):

@@ -101,7 +101,7 @@ class RigidBodyTree:
     limit_margin: torch.Tensor
     limit_solref: torch.Tensor  # [nlimit, 2]
     limit_solimp: torch.Tensor  # [nlimit, 5]
-    dof_invweight0: torch.Tensor  # [nv] MuJoCo's diag(M^-1) at qpos0 (the regulariser's scale)
+    kin0: Kinematics | None  # kinematics at qpos0 (for MuJoCo's dof_invweight0, see dof_invweight0())
     # motors
     actuator_dof: torch.Tensor  # [nu] long
     actuator_gear: torch.Tensor
@@ -187,7 +187,7 @@ class RigidBodyTree:
             limit_solref=t([[max(model.limit_solref[j, 0], 2 * model.timestep), model.limit_solref[j, 1]]
                             for j, _ in rows]).reshape(len(rows), 2),
             limit_solimp=t([model.limit_solimp[j] for j, _ in rows]).reshape(len(rows), 5),
-            dof_invweight0=t(np.zeros(nv)),
+            kin0=None,
             actuator_dof=idx(model.actuator_joint), actuator_gear=t(model.actuator_gear),
             ctrl_low=t(np.where(model.ctrl_limited, model.ctrl_range[:, 0], -np.inf)),
             ctrl_high=t(np.where(model.ctrl_limited, model.ctrl_range[:, 1], np.inf)),
@@ -199,12 +199,7 @@ class RigidBodyTree:
             contact_plane_normal=t([p[5] for p in points]).reshape(-1, 3),
             contact_pairs=pairs, contact_pair_friction=np.array(pair_friction),
         )
-        if nv:
-            # MuJoCo's dof_invweight0: diag(M^-1) at qpos0 with the file's masses (float64)
-            params = {k: v.unsqueeze(0).to(dtype=dtype, device=device) for k, v in default_params(model).items()}
-            kin = forward_kinematics(tree, tree.qpos0.unsqueeze(0))
-            mass, _ = mass_matrix_and_bias(tree, kin, torch.zeros(1, nv, dtype=dtype, device=device), params)
-            tree.dof_invweight0 = torch.linalg.inv(mass)[0].diagonal()
+        tree.kin0 = forward_kinematics(tree, tree.qpos0.unsqueeze(0))
         return tree
 
 
@@ -385,12 +380,25 @@ def _impedance(solimp: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
     return torch.where(flat, (dmin + dmax) / 2, imp)
 
 
-def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv) -> torch.Tensor:
+def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
+    """MuJoCo's ``dof_invweight0 [N, nv]``: ``diag(M^-1)`` at ``qpos0`` for these params' masses.
+
+    MuJoCo computes it when it compiles the model (``mj_setConst``), so a model file with other
+    masses gets other values; here it follows the per-env params, as a model compiled with them.
+    """
+    kin0 = tree.kin0
+    jac0 = body_jacobians(tree, kin0)
+    inertia = _spatial_inertia(tree, kin0, params)
+    mass = (jac0.transpose(-1, -2) @ inertia @ jac0).sum(1) + torch.diag_embed(params["armature"])
+    return torch.linalg.inv(mass).diagonal(dim1=-2, dim2=-1)
+
+
+def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight0) -> torch.Tensor:
     """``[N, nv]`` joint-limit forces: MuJoCo's soft constraint, one row per active limit side.
 
     For row ``i`` with distance ``r`` (negative when violated), velocity ``v = J qvel`` and
     unconstrained acceleration ``a0 = J qacc_smooth``: ``aref = -B v - K d(r) (r - margin)``,
-    ``R = (1 - d) / d * invweight0`` and ``f = max(0, -(a0 - aref) / (A + R))`` with
+    ``R = (1 - d) / d * invweight0`` (:func:`dof_invweight0`) and ``f = max(0, -(a0 - aref) / (A + R))`` with
     ``A = J M^-1 J^T``, applied as ``J^T f``. Rows are solved independently (MuJoCo solves active
     rows jointly; the two agree whenever at most one limit of the model is active).
     """
@@ -405,7 +413,7 @@ def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv) -> torch.
     stiffness = 1 / (dmax * dmax * timeconst * timeconst * dampratio * dampratio).clamp(min=_MINVAL)
     damping = 2 / (dmax * timeconst).clamp(min=_MINVAL)
     aref = -damping * sign * qvel[:, dof] - stiffness * imp * (dist - tree.limit_margin)
-    regulariser = torch.clamp((1 - imp) * tree.dof_invweight0[dof] / imp, min=_MINVAL)
+    regulariser = torch.clamp((1 - imp) * invweight0[:, dof] / imp, min=_MINVAL)
     diag = mass_inv.diagonal(dim1=-2, dim2=-1)[:, dof]
     force = torch.clamp(-(sign * smooth_acc[:, dof] - aref) / (diag + regulariser), min=0.0)
     force = torch.where(active, force, torch.zeros_like(force))
@@ -430,12 +438,14 @@ def _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias, with_damping=F
     return (force, damping) if with_damping else force
 
 
-def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, implicit_damping_dt=None):
+def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, implicit_damping_dt=None,
+                  invweight0=None):
     """``qacc [N, nv]`` of MuJoCo's forward dynamics (smooth forces, contact, joint limits).
 
     ``implicit_damping_dt = h`` gives the acceleration of MuJoCo's Euler integrator, which solves
     with ``M + h D``: joint damping treated implicitly (MuJoCo), and here the contact's velocity
     damping too (explicit contact friction and damping at MuJoCo's 0.01 s steps would be unstable).
+    ``invweight0``: :func:`dof_invweight0` of ``params`` when the caller has it (computed if not).
     """
     kin = forward_kinematics(tree, qpos)
     jac = body_jacobians(tree, kin)
@@ -447,7 +457,8 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     if tree.limit_dof.numel():
         mass_inv = torch.linalg.inv(mass)
         smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
-        force = force + limit_force(tree, qpos, qvel, smooth_acc, mass_inv)
+        invweight0 = dof_invweight0(tree, params) if invweight0 is None else invweight0
+        force = force + limit_force(tree, qpos, qvel, smooth_acc, mass_inv, invweight0)
     if implicit:
         mass = mass + implicit_damping_dt * damping
     return torch.linalg.solve(mass, force)
@@ -470,21 +481,23 @@ def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integ
     quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
     observations and rewards read some of them.
     """
+    # the params are the same at every stage: the limits' regulariser scale is computed once
+    w0 = dof_invweight0(tree, params) if tree.limit_dof.numel() else None
     if integrator == "euler":
-        qacc = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt)
+        qacc = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt, invweight0=w0)
         new_qvel = qvel + dt * qacc
         return StepResult(qpos + dt * new_qvel, new_qvel, qpos, qvel)
     if integrator != "rk4":
         raise ValueError(f"unknown integrator {integrator!r}; valid: 'euler', 'rk4'")
     # MuJoCo's mj_RungeKutta with the classic tableau
-    acc1 = accelerations(tree, qpos, qvel, ctrl, params)
+    acc1 = accelerations(tree, qpos, qvel, ctrl, params, invweight0=w0)
     vel2 = qvel + 0.5 * dt * acc1
-    acc2 = accelerations(tree, qpos + 0.5 * dt * qvel, vel2, ctrl, params)
+    acc2 = accelerations(tree, qpos + 0.5 * dt * qvel, vel2, ctrl, params, invweight0=w0)
     vel3 = qvel + 0.5 * dt * acc2
-    acc3 = accelerations(tree, qpos + 0.5 * dt * vel2, vel3, ctrl, params)
+    acc3 = accelerations(tree, qpos + 0.5 * dt * vel2, vel3, ctrl, params, invweight0=w0)
     vel4 = qvel + dt * acc3
     pos4 = qpos + dt * vel3
-    acc4 = accelerations(tree, pos4, vel4, ctrl, params)
+    acc4 = accelerations(tree, pos4, vel4, ctrl, params, invweight0=w0)
     new_qpos = qpos + dt / 6 * (qvel + 2 * vel2 + 2 * vel3 + vel4)
     new_qvel = qvel + dt / 6 * (acc1 + 2 * acc2 + 2 * acc3 + acc4)
     return StepResult(new_qpos, new_qvel, pos4, vel4)
@@ -497,7 +510,8 @@ def constraint_force(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params) -> t
     mass, bias = mass_matrix_and_bias(tree, kin, qvel, params, jac)
     force = _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias)
     mass_inv = torch.linalg.inv(mass)
-    return limit_force(tree, qpos, qvel, (mass_inv @ force.unsqueeze(-1)).squeeze(-1), mass_inv)
+    smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
+    return limit_force(tree, qpos, qvel, smooth_acc, mass_inv, dof_invweight0(tree, params))
 
 
 def site_positions(tree: RigidBodyTree, kin: Kinematics, sites) -> torch.Tensor:
