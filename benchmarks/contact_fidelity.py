@@ -1,16 +1,14 @@
-"""The MuJoCo-model tasks against gymnasium's own MuJoCo envs: contact fidelity and speed.
+"""The MuJoCo-model tasks against gymnasium's own MuJoCo envs: contact fidelity.
 
 Fidelity (float64): the torso height after 2 s at zero action (a dropped robot coming to rest),
 and the gap after 1 s of the same random actions from the same start (no reset noise).
-``--speed``: env-steps/s of gymnasium's single env and of ours at N = 64 and 1024 (no grad),
-in one process, one torch thread. Needs ``pip install "torchrl_diffenvs[mujoco]"``.
+Speed is measured by ``benchmarks/mujoco_throughput.py``. Needs ``pip install "torchrl_diffenvs[mujoco]"``.
 
-    OMP_NUM_THREADS=1 python benchmarks/contact_fidelity.py [--speed]
+    OMP_NUM_THREADS=1 python benchmarks/contact_fidelity.py
 """
 from __future__ import annotations
 
 import argparse
-import time
 import warnings
 
 import numpy as np
@@ -61,39 +59,13 @@ def fidelity(task, seconds_rest=2.0, seconds_open_loop=1.0):
     }
 
 
-def speed(task, sizes=(64, 1024), steps=10, seconds=2.0):
-    import gymnasium as gym
-
-    genv = gym.make(task)
-    genv.reset(seed=0)
-    start, count = time.perf_counter(), 0
-    while time.perf_counter() - start < seconds:
-        _, _, terminated, truncated, _ = genv.step(genv.action_space.sample())
-        count += 1
-        if terminated or truncated:
-            genv.reset()
-    row = {"gymnasium_1env": count / (time.perf_counter() - start)}
-    for n in sizes:
-        env = make_env(task, num_envs=n, seed=0)
-        with torch.no_grad():
-            env.rollout(2, break_when_any_done=False)  # warm-up
-            start = time.perf_counter()
-            env.rollout(steps, break_when_any_done=False)
-            row[f"ours_N{n}"] = n * steps / (time.perf_counter() - start)
-    return row
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--speed", action="store_true", help="also measure env-steps/s")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore")
     for task in CONTACT_TASKS:
         print(task, {k: round(float(v), 4) for k, v in fidelity(task).items()}, flush=True)
-    if args.speed:
-        for task in CONTACT_TASKS + ["InvertedDoublePendulum-v5"]:
-            print(task, {k: f"{v / 1e3:.1f}k" for k, v in speed(task).items()}, flush=True)
 
 
 if __name__ == "__main__":

@@ -88,3 +88,13 @@ def test_time_to_solve_variants_and_fixed_levels(tmp_path):
         tts.parse_variants(["no-label"])
     with pytest.raises(SystemExit, match="must be distinct"):
         tts.parse_variants(["a=x=1", "a=y=2"])
+
+
+def test_mujoco_throughput_quick(tmp_path):
+    pytest.importorskip("mujoco")
+    payload = load("mujoco_throughput").main(["--quick", "--tasks", "Hopper-v5", "--out", str(tmp_path / "mj.json")])
+    assert [(r["task"], r["N"]) for r in payload["results"]] == [("Hopper-v5", 1), ("Hopper-v5", 4)]
+    for row in payload["results"]:
+        positive_rates(row["candidates"])
+        assert {"ours", "ours fwd+bwd", "gymnasium", "mj_step (C)", "gymnasium SyncVectorEnv"} == set(row["candidates"])
+        assert set(row["ratios_cpu"]) == {f"ours / {name}" for name in row["candidates"] if name != "ours"}

@@ -1,0 +1,146 @@
+"""The MuJoCo-model tasks: env-steps/s of ours against gymnasium and MuJoCo's C step, one process.
+
+For each task and N in {1, 64, 1024, 4096}, timed interleaved (see benchmarks/_common.py):
+
+* ``ours``: ``env.rollout(T, break_when_any_done=False)`` under ``torch.no_grad`` (random
+  actions, auto-resets included);
+* ``ours fwd+bwd``: a BPTT window, ``env.rollout(H, policy)`` with a 64-64 tanh MLP policy and
+  the backward of its summed reward (H = 8): what a gradient-based learner pays per env-step;
+* ``gymnasium``: one ``gym.make(task)`` env stepped with sampled actions (reset when done);
+* ``gymnasium SyncVectorEnv``: ``SyncVectorEnv`` of N envs (N <= 64: beyond that it is N times
+  the single env plus bookkeeping, and a batch step takes seconds);
+* ``mj_step (C)``: ``mujoco.mj_step(model, data, nstep=frame_skip * K)`` on one ``MjData``:
+  MuJoCo's C physics with no Python per step, the speed limit of one env on one core.
+
+The gymnasium and MuJoCo rows do not depend on N; they run in every row so that each ratio is
+taken within a round. Unit: env-steps/s (a batched step of N envs counts N) from CPU time.
+The target of issue 9: ``ours`` at N = 1024 above one gymnasium env.
+
+    OMP_NUM_THREADS=1 python benchmarks/mujoco_throughput.py            # several minutes
+    python benchmarks/mujoco_throughput.py --quick                      # smoke run, seconds
+
+Needs ``pip install "torchrl_diffenvs[mujoco]"`` (gymnasium's MuJoCo envs).
+"""
+from __future__ import annotations
+
+import sys
+import warnings
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
+
+TASKS = ("HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5")
+WINDOW = 8  # H of the forward+backward window
+
+
+def make_policy(env):
+    import torch
+    from tensordict.nn import TensorDictModule
+
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    net = torch.nn.Sequential(
+        torch.nn.Linear(obs_dim, 64), torch.nn.Tanh(), torch.nn.Linear(64, 64), torch.nn.Tanh(),
+        torch.nn.Linear(64, env.action_dim), torch.nn.Tanh(),
+    )
+    return TensorDictModule(net, ["observation"], ["action"])
+
+
+def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int) -> tuple[dict, dict]:
+    """``(name -> fn, name -> env-steps per call)`` for one row."""
+    import gymnasium as gym
+    import mujoco
+    import torch
+
+    from torchrl_diffenvs import make_env
+
+    env = make_env(task, num_envs=n, seed=0)
+    grad_env = make_env(task, num_envs=n, seed=1)
+    policy = make_policy(grad_env)
+
+    def ours():
+        with torch.no_grad():
+            return env.rollout(steps, break_when_any_done=False)
+
+    def ours_fwd_bwd():
+        td = grad_env.rollout(WINDOW, policy, break_when_any_done=False)
+        (-td["next", "reward"].sum()).backward()
+        policy.zero_grad(set_to_none=True)
+
+    single = gym.make(task)
+    single.reset(seed=0)
+
+    def gymnasium_single():
+        for _ in range(gym_steps):
+            _, _, terminated, truncated, _ = single.step(single.action_space.sample())
+            if terminated or truncated:
+                single.reset()
+
+    model, data = single.unwrapped.model, mujoco.MjData(single.unwrapped.model)
+    mujoco.mj_resetData(model, data)
+    frame_skip = env.frame_skip
+
+    def mj_step_c():
+        mujoco.mj_resetData(model, data)  # the same start every call: no drift into NaNs
+        mujoco.mj_step(model, data, nstep=frame_skip * gym_steps)
+
+    fns = {"ours": ours, "ours fwd+bwd": ours_fwd_bwd, "gymnasium": gymnasium_single, "mj_step (C)": mj_step_c}
+    counts = {"ours": n * steps, "ours fwd+bwd": n * WINDOW, "gymnasium": gym_steps, "mj_step (C)": gym_steps}
+    if n <= sync_max:
+        vec = gym.vector.SyncVectorEnv([lambda: gym.make(task) for _ in range(n)], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+        vec.reset(seed=0)
+        vec_steps = max(1, gym_steps // n)
+
+        def gymnasium_sync():
+            for _ in range(vec_steps):
+                vec.step(vec.action_space.sample())
+
+        fns["gymnasium SyncVectorEnv"] = gymnasium_sync
+        counts["gymnasium SyncVectorEnv"] = n * vec_steps
+    return fns, counts
+
+
+def main(argv=None) -> dict:
+    parser = C.base_parser(__doc__.splitlines()[0])
+    parser.add_argument("--tasks", nargs="+", default=list(TASKS), help=f"default: {' '.join(TASKS)}")
+    parser.add_argument("--sizes", nargs="+", type=int, default=None, help="N values (default 1 64 1024 4096)")
+    args = parser.parse_args(argv)
+    C.setup_threads(args.threads)
+    warnings.filterwarnings("ignore")
+    sizes = args.sizes or ([1, 4] if args.quick else [1, 64, 1024, 4096])
+    rounds = args.repeats or (2 if args.quick else 3)
+    gym_steps = 20 if args.quick else 2000
+    info = C.versions()
+    C.print_header("MuJoCo-model tasks: env-steps/s (CPU time)", info)
+    results, rows = [], []
+    for task in args.tasks:
+        for n in sizes:
+            steps = 2 if args.quick else max(2, min(50, 20000 // n))
+            fns, counts = candidates(task, n, steps, gym_steps, sync_max=4 if args.quick else 64)
+            times = C.interleaved(fns, rounds)
+            cands = {}
+            for name, t in times.items():
+                cands[name] = {
+                    "env_steps_per_call": counts[name],
+                    "env_steps_per_s_cpu": C.spread([counts[name] / c for c in t["cpu"]]),
+                    "env_steps_per_s_wall": C.spread([counts[name] / w for w in t["wall"]]),
+                }
+            # ratio of rates within a round = inverse ratio of per-env-step times
+            per_step = {name: [c / counts[name] for c in t["cpu"]] for name, t in times.items()}
+            ratios = {f"ours / {name}": C.median_ratio(per_step[name], per_step["ours"])
+                      for name in fns if name != "ours"}
+            results.append({"task": task, "N": n, "T": steps, "H": WINDOW, "candidates": cands, "ratios_cpu": ratios})
+            rate = lambda name: cands[name]["env_steps_per_s_cpu"]["median"] if name in cands else None  # noqa: E731
+            rows.append([task, n, C.fmt_rate(rate("ours")), C.fmt_rate(rate("ours fwd+bwd")),
+                         C.fmt_rate(rate("gymnasium")), C.fmt_rate(rate("gymnasium SyncVectorEnv")),
+                         C.fmt_rate(rate("mj_step (C)")), C.fmt_ratio(ratios["ours / gymnasium"])])
+            print(f"# {task} N={n}: " + ", ".join(f"{k} {C.fmt_rate(rate(k))}" for k in cands), flush=True)
+    table = C.print_table(["task", "N", "ours", "ours fwd+bwd", "gymnasium", "gym SyncVectorEnv", "mj_step (C)",
+                           "ours / gymnasium"], rows)
+    payload = {"benchmark": "mujoco_throughput", "info": info, "results": results, "table": table}
+    C.write_json("mujoco_throughput", payload, args.out)
+    return payload
+
+
+if __name__ == "__main__":
+    main()
