@@ -77,17 +77,23 @@ def test_integrators_and_joint_limits_match_mj_step(filename, scale):
     rng = np.random.default_rng(1)
     data.qpos[:] = mm.qpos0 + rng.uniform(-scale, scale, size=mm.nq)
     data.qvel[:] = rng.uniform(-scale, scale, size=mm.nv)
+    limit_steps = _steps_match_mj_step(mm, data, tree, params, [rng.uniform(-2, 2, size=mm.nu) for _ in range(300)])
+    assert limit_steps >= 10  # the soft joint limit was exercised
+
+
+def _steps_match_mj_step(mm, data, tree, params, controls) -> int:
+    """Steps MuJoCo and us from ``data``'s state with ``controls``; returns the steps with a limit active."""
+    model = tree.model
     qpos, qvel = torch.tensor(data.qpos[None].copy()), torch.tensor(data.qvel[None].copy())
     limit_steps = 0
-    for _ in range(300):
-        ctrl = rng.uniform(-2, 2, size=mm.nu)
+    for ctrl in controls:
         data.ctrl[:] = ctrl
         mujoco.mj_step(mm, data)
         limit_steps += data.nefc > 0
         qpos, qvel, *_ = step(tree, qpos, qvel, torch.tensor(ctrl[None]), params, model.timestep, model.integrator)
         np.testing.assert_allclose(qpos[0].numpy(), data.qpos, atol=1e-6, rtol=1e-6)
         np.testing.assert_allclose(qvel[0].numpy(), data.qvel, atol=1e-6, rtol=1e-6)
-    assert limit_steps >= 10  # the soft joint limit was exercised
+    return limit_steps
 
 
 def test_params_act_as_an_edited_model_file(tmp_path):
@@ -117,18 +123,9 @@ def test_params_act_as_an_edited_model_file(tmp_path):
     np.testing.assert_allclose(dof_invweight0(tree, params)[0].numpy(), mm.dof_invweight0, rtol=1e-10)
     rng = np.random.default_rng(2)
     data.qpos[:] = rng.uniform(-0.5, 0.5, size=mm.nq)
-    qpos, qvel = torch.tensor(data.qpos[None].copy()), torch.tensor(data.qvel[None].copy())
-    limit_steps = 0
-    for i in range(300):
-        # pushes held for 0.6 s drive the cart into both ends of its rail
-        ctrl = (1.0 if (i // 60) % 2 == 0 else -1.0) + rng.uniform(-0.3, 0.3, size=mm.nu)
-        data.ctrl[:] = ctrl
-        mujoco.mj_step(mm, data)
-        limit_steps += data.nefc > 0
-        qpos, qvel, *_ = step(tree, qpos, qvel, torch.tensor(ctrl[None]), params, model.timestep, model.integrator)
-        np.testing.assert_allclose(qpos[0].numpy(), data.qpos, atol=1e-6, rtol=1e-6)
-        np.testing.assert_allclose(qvel[0].numpy(), data.qvel, atol=1e-6, rtol=1e-6)
-    assert limit_steps >= 10
+    # pushes held for 0.6 s drive the cart into both ends of its rail
+    controls = [(1.0 if (i // 60) % 2 == 0 else -1.0) + rng.uniform(-0.3, 0.3, size=mm.nu) for i in range(300)]
+    assert _steps_match_mj_step(mm, data, tree, params, controls) >= 10
 
 
 def _gym_state(task, data):
