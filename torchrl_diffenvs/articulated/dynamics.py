@@ -473,16 +473,21 @@ class StepResult(NamedTuple):
     eval_qvel: torch.Tensor
 
 
-def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str) -> StepResult:
+def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,
+         invweight0=None) -> StepResult:
     """One physics step of MuJoCo's ``integrator`` (``"euler"`` or ``"rk4"``).
 
     Besides the new state, returns the state at which MuJoCo evaluated the forward dynamics last
     (the start state for Euler, the fourth stage for RK4): after ``mj_step`` MuJoCo's derived
     quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
-    observations and rewards read some of them.
+    observations and rewards read some of them. ``invweight0``: :func:`dof_invweight0` of
+    ``params``, if the caller has it.
     """
     # the params are the same at every stage: the limits' regulariser scale is computed once
-    w0 = dof_invweight0(tree, params) if tree.limit_dof.numel() else None
+    # (callers stepping several times with the same params pass it in: see MuJoCoModelEnv.simulate)
+    w0 = invweight0
+    if w0 is None and tree.limit_dof.numel():
+        w0 = dof_invweight0(tree, params)
     if integrator == "euler":
         qacc = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt, invweight0=w0)
         new_qvel = qvel + dt * qacc

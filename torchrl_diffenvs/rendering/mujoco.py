@@ -36,9 +36,9 @@ _AXES = {"x": 0, "y": 1, "z": 2}
 def _tree(model_file: str):
     # float64 CPU copy of the physics' tree, built on the first picture only
     from ..articulated import RigidBodyTree
-    from ..envs.mujoco.base import _load
+    from ..envs.mujoco.base import load_model
 
-    model = _load(model_file)
+    model = load_model(model_file)
     return model, RigidBodyTree.from_model(model, dtype=torch.float64, device="cpu")
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from ...articulated import RigidBodyTree, load_mjcf, step
-from ...articulated.dynamics import StepResult, default_params
+from ...articulated.dynamics import StepResult, default_params, dof_invweight0
 from ...articulated.mjcf import ArticulatedModel, gymnasium_asset
 from ..gym_classic import GymnasiumClassicEnv
 
@@ -29,7 +29,8 @@ __all__ = ["MuJoCoModelEnv"]
 
 
 @functools.lru_cache(maxsize=None)
-def _load(model_file: str) -> ArticulatedModel:
+def load_model(model_file: str) -> ArticulatedModel:
+    """The parsed model of a file path or of a model file shipped with gymnasium (cached)."""
     path = Path(model_file)
     return load_mjcf(path if path.is_file() else gymnasium_asset(model_file))
 
@@ -58,7 +59,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
     default_max_episode_steps = 1000
 
     def __init__(self, num_envs: int = 1, **kwargs):
-        model = _load(self.model_file)
+        model = load_model(self.model_file)
         self.model = model
         self.action_dim = model.nu
         low, high = model.ctrl_range[:, 0], model.ctrl_range[:, 1]
@@ -93,7 +94,10 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         ``qpos``/``qvel`` and the state MuJoCo's derived quantities belong to after ``mj_step``.
         """
         qpos, qvel = state["qpos"], state["qvel"]
+        # the joint limits' regulariser depends on the params only: once per env step, not per physics step
+        invweight0 = dof_invweight0(self.tree, params) if self.tree.limit_dof.numel() else None
         for _ in range(self.frame_skip):
-            result = step(self.tree, qpos, qvel, action, params, self.model.timestep, self.model.integrator)
+            result = step(self.tree, qpos, qvel, action, params, self.model.timestep, self.model.integrator,
+                          invweight0)
             qpos, qvel = result.qpos, result.qvel
         return result
