@@ -55,7 +55,6 @@ log = logging.getLogger("train")  # Hydra sends it to the console and <run dir>/
 def main(cfg: DictConfig) -> float:
     overrides = list(HydraConfig.get().overrides.task)
     try:
-        validate_config(cfg)
         if cfg.mode == "train" and cfg.get("resume"):
             # continue the run as it was configured: its own overrides, then today's (which win)
             overrides = merge_overrides(load_checkpoint(cfg.resume).get("overrides", []), overrides)

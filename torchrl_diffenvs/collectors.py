@@ -23,8 +23,9 @@ class DiffWindowCollector:
     Each window continues where the previous one stopped: the env TensorDict is carried over,
     *detached* at the window start (the gradient of a window never reaches into the previous
     one), and episodes are not reset at window boundaries. Envs whose episode ends inside a window
-    are reset there by TorchRL's auto-reset (``env.step_and_maybe_reset``), which cuts the graph
-    for those envs only.
+    are reset inside ``env.rollout(..., break_when_any_done=False)`` (the rollout's auto-reset:
+    ``maybe_reset`` between steps, or the lean loop's equivalent merge), which cuts the graph for
+    those envs only; an env done at the window's last step is reset when the next window starts.
 
     A window has the layout of ``env.rollout(H, policy, break_when_any_done=False)``: root
     entries at step ``t`` (``"observation"``, ``("state", ...)``, ``"episode_step"``, the policy
