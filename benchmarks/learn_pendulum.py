@@ -41,12 +41,11 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_diffenvs import make_env
-from torchrl_diffenvs.collectors import DiffWindowCollector
+from torchrl_diffenvs.evaluation import evaluate
+from torchrl_diffenvs.learners import BPTTConfig, BPTTLearner, SHACConfig, SHACLearner
 from torchrl_diffenvs.modules import ObservationNormalizer, make_actor, make_critic
-from torchrl_diffenvs.objectives import BPTTLoss, SHACLoss
-from torchrl_diffenvs.trainers import GradientTrainer, evaluate_policy
 
-# name -> settings; everything not listed is GradientTrainer's / the builders' default
+# name -> settings; everything not listed is the learner's (BPTTConfig / SHACConfig) or the builders' default
 CONFIGS = {
     # SHAC tuned for this CPU: 16-step windows (0.8 s of pendulum time), light critic fitting
     "shac": dict(loss="shac", horizon=16, actor_lr=1e-2, critic_passes=2, critic_minibatches=2),
@@ -101,23 +100,22 @@ def run(config: dict, seed: int, max_iterations: int, max_seconds: float, eval_e
     eval_env = make_env("pendulum", num_envs=256, seed=10_000, max_episode_steps=episode_steps)
     normalizer = ObservationNormalizer(env.observation_dim)
     actor = make_actor(env, normalizer=normalizer)
+    settings = {k: v for k, v in config.items() if k != "loss"}
+    if settings["horizon"] == "episode":
+        settings["horizon"] = train_episode_steps
+    budget = max_iterations * num_envs * settings["horizon"]
     if config["loss"] == "shac":
-        loss = SHACLoss(actor, make_critic(env, normalizer=normalizer))
+        learner = SHACLearner(env, actor, make_critic(env, normalizer=normalizer), SHACConfig(**settings), budget,
+                              normalizer=normalizer)
     else:
-        loss = BPTTLoss(actor)
-    trainer_kwargs = {k: v for k, v in config.items() if k not in ("loss", "horizon")}
-    horizon = train_episode_steps if config["horizon"] == "episode" else config["horizon"]
-    trainer = GradientTrainer(
-        DiffWindowCollector(env, actor, horizon=horizon), loss,
-        total_iterations=max_iterations, normalizer=normalizer, **trainer_kwargs,
-    )
+        learner = BPTTLearner(env, actor, BPTTConfig(**settings), budget, normalizer=normalizer)
     train_time, points = 0.0, []
     reached: dict[str, dict | None] = {f"reward>={t}": None for t in reward_thresholds}
     reached[f"tail>={TAIL_THRESHOLD}"] = None
 
-    def evaluate(iteration):
-        result = evaluate_policy(eval_env, actor)
-        points.append({"iteration": iteration, "train_seconds": train_time, "env_steps": trainer.collector.frames,
+    def record_evaluation(iteration):
+        result = evaluate(eval_env, actor)
+        points.append({"iteration": iteration, "train_seconds": train_time, "env_steps": learner.collector.frames,
                        **result})
         for t in reward_thresholds:
             if reached[f"reward>={t}"] is None and result["reward_mean"] >= t:
@@ -125,20 +123,20 @@ def run(config: dict, seed: int, max_iterations: int, max_seconds: float, eval_e
         if reached[f"tail>={TAIL_THRESHOLD}"] is None and result["tail_reward_mean"] >= TAIL_THRESHOLD:
             reached[f"tail>={TAIL_THRESHOLD}"] = {"seconds": train_time, "iteration": iteration}
 
-    evaluate(0)
+    record_evaluation(0)
     for iteration in range(1, max_iterations + 1):
         start = time.perf_counter()
-        trainer.step()
+        learner.train_iteration()
         train_time += time.perf_counter() - start
         if iteration % eval_every == 0:
-            evaluate(iteration)
+            record_evaluation(iteration)
             if all(v is not None for v in reached.values()) or train_time > max_seconds:
                 break
     return {
-        "seed": seed, "reached": reached, "iterations": trainer.iteration, "train_seconds": train_time,
-        "seconds_per_iteration": train_time / max(1, trainer.iteration),
+        "seed": seed, "reached": reached, "iterations": learner.iteration, "train_seconds": train_time,
+        "seconds_per_iteration": train_time / max(1, learner.iteration),
         "final_eval": points[-1], "best_reward_mean": max(p["reward_mean"] for p in points),
-        "skipped_steps": trainer.actor_guard.skipped, "points": points,
+        "skipped_steps": learner.actor_guard.skipped, "points": points,
     }
 
 
@@ -166,8 +164,8 @@ def main() -> None:
 
     ref_env = make_env("pendulum", num_envs=256, seed=10_000, max_episode_steps=args.episode_steps)
     references = {
-        "uniform_random": evaluate_policy(ref_env, UniformRandomPolicy(ref_env)),
-        "energy_pumping_controller": evaluate_policy(ref_env, EnergyPumpingController()),
+        "uniform_random": evaluate(ref_env, UniformRandomPolicy(ref_env)),
+        "energy_pumping_controller": evaluate(ref_env, EnergyPumpingController()),
     }
     print(f"reference policies, {args.episode_steps}-step episodes (mean per-step reward, last-20-step reward):")
     for name, r in references.items():

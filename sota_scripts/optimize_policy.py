@@ -26,10 +26,9 @@ from tqdm.auto import tqdm
 
 from demo_utils import plot_curve, start_demo
 from torchrl_diffenvs import make_env
-from torchrl_diffenvs.collectors import DiffWindowCollector
+from torchrl_diffenvs.evaluation import evaluate
+from torchrl_diffenvs.learners import BPTTConfig, BPTTLearner, SHACConfig, SHACLearner
 from torchrl_diffenvs.modules import ObservationNormalizer, make_actor, make_critic
-from torchrl_diffenvs.objectives import BPTTLoss, SHACLoss
-from torchrl_diffenvs.trainers import GradientTrainer, evaluate_policy
 
 DEFAULTS = {
     "env": "pendulum",
@@ -61,31 +60,31 @@ def main(argv: list[str] | None = None) -> dict:
     normalizer = ObservationNormalizer(env.observation_dim, dtype=env.float_dtype)
     distribution = "deterministic" if args["policy"] == "deterministic" else "tanh_normal"
     actor = make_actor(env, normalizer=normalizer, distribution=distribution)
+    budget = args["iterations"] * args["num_envs"] * args["horizon"]
     if args["loss"] == "shac":
-        loss = SHACLoss(actor, make_critic(env, normalizer=normalizer))
+        settings = SHACConfig(horizon=args["horizon"], actor_lr=args["lr"], critic_lr=args["critic_lr"],
+                              critic_passes=4, critic_minibatches=4)
+        learner = SHACLearner(env, actor, make_critic(env, normalizer=normalizer), settings, budget,
+                              normalizer=normalizer)
     else:
-        loss = BPTTLoss(actor)
-    collector = DiffWindowCollector(env, actor, horizon=args["horizon"])
-    trainer = GradientTrainer(
-        collector, loss, actor_lr=args["lr"], critic_lr=args["critic_lr"], total_iterations=args["iterations"],
-        critic_passes=4, normalizer=normalizer,
-    )
+        learner = BPTTLearner(env, actor, BPTTConfig(horizon=args["horizon"], actor_lr=args["lr"]), budget,
+                              normalizer=normalizer)
 
     train_x, train_y, eval_x, eval_y = [], [], [], []
 
-    def evaluate(iteration):
+    def record_evaluation(iteration):
         eval_x.append(iteration)
-        eval_y.append(evaluate_policy(eval_env, actor)["reward_mean"])
+        eval_y.append(evaluate(eval_env, actor)["reward_mean"])
 
-    evaluate(0)
+    record_evaluation(0)
     bar = tqdm(range(args["iterations"]), desc=f"optimize_policy[{args['env']}, {args['loss']}]",
                disable=not args["progress"])
     for i in bar:
-        metrics = trainer.step()
+        metrics = learner.train_iteration()
         train_x.append(i + 1)
-        train_y.append(metrics["reward_mean"])
+        train_y.append(metrics["reward"])
         if (i + 1) % args["eval_every"] == 0 or i + 1 == args["iterations"]:
-            evaluate(i + 1)
+            record_evaluation(i + 1)
         bar.set_postfix(train=f"{train_y[-1]:.3f}", eval=f"{eval_y[-1]:.3f}")
 
     plot_curve(
@@ -105,7 +104,7 @@ def main(argv: list[str] | None = None) -> dict:
     summary = {
         "env": args["env"], "loss": args["loss"], "iterations": args["iterations"],
         "initial_eval_reward": eval_y[0], "final_eval_reward": eval_y[-1],
-        "skipped_steps": trainer.actor_guard.skipped,
+        "skipped_steps": learner.actor_guard.skipped,
     }
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary))

@@ -22,10 +22,8 @@ from tqdm.auto import tqdm
 
 from demo_utils import plot_curve, start_demo
 from torchrl_diffenvs import make_env
-from torchrl_diffenvs.collectors import DiffWindowCollector
+from torchrl_diffenvs.learners import BPTTConfig, BPTTLearner
 from torchrl_diffenvs.modules import OpenLoopActor
-from torchrl_diffenvs.objectives import BPTTLoss
-from torchrl_diffenvs.trainers import GradientTrainer
 
 DEFAULTS = {
     "env": "pendulum",
@@ -47,16 +45,14 @@ def main(argv: list[str] | None = None) -> dict:
     start = env.reset()  # the one fixed start state
     actor = OpenLoopActor.from_env(env)
     # every window is the whole episode from `start`
-    collector = DiffWindowCollector(env, actor, horizon=args["steps"], start_state=start)
-    trainer = GradientTrainer(
-        collector, BPTTLoss(actor), actor_lr=args["lr"], betas=(0.9, 0.999), lr_schedule="constant",
-        max_grad_norm=None, total_iterations=args["iterations"],
-    )
+    settings = BPTTConfig(horizon=args["steps"], actor_lr=args["lr"], betas=(0.9, 0.999), lr_schedule="constant",
+                          max_grad_norm=None)
+    learner = BPTTLearner(env, actor, settings, total_env_steps=args["iterations"] * args["steps"], start_state=start)
     returns = []
     bar = tqdm(range(args["iterations"]), desc=f"optimize_trajectory[{args['env']}]", disable=not args["progress"])
     for _ in bar:
-        metrics = trainer.step()
-        returns.append(metrics["reward_mean"] * args["steps"])  # this iteration's episode return
+        metrics = learner.train_iteration()
+        returns.append(metrics["reward"] * args["steps"])  # this iteration's episode return
         bar.set_postfix(ret=f"{returns[-1]:.2f}")
 
     # the final trajectory (after the last update), without gradients
@@ -74,7 +70,7 @@ def main(argv: list[str] | None = None) -> dict:
         save_gif(rollout_frames(env, final, env_index=0, size=256), out_dir / "trajectory.gif", fps=args["fps"])
     summary = {
         "env": args["env"], "iterations": args["iterations"], "initial_return": returns[0] if returns else None,
-        "final_return": final_return, "skipped_steps": trainer.actor_guard.skipped,
+        "final_return": final_return, "skipped_steps": learner.actor_guard.skipped,
     }
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary))

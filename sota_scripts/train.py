@@ -32,20 +32,18 @@ from torchrl_diffenvs.training import (
     ConfigError,
     RunLogger,
     capture_rng_state,
-    evaluate,
-    evaluate_random,
     load_checkpoint,
     make_env_from_config,
-    make_learner,
     plot_learning_curve,
-    record_gif,
     restore_rng_state,
     save_checkpoint,
     validate_config,
 )
+from torchrl_diffenvs.evaluation import evaluate, evaluate_random, record_gif
+from torchrl_diffenvs.learners import make_learner
+from torchrl_diffenvs.modules import actor_from_config
 from torchrl_diffenvs.training.checkpoint import atomic_copy
 from torchrl_diffenvs.training.config import check_resume_compatible, merge_overrides
-from torchrl_diffenvs.training.learners import make_policy_from_config
 
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
 log = logging.getLogger("train")  # Hydra sends it to the console and <run dir>/train.log
@@ -85,7 +83,7 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
     env = make_env_from_config(cfg, cfg.env.num_envs, seed=cfg.seed)
     eval_env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed)
     eval_steps = cfg.eval.max_steps or eval_env.max_episode_steps
-    learner = make_learner(cfg, env)
+    learner = make_learner(cfg.loss, env, cfg.train.total_env_steps)
     total = int(cfg.train.total_env_steps)
     # the counters a checkpoint carries, so that a resumed run continues its schedules
     progress = {"iteration": 0, "env_steps": 0, "wall_time_s": 0.0, "next_eval": 0,
@@ -229,7 +227,7 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path) -> dict:
         cfg.env, cfg.loss, cfg.dtype = trained.env, trained.loss, trained.dtype
     env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed)
     steps = cfg.eval.max_steps or env.max_episode_steps
-    policy, _ = make_policy_from_config(cfg.loss, env, return_log_prob=cfg.loss.name == "ppo")
+    policy, _ = actor_from_config(cfg.loss, env, return_log_prob=cfg.loss.name == "ppo")
     policy.load_state_dict(ckpt["policy"])
     scores = evaluate(env, policy, steps, cfg.eval.seed)
     result = {"env": cfg.env.name, "loss": cfg.loss.name, "checkpoint": str(cfg.checkpoint),

@@ -15,10 +15,9 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_diffenvs import make_env
-from torchrl_diffenvs.collectors import DiffWindowCollector
+from torchrl_diffenvs.evaluation import evaluate
+from torchrl_diffenvs.learners import BPTTConfig, BPTTLearner, SHACConfig, SHACLearner
 from torchrl_diffenvs.modules import ObservationNormalizer, OpenLoopActor, make_actor, make_critic
-from torchrl_diffenvs.objectives import BPTTLoss, SHACLoss
-from torchrl_diffenvs.trainers import GradientTrainer, evaluate_policy
 
 
 class UniformRandomPolicy(TensorDictModuleBase):
@@ -39,7 +38,7 @@ def eval_env():
 
 @pytest.fixture(scope="module")
 def random_policy_reward(eval_env):
-    return evaluate_policy(eval_env, UniformRandomPolicy(eval_env))["reward_mean"]
+    return evaluate(eval_env, UniformRandomPolicy(eval_env))["reward_mean"]
 
 
 def test_trajectory_optimisation_swings_the_pendulum_up():
@@ -50,11 +49,9 @@ def test_trajectory_optimisation_swings_the_pendulum_up():
     start["state", "th"] = torch.tensor([math.pi])  # hanging down, at rest: reward ~0
     start["state", "thd"] = torch.tensor([0.0])
     actor = OpenLoopActor.from_env(env, generator=torch.Generator().manual_seed(0))
-    collector = DiffWindowCollector(env, actor, horizon=100, start_state=start)
-    trainer = GradientTrainer(
-        collector, BPTTLoss(actor), actor_lr=0.1, betas=(0.9, 0.999), lr_schedule="constant", max_grad_norm=None
-    )
-    returns = [trainer.step()["reward_mean"] * 100 for _ in range(25)]
+    settings = BPTTConfig(horizon=100, actor_lr=0.1, betas=(0.9, 0.999), lr_schedule="constant", max_grad_norm=None)
+    learner = BPTTLearner(env, actor, settings, total_env_steps=2500, start_state=start)
+    returns = [learner.train_iteration()["reward"] * 100 for _ in range(25)]
     assert returns[0] < 1.0
     assert max(returns[-5:]) > 15.0, returns  # the pendulum gets well above the horizontal
 
@@ -65,13 +62,12 @@ def test_bptt_learns_to_swing_up(eval_env, random_policy_reward):
     env = make_env("pendulum", num_envs=64, seed=0)
     normalizer = ObservationNormalizer(env.observation_dim)
     actor = make_actor(env, distribution="deterministic", normalizer=normalizer)
-    trainer = GradientTrainer(
-        DiffWindowCollector(env, actor, horizon=16), BPTTLoss(actor), actor_lr=1e-2, total_iterations=1000,
-        normalizer=normalizer,
-    )
-    before = evaluate_policy(eval_env, actor)["reward_mean"]
-    trainer.train(160, progress=False)
-    after = evaluate_policy(eval_env, actor)["reward_mean"]
+    learner = BPTTLearner(env, actor, BPTTConfig(horizon=16, actor_lr=1e-2), total_env_steps=1000 * 64 * 16,
+                          normalizer=normalizer)
+    before = evaluate(eval_env, actor)["reward_mean"]
+    for _ in range(160):
+        learner.train_iteration()
+    after = evaluate(eval_env, actor)["reward_mean"]
     assert random_policy_reward < 0.5 and before < 0.5
     assert after > 0.6, (random_policy_reward, before, after)
 
@@ -82,14 +78,13 @@ def test_shac_learns_to_swing_up(eval_env, random_policy_reward):
     env = make_env("pendulum", num_envs=64, seed=0)
     normalizer = ObservationNormalizer(env.observation_dim)
     actor = make_actor(env, normalizer=normalizer)
-    loss = SHACLoss(actor, make_critic(env, normalizer=normalizer))
-    trainer = GradientTrainer(
-        DiffWindowCollector(env, actor, horizon=16), loss, actor_lr=1e-2, total_iterations=1000,
-        critic_passes=2, critic_minibatches=2, normalizer=normalizer,
-    )
-    before = evaluate_policy(eval_env, actor)["reward_mean"]
-    trainer.train(140, progress=False)
-    after = evaluate_policy(eval_env, actor)["reward_mean"]
+    settings = SHACConfig(horizon=16, actor_lr=1e-2, critic_passes=2, critic_minibatches=2)
+    learner = SHACLearner(env, actor, make_critic(env, normalizer=normalizer), settings,
+                          total_env_steps=1000 * 64 * 16, normalizer=normalizer)
+    before = evaluate(eval_env, actor)["reward_mean"]
+    for _ in range(140):
+        learner.train_iteration()
+    after = evaluate(eval_env, actor)["reward_mean"]
     assert random_policy_reward < 0.5 and before < 0.5
     assert after > 0.6, (random_policy_reward, before, after)
 

@@ -57,18 +57,15 @@ def test_bptt_loss_hand_computed():
     # env 0: one sub-trajectory, 1 + .5*2 + .25*3 = 2.75
     # env 1: done after step 1 -> (4 + .5*5) + 6 = 12.5 (the discount restarts with the episode)
     window = hand_window([[1, 2, 3], [4, 5, 6]], [[F, F, F], [F, T, F]])
-    window["next", "episode_reward"] = torch.tensor([[1.0, 3, 6], [4, 9, 6]]).unsqueeze(-1)
     out = BPTTLoss(dummy_actor(), gamma=0.5)(window)
     assert out["loss_actor"].item() == pytest.approx(-(2.75 + 12.5) / 6)
     assert out["reward_mean"].item() == pytest.approx(3.5)
-    assert out["episode_reward"].item() == pytest.approx(9.0)  # the one finished episode
 
 
 def test_bptt_loss_undiscounted_default_is_mean_reward():
     rewards = torch.rand(3, 7).tolist()
     out = BPTTLoss(dummy_actor())(hand_window(rewards, [[F] * 7] * 3))
     assert out["loss_actor"].item() == pytest.approx(-torch.tensor(rewards).mean().item())
-    assert "episode_reward" not in out.keys()
 
 
 def shac_hand_window():
@@ -103,7 +100,8 @@ def test_shac_critic_targets_and_loss_hand_computed():
     expected = torch.tensor([[6.375, 11.5, 18.0], [21.5, 30.0, 6.0]], dtype=torch.float64)
     torch.testing.assert_close(window["value_target"].squeeze(-1), expected)
     values = torch.tensor([[0, 10, 20], [1, 40, 2]], dtype=torch.float64)
-    assert out["loss_critic"].item() == pytest.approx(((values - expected) ** 2).mean().item())
+    assert set(out.keys()) == {"loss_actor", "reward_mean", "value_mean"}  # only what a learner uses
+    assert loss.critic_loss(window)["loss_critic"].item() == pytest.approx(((values - expected) ** 2).mean().item())
     # critic_loss on a flattened minibatch agrees
     flat = window.reshape(-1)
     assert loss.critic_loss(flat[[0, 4]])["loss_critic"].item() == pytest.approx((6.375**2 + 10**2) / 2)

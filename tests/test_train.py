@@ -20,10 +20,10 @@ from hydra.errors import MissingConfigException
 
 from _env_helpers import classic_envs
 from torchrl_diffenvs import list_envs
+from torchrl_diffenvs.evaluation import episode_returns
 from torchrl_diffenvs.training import (
     CheckpointError,
     ConfigError,
-    episode_returns,
     load_checkpoint,
     save_checkpoint,
 )
@@ -277,7 +277,7 @@ def test_resumed_run_continues_exactly_where_the_stopped_run_was(loss, tmp_path)
 
 
 def test_ctrl_c_keeps_the_last_checkpoint_and_closes_the_run(tmp_path, monkeypatch, caplog):
-    from torchrl_diffenvs.training.learners import BPTTLearner
+    from torchrl_diffenvs.learners import BPTTLearner
 
     calls = {"n": 0}
     original = BPTTLearner.train_iteration

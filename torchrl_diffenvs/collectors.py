@@ -1,4 +1,5 @@
-"""A collector of gradient-carrying rollout windows for BPTT and SHAC.
+"""A collector of gradient-carrying rollout windows for BPTT and SHAC, and the tracker of
+finished-episode returns that every learner reports.
 
 TorchRL's own collectors run under ``torch.no_grad`` (they feed replay buffers); the
 gradient-based learners need the opposite: rollouts whose rewards and observations are
@@ -6,7 +7,6 @@ differentiable w.r.t. the policy parameters. :class:`DiffWindowCollector` owns t
 """
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Iterator
 
 import torch
@@ -14,7 +14,44 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-__all__ = ["DiffWindowCollector"]
+__all__ = ["DiffWindowCollector", "EpisodeReturnTracker"]
+
+
+class EpisodeReturnTracker:
+    """Undiscounted returns of the episodes that finish inside each batch ``[N, T]``.
+
+    Keeps each env's running sum across batches (episodes span iterations); its state is saved
+    in checkpoints so that a resumed run reports the same returns.
+    """
+
+    def __init__(self, num_envs: int, device: torch.device | str = "cpu"):
+        self.running = torch.zeros(num_envs, dtype=torch.float64, device=device)
+
+    def update(self, batch: TensorDictBase) -> tuple[list[float], torch.Tensor]:
+        """Adds a ``[N, T]`` batch (``("next", "reward")``, ``("next", "done")``).
+
+        Returns the returns of the episodes that ended in it and the running return at every step
+        ``[N, T]`` (float64; at a done step, the finished episode's return).
+        """
+        reward = batch.get(("next", "reward")).detach().reshape(batch.shape).to(torch.float64)
+        done = batch.get(("next", "done")).reshape(batch.shape)
+        running = self.running
+        per_step = torch.empty_like(reward)
+        finished: list[float] = []
+        for t in range(reward.shape[-1]):
+            running = running + reward[:, t]
+            per_step[:, t] = running
+            if done[:, t].any():
+                finished.extend(running[done[:, t]].tolist())
+                running = torch.where(done[:, t], torch.zeros_like(running), running)
+        self.running = running
+        return finished, per_step
+
+    def state_dict(self) -> dict:
+        return {"running": self.running.clone()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.running = state["running"].to(self.running)
 
 
 class DiffWindowCollector:
@@ -33,7 +70,7 @@ class DiffWindowCollector:
     after the step *before any reset*: ``("next", "observation")`` of a truncated step is the
     pre-reset observation, which is what a critic must bootstrap from. The collector adds
     ``("next", "episode_reward")``: the undiscounted return of the episode so far, detached
-    (at a done step it is the finished episode's return).
+    (at a done step it is the finished episode's return), from an :class:`EpisodeReturnTracker`.
 
     Actions are drawn under ``exploration_type`` (default ``ExplorationType.RANDOM``, so a
     ``ProbabilisticActor`` with a ``TanhNormal`` uses ``rsample``: reparameterised, gradients
@@ -46,7 +83,6 @@ class DiffWindowCollector:
         horizon: window length ``H``.
         total_windows: iteration stops after this many windows; ``None`` iterates forever.
         exploration_type: exploration mode for the policy.
-        keep_returns: how many finished-episode returns :attr:`episode_returns` keeps.
         start_state: if given, every window starts from this TensorDict's ``"state"``
             (``env.reset(start_state, set_state=True)``) instead of continuing the previous
             one: fixed-start trajectory optimisation.
@@ -57,7 +93,7 @@ class DiffWindowCollector:
         generator: torch generator for ``stagger_episodes`` (seeding).
 
     Attributes:
-        episode_returns: the undiscounted returns of the most recently finished episodes.
+        finished_returns: the undiscounted returns of the episodes that ended in the last window.
         windows: windows collected so far.
         frames: env steps collected so far (``windows * N * H``).
 
@@ -79,7 +115,6 @@ class DiffWindowCollector:
         total_windows: int | None = None,
         *,
         exploration_type: ExplorationType = ExplorationType.RANDOM,
-        keep_returns: int = 100,
         start_state: TensorDictBase | None = None,
         stagger_episodes: bool = False,
         generator: torch.Generator | None = None,
@@ -100,12 +135,12 @@ class DiffWindowCollector:
         self.generator = generator
         if stagger_episodes and getattr(env, "max_episode_steps", None) is None:
             raise ValueError("DiffWindowCollector: stagger_episodes needs an env with max_episode_steps")
-        self.episode_returns: deque[float] = deque(maxlen=keep_returns)
+        self.finished_returns: list[float] = []
         self.windows = 0
         # what the env needs to continue: its observation/state entries and the done flags
         self._carry_keys = list(env.observation_spec.keys()) + list(env.done_keys)
         self._carried: TensorDictBase | None = None
-        self._running_return: torch.Tensor | None = None
+        self.tracker = EpisodeReturnTracker(self.num_envs, env.device)
 
     @property
     def num_envs(self) -> int:
@@ -128,7 +163,7 @@ class DiffWindowCollector:
             step = self._carried.get("episode_step")
             offset = torch.randint(self.env.max_episode_steps, step.shape, generator=self.generator, device="cpu")
             self._carried.set("episode_step", step + offset.to(step.device))
-        self._running_return = torch.zeros(self.num_envs, dtype=torch.float64, device=self.env.device)
+        self.tracker = EpisodeReturnTracker(self.num_envs, self.env.device)
         return self._carried
 
     def state_dict(self) -> dict:
@@ -138,8 +173,8 @@ class DiffWindowCollector:
         rng = getattr(self.env, "rng", None)
         return {
             "carried": None if self._carried is None else self._carried.to_dict(),
-            "running_return": self._running_return,
-            "episode_returns": list(self.episode_returns),
+            "tracker": self.tracker.state_dict(),
+            "finished_returns": list(self.finished_returns),
             "windows": self.windows,
             "env_rng": rng.get_state() if isinstance(rng, torch.Generator) else None,
         }
@@ -152,9 +187,8 @@ class DiffWindowCollector:
             if carried is None
             else TensorDict(carried, batch_size=self.env.batch_size, device=self.env.device)
         )
-        self._running_return = state["running_return"]
-        self.episode_returns.clear()
-        self.episode_returns.extend(state["episode_returns"])
+        self.tracker.load_state_dict(state["tracker"])
+        self.finished_returns = list(state["finished_returns"])
         self.windows = int(state["windows"])
         if state.get("env_rng") is not None and isinstance(getattr(self.env, "rng", None), torch.Generator):
             self.env.rng.set_state(state["env_rng"].cpu())  # generator states are CPU byte tensors, also for CUDA
@@ -186,19 +220,9 @@ class DiffWindowCollector:
     @torch.no_grad()
     def _track_returns(self, window: TensorDictBase) -> None:
         """Writes ``("next", "episode_reward")`` and records the returns of finished episodes."""
-        n = self.num_envs
-        reward = window.get(("next", "reward")).reshape(n, self.horizon)
-        done = window.get(("next", "done")).reshape(n, self.horizon)
-        running = self._running_return
-        episode_reward = torch.empty(n, self.horizon, dtype=torch.float64, device=reward.device)
-        for t in range(self.horizon):
-            running = running + reward[:, t].to(torch.float64)
-            episode_reward[:, t] = running
-            if done[:, t].any():
-                self.episode_returns.extend(running[done[:, t]].tolist())
-                running = torch.where(done[:, t], torch.zeros_like(running), running)
-        self._running_return = running
-        window.set(("next", "episode_reward"), episode_reward.to(reward.dtype).unsqueeze(-1))
+        self.finished_returns, running = self.tracker.update(window)
+        reward = window.get(("next", "reward"))
+        window.set(("next", "episode_reward"), running.to(reward.dtype).reshape(reward.shape))
 
     def __iter__(self) -> Iterator[TensorDictBase]:
         while self.total_windows is None or self.windows < self.total_windows:

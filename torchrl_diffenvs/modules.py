@@ -5,6 +5,9 @@
   :class:`~torchrl_diffenvs.objectives.SHACLoss` and TorchRL's PPO / SAC losses; or a
   deterministic tanh-MLP policy (Ivy Gym's ``optimize_policy`` demo).
 * :func:`make_critic`: a state-value network writing ``"state_value"``.
+* :func:`make_qvalue`: ``Q(observation, action)`` writing ``"state_action_value"`` (SAC).
+* :func:`actor_from_config`, :func:`critic_from_config`, :func:`qvalue_from_config`: the same
+  builders driven by a ``loss`` configuration section (``configs/loss/*.yaml``).
 * :class:`OpenLoopActor`: a learnable table of actions indexed by ``"episode_step"`` (trajectory
   optimisation with the ordinary BPTT loss).
 * :class:`ObservationNormalizer`: running mean / std of observations, updated explicitly outside
@@ -15,7 +18,7 @@ env gives float64 networks (gradient checks).
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -24,7 +27,7 @@ from tensordict.nn.probabilistic import interaction_type
 from torch import nn
 from torch.distributions import AffineTransform
 from torch.distributions.utils import _standard_normal
-from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.modules.distributions.continuous import SafeTanhTransform
 
 __all__ = [
@@ -33,12 +36,17 @@ __all__ = [
     "OpenLoopActor",
     "StateIndependentNormalHead",
     "TanhNormalActor",
+    "actor_from_config",
+    "critic_from_config",
     "make_actor",
     "make_critic",
     "make_mlp",
+    "make_qvalue",
+    "qvalue_from_config",
 ]
 
 DISTRIBUTIONS = ("tanh_normal", "deterministic")
+ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "elu": nn.ELU, "relu": nn.ReLU}
 
 
 class ObservationNormalizer(nn.Module):
@@ -309,6 +317,66 @@ def make_critic(
     if normalizer is not None:
         net = nn.Sequential(normalizer, net)
     return LeanModule(net, in_keys=[in_key], out_keys=["state_value"])
+
+
+class _ConcatInputs(nn.Module):
+    """Feeds ``cat(observation, action)`` to an MLP (``ValueOperator`` passes them separately)."""
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat(inputs, dim=-1))
+
+
+def make_qvalue(env, hidden: Sequence[int] = (256, 256), activation: type[nn.Module] = nn.ReLU,
+                layer_norm: bool = False) -> ValueOperator:
+    """``Q(observation, action)`` writing ``"state_action_value"`` (what TorchRL's ``SACLoss`` expects)."""
+    net = make_mlp(env.observation_dim + env.action_dim, 1, hidden, activation, layer_norm, env.float_dtype)
+    return ValueOperator(_ConcatInputs(net), in_keys=["observation", "action"], out_keys=["state_action_value"])
+
+
+# ---------------------------------------------------------------------- from a loss config section
+def network_kwargs(section: Mapping) -> dict:
+    """``hidden`` / ``activation`` / ``layer_norm`` (/ ``init_log_std``) of a network section
+    (``loss.actor``, ``loss.critic``, ``loss.qvalue``) as keyword arguments of the builders."""
+    activation = section.get("activation", "elu")
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"activation={activation!r}: valid: {', '.join(ACTIVATIONS)}")
+    kwargs = {
+        "hidden": tuple(int(h) for h in section["hidden"]),
+        "activation": ACTIVATIONS[activation],
+        "layer_norm": bool(section.get("layer_norm", True)),
+    }
+    if "init_log_std" in section:
+        kwargs["init_log_std"] = float(section["init_log_std"])
+    return kwargs
+
+
+def actor_from_config(loss_cfg: Mapping, env, return_log_prob: bool = False):
+    """The actor a learner trains, from ``loss_cfg.actor`` and ``loss_cfg.obs_norm``.
+
+    Returns ``(actor, normalizer)``; the normaliser (or ``None``) is the actor's first layer, so
+    the actor's ``state_dict`` carries its statistics; pass it on to the critic.
+    """
+    normalizer = None
+    if loss_cfg.get("obs_norm", False):
+        normalizer = ObservationNormalizer(env.observation_dim, dtype=env.float_dtype).to(env.device)
+    actor_cfg = loss_cfg["actor"]
+    actor = make_actor(env, **network_kwargs(actor_cfg), distribution=actor_cfg.get("distribution", "tanh_normal"),
+                       normalizer=normalizer, return_log_prob=return_log_prob)
+    return actor.to(env.device), normalizer
+
+
+def critic_from_config(section: Mapping, env, normalizer: ObservationNormalizer | None = None) -> LeanModule:
+    """:func:`make_critic` from a ``loss.critic`` section, sharing the actor's normaliser."""
+    return make_critic(env, **network_kwargs(section), normalizer=normalizer).to(env.device)
+
+
+def qvalue_from_config(section: Mapping, env) -> ValueOperator:
+    """:func:`make_qvalue` from a ``loss.qvalue`` section."""
+    return make_qvalue(env, **network_kwargs(section)).to(env.device)
 
 
 class OpenLoopActor(TensorDictModuleBase):

@@ -31,12 +31,3 @@ def window_entry(td: TensorDictBase, key, name: str) -> torch.Tensor:
     if value.shape[2:] not in ((), (1,)):
         raise ValueError(f"{name}: expected ('next', {key!r}) of shape [N, H] or [N, H, 1], got {tuple(value.shape)}")
     return value.reshape(td.batch_size)
-
-
-def finished_episode_reward(td: TensorDictBase, done: torch.Tensor) -> torch.Tensor | None:
-    """Mean undiscounted return of the episodes that finished inside the window, from the
-    collector's ``("next", "episode_reward")``; ``None`` if there is none."""
-    returns = td.get(("next", "episode_reward"), None)
-    if returns is None or not done.any():
-        return None
-    return returns.reshape(td.batch_size)[done].detach().mean()

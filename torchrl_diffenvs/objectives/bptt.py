@@ -8,7 +8,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
-from ._windows import finished_episode_reward, steps_since_start, window_entry
+from ._windows import steps_since_start, window_entry
 
 __all__ = ["BPTTLoss"]
 
@@ -37,9 +37,9 @@ class BPTTLoss(LossModule):
         gamma: discount (default ``1.0``, undiscounted as in Ivy Gym, Brax APG and TorchRL's
             tutorial).
 
-    Returns (``forward``): a TensorDict with ``loss_actor`` and detached diagnostics:
-    ``reward_mean`` (mean per-step reward of the window) and, when an episode finished inside the
-    window and the collector recorded it, ``episode_reward`` (their mean return).
+    Returns (``forward``): a TensorDict with ``loss_actor`` and ``reward_mean`` (the window's mean
+    per-step reward, detached). Episode returns come from the collector
+    (:attr:`~torchrl_diffenvs.collectors.DiffWindowCollector.finished_returns`).
     """
 
     @dataclass
@@ -67,7 +67,7 @@ class BPTTLoss(LossModule):
 
     @property
     def out_keys(self):
-        return ["loss_actor", "reward_mean", "episode_reward"]
+        return ["loss_actor", "reward_mean"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         reward = window_entry(tensordict, self.tensor_keys.reward, "BPTTLoss")
@@ -78,7 +78,4 @@ class BPTTLoss(LossModule):
             "loss_actor": -(discount * reward).sum() / (n * h),
             "reward_mean": reward.detach().mean(),
         }
-        episode_reward = finished_episode_reward(tensordict, done)
-        if episode_reward is not None:
-            out["episode_reward"] = episode_reward
         return TensorDict(out, batch_size=[])

@@ -12,7 +12,7 @@ from torch import nn
 from torchrl.objectives import LossModule, SoftUpdate
 from torchrl.objectives.value import TDLambdaEstimator
 
-from ._windows import finished_episode_reward, steps_since_start, window_entry
+from ._windows import steps_since_start, window_entry
 
 __all__ = ["SHACLoss"]
 
@@ -54,12 +54,12 @@ class SHACLoss(LossModule):
     critic (e.g. the statistics of an :class:`~torchrl_diffenvs.modules.ObservationNormalizer`)
     are shared by the critic and the target critic: only the weights lag.
 
-    **Usage.** ``forward(window)`` returns ``loss_actor`` (backpropagate it into the actor),
-    ``loss_critic`` for the whole window (one critic pass; SHAC proper runs many minibatch passes:
-    use :meth:`critic_loss` on slices of the window) and detached diagnostics. ``forward`` also
-    writes the detached targets into the window under ``"value_target"`` (as TorchRL's PPO writes
-    its advantage), so that minibatches of it can be fed to :meth:`critic_loss`.
-    :meth:`compute_value_targets` does that alone.
+    **Usage.** ``forward(window)`` returns ``loss_actor`` (backpropagate it into the actor) and
+    detached diagnostics (``reward_mean``, ``value_mean``), and writes the detached critic targets
+    into the window under ``"value_target"`` (as TorchRL's PPO writes its advantage; they reuse the
+    target values the actor loss needs). The critic is then fitted with :meth:`critic_loss` on
+    minibatches of the detached window (SHAC's passes x minibatches);
+    :meth:`compute_value_targets` writes the targets alone.
 
     Args:
         actor_network: the policy that collected the windows (held for ``parameters()``; it is
@@ -129,7 +129,7 @@ class SHACLoss(LossModule):
 
     @property
     def out_keys(self):
-        return ["loss_actor", "loss_critic", "reward_mean", "value_mean", "episode_reward"]
+        return ["loss_actor", "reward_mean", "value_mean"]
 
     def make_target_updater(self, tau: float = 0.8) -> SoftUpdate:
         """TorchRL's :class:`SoftUpdate` for the target critic: ``target <- (1-tau) target + tau critic``.
@@ -210,11 +210,7 @@ class SHACLoss(LossModule):
         tensordict.set(keys.value_target, targets)
         out = {
             "loss_actor": loss_actor,
-            "loss_critic": self.critic_loss(tensordict)["loss_critic"],
             "reward_mean": reward.detach().mean(),
             "value_mean": next_value.detach().mean(),
         }
-        episode_reward = finished_episode_reward(tensordict, done)
-        if episode_reward is not None:
-            out["episode_reward"] = episode_reward
         return TensorDict(out, batch_size=[])

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import TensorDict, TensorDictBase
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -28,11 +27,9 @@ __all__ = [
     "load_checkpoint",
     "restore_rng_state",
     "save_checkpoint",
-    "tensordict_from_state",
-    "tensordict_to_state",
 ]
 
-CHECKPOINT_FORMAT = "torchrl_diffenvs.train/1"
+CHECKPOINT_FORMAT = "torchrl_diffenvs.train/2"  # 2: one learner per algorithm (torchrl_diffenvs.learners)
 
 
 class CheckpointError(RuntimeError):
@@ -114,21 +111,6 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
             f"{CHECKPOINT_FORMAT!r})"
         )
     return state
-
-
-# ---------------------------------------------------------------------- TensorDicts
-def tensordict_to_state(td: TensorDictBase | None) -> dict | None:
-    """A TensorDict as plain nested dicts of tensors (loadable with ``weights_only=True``)."""
-    if td is None:
-        return None
-    return {"batch_size": list(td.batch_size), "data": td.to_dict()}
-
-
-def tensordict_from_state(state: Mapping | None, device: torch.device | str | None = None) -> TensorDict | None:
-    """Inverse of :func:`tensordict_to_state`."""
-    if state is None:
-        return None
-    return TensorDict(state["data"], batch_size=state["batch_size"], device=device)
 
 
 # ---------------------------------------------------------------------- random generators

@@ -6,15 +6,16 @@ typo costs one run, not one run per typo. It runs before any env, network or log
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from ..checks import is_int as _is_int
 from ..envs import list_envs, make_env
-from ..modules import DISTRIBUTIONS
+from ..learners import LEARNERS
+from ..modules import ACTIVATIONS, DISTRIBUTIONS
 
 __all__ = [
     "ConfigError",
@@ -32,36 +33,14 @@ __all__ = [
     "validate_config",
 ]
 
-LOSSES = ("bptt", "shac", "ppo", "sac")
+LOSSES = tuple(LEARNERS)
 LOGGERS = ("wandb", "csv", "none")
 WANDB_MODES = ("offline", "online", "disabled")
 MODES = ("train", "eval")
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-ACTIVATIONS = ("tanh", "elu", "relu")
-
-# loss.* keys checked by name, whichever learner they belong to
-_POSITIVE_INT_KEYS = (
-    "horizon", "rollout_len", "epochs", "minibatch_size", "batch_size", "buffer_size",
-    "critic_passes", "critic_minibatches",
-)
-# key: (low, high, low inclusive); high is always inclusive
-_INTERVAL_KEYS = {
-    "gamma": (0.0, 1.0, False), "lmbda": (0.0, 1.0, True), "tau": (0.0, 1.0, False),
-    "target_tau": (0.0, 1.0, False), "lr_decay": (0.0, 1.0, False),
-}
-LR_SCHEDULES = ("linear", "exponential", "constant")
-
 
 class ConfigError(ValueError):
     """A configuration that cannot run; the message lists every problem found."""
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -131,42 +110,18 @@ def _check_network(section, where: str, problems: list[str]) -> None:
 
 
 def _check_loss(loss, problems: list[str]) -> None:
-    for key, value in loss.items():
-        where = f"loss.{key}"
-        if key == "lr" or key.endswith("_lr"):
-            if not _is_number(value) or value <= 0:
-                problems.append(f"{where}={value!r}: a learning rate must be a number > 0")
-        elif key in _POSITIVE_INT_KEYS:
-            if not _is_int(value) or value < 1:
-                problems.append(f"{where}={value!r}: expected an integer >= 1")
-        elif key in _INTERVAL_KEYS:
-            low, high, low_inclusive = _INTERVAL_KEYS[key]
-            ok = _is_number(value) and (value >= low if low_inclusive else value > low) and value <= high
-            if not ok:
-                bracket = "[" if low_inclusive else "("
-                problems.append(f"{where}={value!r}: expected a number in {bracket}{low}, {high}]")
-        elif key in ("max_grad_norm", "skip_above"):
-            if value is not None and (not _is_number(value) or value <= 0):
-                problems.append(f"{where}={value!r}: expected a number > 0, or null to disable it")
-        elif key == "betas":
-            if not (
-                isinstance(value, (list, ListConfig)) and len(value) == 2
-                and all(_is_number(b) and 0.0 <= b < 1.0 for b in value)
-            ):
-                problems.append(f"{where}={value!r}: expected two Adam betas in [0, 1), e.g. [0.7, 0.95]")
-        elif key == "lr_schedule":
-            if value not in LR_SCHEDULES:
-                problems.append(f"{where}={value!r}: valid: {', '.join(LR_SCHEDULES)}")
-        elif key in ("clip_epsilon", "utd_ratio", "alpha_init"):
-            if not _is_number(value) or value <= 0:
-                problems.append(f"{where}={value!r}: expected a number > 0")
-        elif key in ("init_random_frames",):
-            if not _is_int(value) or value < 0:
-                problems.append(f"{where}={value!r}: expected an integer >= 0")
-        elif isinstance(value, (DictConfig, Mapping)) and "hidden" in value:
-            _check_network(value, where, problems)
-    if _is_int(loss.get("buffer_size")) and _is_int(loss.get("batch_size")) and loss.buffer_size < loss.batch_size:
-        problems.append(f"loss.buffer_size={loss.buffer_size} is smaller than loss.batch_size={loss.batch_size}")
+    """The learner's own settings checks (its ``LearnerConfig``) and its network sections."""
+    learner = LEARNERS[loss.name]
+    networks = {key: value for key, value in loss.items() if isinstance(value, (DictConfig, Mapping))}
+    for key, value in networks.items():
+        _check_network(value, f"loss.{key}", problems)
+    if loss.name == "sac" and loss.get("obs_norm"):
+        problems.append("loss.obs_norm=true is not supported by loss=sac (the replay buffer would mix statistics)")
+    settings = {key: value for key, value in loss.items() if key not in networks and key != "name"}
+    if loss.name == "sac":
+        settings.pop("obs_norm", None)
+    settings = {k: list(v) if isinstance(v, ListConfig) else v for k, v in settings.items()}
+    problems.extend(learner.config_class.problems(settings, "loss."))
 
 
 def _check_file(value, key: str, problems: list[str]) -> None:
@@ -232,8 +187,6 @@ def validate_config(cfg: DictConfig) -> None:
         _check_loss(cfg.loss, problems)
     if loss_name in ("ppo", "sac") and OmegaConf.select(cfg, "loss.actor.distribution", default="tanh_normal") != "tanh_normal":
         problems.append(f"loss.actor.distribution: loss={loss_name} needs a stochastic policy (tanh_normal)")
-    if loss_name == "sac" and cfg.loss.get("obs_norm"):
-        problems.append("loss.obs_norm=true is not supported by loss=sac (the replay buffer would mix statistics)")
 
     if mode == "eval":
         if cfg.get("checkpoint") is None:

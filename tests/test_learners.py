@@ -1,0 +1,131 @@
+"""The BPTT and SHAC learners: NaN safety end to end, exact checkpoint resume, schedules that
+follow the budget, settings checks; and the evaluation they are scored with."""
+import io
+
+import pytest
+import torch
+
+from torchrl_diffenvs import make_env
+from torchrl_diffenvs.envs import PendulumEnv
+from torchrl_diffenvs.evaluation import evaluate
+from torchrl_diffenvs.learners import BPTTConfig, BPTTLearner, SHACConfig, SHACLearner
+from torchrl_diffenvs.modules import ObservationNormalizer, make_actor, make_critic
+
+
+class PoisonedPendulum(PendulumEnv):
+    """Pendulum whose rewards are NaN while ``poisoned`` is set."""
+
+    poisoned = False
+
+    def transition(self, state, action, params):
+        next_state, reward, terminated = super().transition(state, action, params)
+        if self.poisoned:
+            reward = reward + float("nan")
+        return next_state, reward, terminated
+
+
+def make_learner(loss_name, env=None, seed=0, total_env_steps=20 * 8 * 6):
+    torch.manual_seed(seed)
+    env = env if env is not None else make_env("pendulum", num_envs=8, seed=seed, max_episode_steps=10)
+    normalizer = ObservationNormalizer(env.observation_dim)
+    actor = make_actor(env, hidden=(16,), normalizer=normalizer)
+    if loss_name == "shac":
+        critic = make_critic(env, hidden=(16,), normalizer=normalizer)
+        settings = SHACConfig(horizon=6, actor_lr=1e-2, critic_passes=2, critic_minibatches=2)
+        return SHACLearner(env, actor, critic, settings, total_env_steps, normalizer=normalizer)
+    return BPTTLearner(env, actor, BPTTConfig(horizon=6, actor_lr=1e-2), total_env_steps, normalizer=normalizer)
+
+
+@pytest.mark.parametrize("loss_name", ["bptt", "shac"])
+def test_nan_rewards_skip_every_update(loss_name):
+    env = PoisonedPendulum(num_envs=8, seed=0, max_episode_steps=10)
+    learner = make_learner(loss_name, env)
+    learner.train_iteration()  # a healthy step first: optimiser state exists
+    weights = dict(learner.loss.named_parameters())  # actor and critic weights (not the target's)
+    before = {k: v.detach().clone() for k, v in weights.items()}
+    env.poisoned = True
+    metrics = learner.train_iteration()
+    assert metrics["skipped_actor"] == 1
+    if loss_name == "shac":
+        assert metrics["skipped_critic"] == 2 * 2  # every critic minibatch step
+    assert len(before) == (13 if loss_name == "shac" else 7)  # the critic's weights are included
+    for key, value in before.items():
+        torch.testing.assert_close(weights[key].detach(), value, rtol=0, atol=0, msg=key)
+    env.poisoned = False
+    assert learner.train_iteration()["skipped_actor"] == 1  # training goes on
+
+
+@pytest.mark.parametrize("loss_name", ["bptt", "shac"])
+def test_checkpoint_resume_is_exact(loss_name):
+    learner = make_learner(loss_name)
+    for _ in range(3):
+        learner.train_iteration()
+    buffer = io.BytesIO()
+    torch.save(learner.state_dict(), buffer)
+    torch.manual_seed(123)
+    expected = [learner.train_iteration()["loss_actor"] for _ in range(3)]
+
+    resumed = make_learner(loss_name, seed=7)  # other initial weights and env seed
+    buffer.seek(0)
+    resumed.load_state_dict(torch.load(buffer, weights_only=True))
+    torch.manual_seed(123)
+    assert [resumed.train_iteration()["loss_actor"] for _ in range(3)] == pytest.approx(expected, rel=1e-6)
+    for (k, a), b in zip(learner.loss.state_dict().items(), resumed.loss.state_dict().values()):
+        torch.testing.assert_close(a, b, msg=k)
+    assert resumed.iteration == learner.iteration == 6
+
+
+@pytest.mark.parametrize("loss_name", ["bptt", "shac"])
+def test_resuming_with_a_larger_budget_stretches_the_schedule(loss_name):
+    """A run resumed with twice the budget continues on the schedule of a run started with it:
+    linear decay from 1e-2 to 1e-5 over 40 iterations, not the 20 it was started with."""
+    short = make_learner(loss_name, total_env_steps=20 * 8 * 6)
+    for _ in range(5):
+        short.train_iteration()
+    longer = make_learner(loss_name, total_env_steps=40 * 8 * 6)
+    longer.load_state_dict(short.state_dict())
+    lrs = [longer.train_iteration()["lr_actor"] for _ in range(10)]
+    # the lr used at iteration i (before that iteration's schedule step): 1e-2 - (1e-2 - 1e-5) i / 40
+    expected = [1e-2 - (1e-2 - 1e-5) * i / 40 for i in range(5, 15)]
+    assert lrs == pytest.approx(expected, rel=1e-9)
+    if loss_name == "shac":  # the critic's schedule too: 1e-3 -> 1e-5, now after 15 steps
+        assert longer.critic_optim.param_groups[0]["lr"] == pytest.approx(1e-3 - (1e-3 - 1e-5) * 15 / 40, rel=1e-9)
+
+
+def test_settings_are_checked_with_a_clear_message():
+    with pytest.raises(ValueError, match=r"lr_schedule='cosine': valid: linear, exponential, constant"):
+        BPTTConfig(lr_schedule="cosine")
+    with pytest.raises(ValueError, match=r"horizon=0: expected an integer >= 1"):
+        SHACConfig(horizon=0)
+    with pytest.raises(ValueError, match=r"unknown setting of SHACConfig.*valid: horizon"):
+        SHACConfig.from_mapping({"horizn": 8})
+    env = make_env("pendulum", num_envs=2, seed=0)
+    with pytest.raises(TypeError, match="config must be a BPTTConfig"):
+        BPTTLearner(env, make_actor(env), SHACConfig())
+
+
+def test_evaluate_reports_returns_and_rewards():
+    learner = make_learner("bptt")
+    env = make_env("pendulum", num_envs=4, seed=0, max_episode_steps=10)
+    result = evaluate(env, learner.policy)
+    assert set(result) == {"return", "return_std", "return_min", "return_max", "reward_mean", "tail_reward_mean"}
+    assert result["return"] == pytest.approx(10 * result["reward_mean"], rel=1e-5)
+    assert result["return_min"] <= result["return"] <= result["return_max"]
+
+
+def test_evaluate_counts_only_the_first_episode():
+    """CartPole-v1 pays +1 per step, so each env's return is the length of its first episode."""
+    from torchrl.envs.utils import RandomPolicy
+
+    env = make_env("CartPole-v1", num_envs=8, dtype=torch.float64, seed=3, max_episode_steps=60)
+    torch.manual_seed(0)
+    stats = evaluate(env, RandomPolicy(env.action_spec))
+    torch.manual_seed(0)
+    env.set_seed(3)
+    done = env.rollout(60, RandomPolicy(env.action_spec), break_when_any_done=False)["next", "done"]
+    lengths = []
+    for row in done.squeeze(-1).tolist():  # hand count: steps up to the first done
+        lengths.append(row.index(True) + 1 if True in row else len(row))
+    assert min(lengths) < 60  # random actions do make some pole fall before the limit
+    assert stats["return"] == pytest.approx(sum(lengths) / len(lengths))
+    assert stats["reward_mean"] == pytest.approx(1.0)

@@ -1,0 +1,100 @@
+"""Evaluation of a policy (deterministic by default) on separate envs, the random-policy
+baseline, and the policy's GIF: the one evaluation module of the training script, the demos, the
+benchmarks and the tests.
+
+Given a ``seed``, every evaluation restarts the evaluation envs from it, so successive
+evaluations (and runs with different training seeds) are scored on the same start states. Each
+env plays one episode of ``steps`` steps; the score of an env is the undiscounted sum of rewards
+up to and including the step where its first episode ends (termination or truncation): later
+episodes, started by the auto-reset, are not counted.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+__all__ = [
+    "episode_returns", "evaluate", "evaluate_random", "first_episode_mask", "record_gif", "uniform_random_policy",
+]
+
+
+def first_episode_mask(rollout: TensorDictBase) -> torch.Tensor:
+    """``[N, T]`` float mask of the steps of each env's *first* episode in a rollout (up to and
+    including its first ``("next", "done")``)."""
+    done = rollout.get(("next", "done"))[..., 0].to(torch.int64)
+    ended_before = torch.cumsum(done, dim=-1) - done  # dones strictly before t
+    return (ended_before == 0).to(rollout.get(("next", "reward")).dtype)
+
+
+def episode_returns(rollout: TensorDictBase) -> torch.Tensor:
+    """Per-env return of the *first* episode of a ``[N, T]`` rollout (later episodes ignored)."""
+    return (rollout.get(("next", "reward"))[..., 0] * first_episode_mask(rollout)).sum(-1)
+
+
+def uniform_random_policy(env):
+    """A policy writing uniformly random actions within the action spec, drawn from ``env.rng``
+    (so it neither consumes nor disturbs torch's global generator)."""
+    space = env.action_spec.space
+    low, high = space.low, space.high
+
+    def policy(td: TensorDictBase) -> TensorDictBase:
+        u = torch.rand(low.shape, generator=env.rng, device=low.device, dtype=low.dtype)
+        return td.set("action", low + (high - low) * u)
+
+    return policy
+
+
+def _rollout(env, policy, steps: int | None, seed: int | None, exploration: ExplorationType) -> TensorDictBase:
+    steps = steps or env.max_episode_steps
+    if steps is None:
+        raise ValueError(f"evaluation: env {env!r} never truncates its episodes; pass steps=")
+    if seed is not None:
+        env.set_seed(seed)  # same start states at every evaluation
+    with torch.no_grad(), set_exploration_type(exploration):
+        return env.rollout(steps, policy, break_when_any_done=False)
+
+
+def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, tail_steps: int = 20,
+             exploration_type: ExplorationType = ExplorationType.DETERMINISTIC) -> dict[str, float]:
+    """Scores ``policy`` on every env of ``env`` for one episode of ``steps`` steps (default: the
+    env's ``max_episode_steps``), in deterministic mode (the mean action) by default.
+
+    Returns ``return`` (mean over envs of the first episode's return), ``return_std``,
+    ``return_min``, ``return_max``, ``reward_mean`` (mean per-step reward over the steps of
+    the first episodes) and ``tail_reward_mean`` (mean per-step reward of the last ``tail_steps``
+    steps: how well a task is held once reached, e.g. a pendulum kept upright).
+    """
+    rollout = _rollout(env, policy, steps, seed, exploration_type)
+    reward = rollout.get(("next", "reward"))[..., 0].double()
+    in_first = first_episode_mask(rollout)
+    returns = (reward * in_first).sum(-1)
+    return {
+        "return": returns.mean().item(),
+        "return_std": returns.std(unbiased=False).item(),
+        "return_min": returns.min().item(),
+        "return_max": returns.max().item(),
+        "reward_mean": (returns.sum() / in_first.sum()).item(),
+        "tail_reward_mean": reward[:, -tail_steps:].mean().item(),
+    }
+
+
+def evaluate_random(env, steps: int | None = None, seed: int | None = None) -> float:
+    """Mean return of uniformly random actions on the same start states as :func:`evaluate`."""
+    rollout = _rollout(env, uniform_random_policy(env), steps, seed, ExplorationType.RANDOM)
+    return episode_returns(rollout).double().mean().item()
+
+
+def record_gif(env, policy, steps: int, seed: int, path: str | Path, env_index: int = 0, fps: int = 30,
+               size: int = 256) -> Path:
+    """Writes a GIF of ``policy`` (deterministic) playing env ``env_index`` of ``env`` for ``steps`` steps.
+
+    Needs Pillow (``pip install "torchrl_diffenvs[render]"``).
+    """
+    from .rendering import rollout_frames, save_gif  # Pillow is an optional extra
+
+    rollout = _rollout(env, policy, steps, seed, ExplorationType.DETERMINISTIC)
+    frames = rollout_frames(env, rollout, env_index=env_index, size=size)
+    return save_gif(frames, path, fps=fps)

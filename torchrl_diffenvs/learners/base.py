@@ -1,0 +1,183 @@
+"""What every learner shares: its settings' checks, the interface the training script drives and
+the learning-rate schedules."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
+
+import torch
+from tensordict.nn import TensorDictModuleBase
+
+from ..checks import Check
+
+__all__ = ["LR_SCHEDULES", "Learner", "LearnerConfig", "checked", "load_lr_scheduler", "lr_scheduler"]
+
+LR_SCHEDULES = ("linear", "exponential", "constant")
+
+
+def checked(default, check: Check):
+    """A settings field with its default and the check its values must pass."""
+    if isinstance(default, (list, tuple)):
+        return dataclasses.field(default_factory=lambda: tuple(default), metadata={"check": check})
+    return dataclasses.field(default=default, metadata={"check": check})
+
+
+@dataclasses.dataclass(frozen=True)
+class LearnerConfig:
+    """Base of a learner's settings: a frozen dataclass whose fields carry their checks.
+
+    The fields are the keys of the learner's ``configs/loss/<name>.yaml`` (besides ``name`` and
+    the network sections), so the training script and Python code build learners alike.
+    """
+
+    @classmethod
+    def problems(cls, values: Mapping, where: str = "") -> list[str]:
+        """Every problem of ``values`` (unknown keys and values that fail their field's check)."""
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        problems = []
+        for key, value in values.items():
+            name = f"{where}{key}"
+            if key not in fields:
+                problems.append(f"{name}: unknown setting of {cls.__name__}; valid: {', '.join(fields)}")
+                continue
+            message = fields[key].metadata["check"](value)
+            if message is not None:
+                problems.append(f"{name}={value!r}: {message}")
+        if not problems:
+            problems = cls.relation_problems({**cls.defaults(), **values}, where)
+        return problems
+
+    @classmethod
+    def relation_problems(cls, values: Mapping, where: str = "") -> list[str]:
+        """Problems between fields (each valid alone); override where settings constrain each other."""
+        return []
+
+    @classmethod
+    def defaults(cls) -> dict:
+        return {f.name: f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+                for f in dataclasses.fields(cls)}
+
+    def __post_init__(self):
+        problems = self.problems({f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
+        if problems:
+            raise ValueError(f"{type(self).__name__}: " + "; ".join(problems))
+
+    @classmethod
+    def from_mapping(cls, values: Mapping) -> LearnerConfig:
+        """Builds the settings from a mapping (e.g. a Hydra ``loss`` section without its networks);
+        lists become tuples."""
+        plain = {k: tuple(v) if isinstance(v, (list, tuple)) or type(v).__name__ == "ListConfig" else v
+                 for k, v in values.items()}
+        problems = cls.problems(plain)
+        if problems:
+            raise ValueError(f"{cls.__name__}: " + "; ".join(problems))
+        return cls(**plain)
+
+
+def lr_scheduler(optimizer: torch.optim.Optimizer, kind: str, total_iterations: Callable[[], int], *,
+                 min_lr: float = 0.0, decay: float = 1.0) -> torch.optim.lr_scheduler.LambdaLR:
+    """A learning-rate schedule that follows the budget as it is *now*.
+
+    ``"linear"`` decays from the optimiser's learning rate to ``min_lr`` over
+    ``total_iterations()`` iterations, then stays there; ``"exponential"`` multiplies it by
+    ``decay`` every iteration; ``"constant"`` keeps it. ``total_iterations`` is called at every
+    step, so a run resumed with a larger budget stretches the rest of its schedule over the new
+    budget (``LinearLR`` would keep the old length saved in its state).
+    """
+    if kind not in LR_SCHEDULES:
+        raise ValueError(f"unknown lr_schedule {kind!r}; valid: {', '.join(LR_SCHEDULES)}")
+    end = min(1.0, min_lr / optimizer.param_groups[0]["lr"])
+    if kind == "linear":
+        def factor(i: int) -> float:
+            return 1.0 - (1.0 - end) * min(i / max(1, total_iterations()), 1.0)
+    elif kind == "exponential":
+        def factor(i: int) -> float:
+            return decay**i
+    else:
+        def factor(i: int) -> float:
+            return 1.0
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def load_lr_scheduler(schedule: torch.optim.lr_scheduler.LambdaLR, state: dict) -> None:
+    """Restores a :func:`lr_scheduler` and sets the optimiser's learning rates to what the
+    schedule gives *now*: after a resume with another budget, the saved rates were the old
+    schedule's."""
+    schedule.load_state_dict(state)
+    for group, base_lr, factor in zip(schedule.optimizer.param_groups, schedule.base_lrs, schedule.lr_lambdas):
+        group["lr"] = base_lr * factor(schedule.last_epoch)
+
+
+class Learner(ABC):
+    """One learning algorithm behind one interface, used alike by ``sota_scripts/train.py``, the
+    demos, the benchmarks and the tests.
+
+    A learner owns its networks, optimisers, schedules and data collection on the training env.
+    Each :meth:`train_iteration` collects :attr:`env_steps_per_iteration` env steps and updates
+    the networks; :attr:`policy` is the actor that evaluation runs in deterministic mode.
+    :meth:`from_config` builds one from a ``loss`` configuration section.
+
+    Args:
+        env: the batched training env (any TorchRL ``EnvBase`` with a batch dimension ``[N]``).
+        config: the learner's settings (its :class:`LearnerConfig` subclass).
+        total_env_steps: the training budget; the learning-rate schedules run over it, and it can
+            be changed later (a resumed run with a larger budget).
+    """
+
+    name: str = ""
+    config_class: type[LearnerConfig] = LearnerConfig
+    policy: TensorDictModuleBase
+
+    def __init__(self, env, config: LearnerConfig, total_env_steps: int):
+        if not isinstance(config, self.config_class):
+            raise TypeError(f"{type(self).__name__}: config must be a {self.config_class.__name__}, "
+                            f"got {type(config).__name__}")
+        if len(env.batch_size) != 1:
+            raise ValueError(f"{type(self).__name__}: expected an env with one batch dimension [N] (a batched env), "
+                             f"got batch_size={tuple(env.batch_size)}")
+        self.env = env
+        self.config = config
+        self.total_env_steps = int(total_env_steps)
+        self.iteration = 0
+
+    @classmethod
+    @abstractmethod
+    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int) -> Learner:
+        """Builds the learner and its networks from a ``loss`` section (``configs/loss/<name>.yaml``)."""
+
+    @property
+    def num_envs(self) -> int:
+        return self.env.batch_size[0]
+
+    @property
+    @abstractmethod
+    def env_steps_per_iteration(self) -> int:
+        """Env steps collected by one :meth:`train_iteration`."""
+
+    @property
+    def total_iterations(self) -> int:
+        return max(1, math.ceil(self.total_env_steps / self.env_steps_per_iteration))
+
+    @abstractmethod
+    def train_iteration(self) -> dict[str, float]:
+        """Collects data and updates the networks once.
+
+        Returns scalar metrics without a prefix: ``"reward"`` (mean per-step reward of the
+        collected data), ``"return"`` (mean return of the episodes that finished, when any did),
+        losses, pre-clip gradient norms (``"grad_norm*"``), cumulative skipped steps
+        (``"skipped*"``) and learning rates.
+        """
+
+    @abstractmethod
+    def state_dict(self) -> dict:
+        """Everything needed to continue exactly: networks, optimisers, schedules, normalisers,
+        the env state being collected from, replay buffers. Plain tensors and containers only."""
+
+    @abstractmethod
+    def load_state_dict(self, state: dict) -> None:
+        """Restores :meth:`state_dict` into a learner built from the same configuration."""
+
+    def close(self) -> None:
+        """Releases collectors (override when there is anything to release)."""

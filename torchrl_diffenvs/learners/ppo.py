@@ -1,0 +1,182 @@
+"""PPO through TorchRL itself: ``Collector`` -> GAE -> ``ClipPPOLoss`` minibatch epochs.
+
+One iteration, in the algorithm's order:
+
+1. collect ``num_envs x rollout_len`` steps with the stochastic policy (TorchRL's ``Collector``,
+   no gradients);
+2. ``epochs`` passes, each recomputing GAE advantages with the current critic, then taking
+   shuffled minibatch steps (without replacement) on ``loss_objective + loss_critic
+   (+ loss_entropy)``, each through a guard (clip to ``max_grad_norm``; skip NaN/inf);
+3. step the learning-rate schedule (linear to 0 over the budget with ``lr_anneal``);
+4. update the observation normaliser, so the data of an iteration is scored with the
+   statistics it was collected with; hand the new weights to the collector.
+"""
+from __future__ import annotations
+
+import dataclasses
+from collections import defaultdict
+from collections.abc import Mapping
+
+import torch
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
+from torchrl.objectives import ClipPPOLoss, ValueEstimators
+
+from .. import checks
+from .._compat import collector_carrier_state, load_collector_carrier
+from ..collectors import EpisodeReturnTracker
+from ..modules import ObservationNormalizer, actor_from_config, critic_from_config
+from ..objectives import GradientGuard
+from .base import Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
+
+__all__ = ["PPOConfig", "PPOLearner"]
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig(LearnerConfig):
+    """Settings of :class:`PPOLearner` (the keys of ``configs/loss/ppo.yaml``)."""
+
+    rollout_len: int = checked(32, checks.positive_int)  # an iteration is num_envs x rollout_len env steps
+    epochs: int = checked(5, checks.positive_int)  # passes over each batch
+    minibatch_size: int = checked(512, checks.positive_int)  # transitions per gradient step
+    lr: float = checked(1e-3, checks.learning_rate)
+    lr_anneal: bool = checked(True, checks.boolean)  # decay lr linearly to 0 over the budget
+    gamma: float = checked(0.99, checks.in_interval(0.0, 1.0))
+    lmbda: float = checked(0.95, checks.in_interval(0.0, 1.0, low_inclusive=True))  # GAE lambda
+    clip_epsilon: float = checked(0.2, checks.positive)
+    entropy_coeff: float = checked(0.0, checks.nonnegative)
+    critic_coeff: float = checked(0.5, checks.nonnegative)
+    loss_critic_type: str = checked("l2", checks.one_of(("l1", "l2", "smooth_l1")))
+    normalize_advantage: bool = checked(True, checks.boolean)
+    max_grad_norm: float | None = checked(1.0, checks.optional_positive)  # clip the global gradient norm
+    obs_norm: bool = checked(False, checks.boolean)  # running observation normalisation (from_config)
+
+
+class PPOLearner(Learner):
+    """TorchRL's ``ClipPPOLoss`` with GAE (``make_value_estimator``) on data from TorchRL's ``Collector``.
+
+    Args:
+        env: the batched training env (gradients through it are not used).
+        actor: a stochastic policy writing ``"action"`` and its log-probability
+            (``make_actor(env, return_log_prob=True)``).
+        critic: a state-value network writing ``"state_value"``.
+        config: :class:`PPOConfig`.
+        total_env_steps: the budget the learning-rate schedule runs over.
+        normalizer: the :class:`~torchrl_diffenvs.modules.ObservationNormalizer` inside actor
+            and critic to update after every iteration, if any.
+    """
+
+    name = "ppo"
+    config_class = PPOConfig
+
+    def __init__(self, env, actor, critic, config: PPOConfig = PPOConfig(), total_env_steps: int = 1_000_000, *,
+                 normalizer: ObservationNormalizer | None = None):
+        super().__init__(env, config, total_env_steps)
+        c = config
+        self.actor = self.policy = actor
+        self.critic = critic
+        self.normalizer = normalizer
+        self.loss = ClipPPOLoss(
+            actor, critic, clip_epsilon=c.clip_epsilon, entropy_bonus=c.entropy_coeff > 0,
+            entropy_coeff=c.entropy_coeff, critic_coeff=c.critic_coeff, loss_critic_type=c.loss_critic_type,
+            normalize_advantage=c.normalize_advantage,
+        )
+        self.loss.make_value_estimator(ValueEstimators.GAE, gamma=c.gamma, lmbda=c.lmbda)
+        self.params = [p for p in self.loss.parameters() if p.requires_grad]
+        self.optim = torch.optim.Adam(self.params, lr=c.lr)
+        self.schedule = lr_scheduler(self.optim, "linear" if c.lr_anneal else "constant",
+                                     lambda: self.total_iterations)
+        self.guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
+        self.buffer = ReplayBuffer(
+            storage=LazyTensorStorage(self.env_steps_per_iteration, device=env.device),
+            sampler=SamplerWithoutReplacement(),
+            batch_size=c.minibatch_size,
+        )
+        self.collector = Collector(
+            env, actor, frames_per_batch=self.env_steps_per_iteration, total_frames=-1,
+            auto_register_policy_transforms=False,  # the policy reads only "observation"
+        )
+        self._batches = iter(self.collector)
+        self.tracker = EpisodeReturnTracker(self.num_envs, env.device)
+
+    @classmethod
+    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int) -> PPOLearner:
+        actor, normalizer = actor_from_config(loss_cfg, env, return_log_prob=True)
+        critic = critic_from_config(loss_cfg.critic, env, normalizer)
+        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
+        return cls(env, actor, critic, PPOConfig.from_mapping(settings), total_env_steps, normalizer=normalizer)
+
+    @property
+    def env_steps_per_iteration(self) -> int:
+        return self.num_envs * self.config.rollout_len
+
+    def train_iteration(self) -> dict[str, float]:
+        # 1. collect (no gradients)
+        data = next(self._batches)  # [num_envs, rollout_len]
+        finished, _ = self.tracker.update(data)
+        # 2. epochs of minibatch steps, advantages recomputed with the current critic
+        sums: dict[str, float] = defaultdict(float)
+        updates = 0
+        for _ in range(self.config.epochs):
+            with torch.no_grad():
+                self.loss.value_estimator(
+                    data, params=self.loss.critic_network_params, target_params=self.loss.target_critic_network_params
+                )
+            self.buffer.extend(data.reshape(-1))
+            for batch in self.buffer:
+                out = self.loss(batch)
+                total = out["loss_objective"] + out["loss_critic"]
+                if "loss_entropy" in out.keys():
+                    total = total + out["loss_entropy"]
+                self.optim.zero_grad(set_to_none=True)
+                total.backward()
+                sums["grad_norm"] += self.guard.step(self.optim, self.params)["grad_norm"]
+                for key in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "clip_fraction", "kl_approx"):
+                    if key in out.keys():
+                        sums[key] += out[key].detach().float().mean().item()
+                updates += 1
+        metrics = {key: value / max(updates, 1) for key, value in sums.items()}
+        metrics.update(reward=data.get(("next", "reward")).mean().item(), skipped=self.guard.skipped,
+                       lr=self.optim.param_groups[0]["lr"])
+        if finished:
+            metrics["return"] = sum(finished) / len(finished)
+        # 3. learning-rate schedule
+        self.schedule.step()
+        # 4. normaliser statistics, then the collector gets the new weights
+        if self.normalizer is not None:
+            self.normalizer.update(data.get("observation"))
+        self.collector.update_policy_weights_()
+        self.iteration += 1
+        return metrics
+
+    def state_dict(self) -> dict:
+        return {
+            "iteration": self.iteration,
+            "actor": self.actor.state_dict(),  # the normaliser's statistics included
+            "critic": self.critic.state_dict(),
+            "loss": self.loss.state_dict(),
+            "optimizer": self.optim.state_dict(),
+            "schedule": self.schedule.state_dict(),
+            "guard": self.guard.state_dict(),
+            "tracker": self.tracker.state_dict(),
+            "collector": self.collector.state_dict(),
+            "carrier": collector_carrier_state(self.collector),
+            # the sampler draws the next epoch's permutation as soon as one runs out
+            "sampler": self.buffer.sampler.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.iteration = int(state["iteration"])
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.loss.load_state_dict(state["loss"])
+        self.optim.load_state_dict(state["optimizer"])
+        load_lr_scheduler(self.schedule, state["schedule"])
+        self.guard.load_state_dict(state["guard"])
+        self.tracker.load_state_dict(state["tracker"])
+        self.collector.load_state_dict(state["collector"])
+        load_collector_carrier(self.collector, state["carrier"])
+        self.buffer.sampler.load_state_dict(state["sampler"])
+
+    def close(self) -> None:
+        self.collector.shutdown(close_env=False)

@@ -1,0 +1,187 @@
+"""SAC through TorchRL itself: ``Collector`` -> replay buffer -> ``SACLoss`` + ``SoftUpdate``.
+
+One iteration, in the algorithm's order:
+
+1. collect ``num_envs x rollout_len`` steps (uniformly random actions for the first
+   ``init_random_frames``) and add them to the replay buffer;
+2. once ``init_random_frames`` steps are in, ``round(utd_ratio x steps collected)`` gradient
+   steps on sampled minibatches: actor, both Q-networks and the temperature (separate Adam
+   optimisers; actor and Q-networks through a guard), each followed by a soft update of the
+   target Q-networks;
+3. hand the new weights to the collector.
+"""
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+
+import torch
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.objectives import SACLoss, SoftUpdate
+
+from .. import checks
+from .._compat import collector_carrier_state, load_collector_carrier
+from ..collectors import EpisodeReturnTracker
+from ..modules import actor_from_config, qvalue_from_config
+from ..objectives import GradientGuard
+from .base import Learner, LearnerConfig, checked
+
+__all__ = ["SACConfig", "SACLearner"]
+
+# what SACLoss reads; the rest of a transition (physical state, params) stays out of the buffer
+_BUFFER_KEYS = (
+    "observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "terminated"),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class SACConfig(LearnerConfig):
+    """Settings of :class:`SACLearner` (the keys of ``configs/loss/sac.yaml``)."""
+
+    rollout_len: int = checked(1, checks.positive_int)  # an iteration is num_envs x rollout_len env steps
+    init_random_frames: int = checked(2000, checks.nonnegative_int)  # random actions before learning
+    buffer_size: int = checked(100_000, checks.positive_int)  # replay capacity (transitions)
+    batch_size: int = checked(256, checks.positive_int)  # transitions per gradient step
+    utd_ratio: float = checked(0.5, checks.positive)  # gradient steps per collected env step
+    lr: float = checked(3e-4, checks.learning_rate)  # actor and Q-networks
+    alpha_lr: float = checked(1e-3, checks.learning_rate)  # temperature
+    alpha_init: float = checked(0.1, checks.positive)
+    gamma: float = checked(0.99, checks.in_interval(0.0, 1.0))
+    tau: float = checked(0.005, checks.in_interval(0.0, 1.0))  # Polyak rate of the target Q-networks
+    loss_function: str = checked("l2", checks.one_of(("l1", "l2", "smooth_l1")))
+    max_grad_norm: float | None = checked(None, checks.optional_positive)  # clip each network's gradient norm
+    save_replay_buffer: bool = checked(True, checks.boolean)  # checkpoints hold the buffer (exact resume)
+
+    @classmethod
+    def relation_problems(cls, values, where: str = "") -> list[str]:
+        if values["buffer_size"] < values["batch_size"]:
+            return [f"{where}buffer_size={values['buffer_size']} is smaller than {where}batch_size={values['batch_size']}"]
+        return []
+
+
+class SACLearner(Learner):
+    """TorchRL's ``SACLoss`` (two Q-networks, learned temperature) with a replay buffer and
+    ``SoftUpdate`` target networks, on data from TorchRL's ``Collector``.
+
+    Args:
+        env: the batched training env (gradients through it are not used).
+        actor: a stochastic policy writing ``"action"`` (``make_actor(env)``).
+        qvalue: ``Q(observation, action)`` writing ``"state_action_value"`` (:func:`~torchrl_diffenvs.modules.make_qvalue`).
+        config: :class:`SACConfig`.
+        total_env_steps: the training budget (SAC's learning rates are constant).
+    """
+
+    name = "sac"
+    config_class = SACConfig
+
+    def __init__(self, env, actor, qvalue, config: SACConfig = SACConfig(), total_env_steps: int = 1_000_000):
+        super().__init__(env, config, total_env_steps)
+        c = config
+        self.actor = self.policy = actor
+        self.loss = SACLoss(
+            actor, qvalue, num_qvalue_nets=2, loss_function=c.loss_function, alpha_init=c.alpha_init,
+            action_spec=env.action_spec_unbatched,  # target entropy -action_dim
+            delay_qvalue=True,
+        )
+        self.loss.make_value_estimator(gamma=c.gamma)
+        self.target_updater = SoftUpdate(self.loss, tau=c.tau)
+        self.actor_params = list(self.loss.actor_network_params.values(True, True))
+        self.qvalue_params = list(self.loss.qvalue_network_params.values(True, True))
+        self.actor_optim = torch.optim.Adam(self.actor_params, lr=c.lr)
+        self.qvalue_optim = torch.optim.Adam(self.qvalue_params, lr=c.lr)
+        self.alpha_optim = torch.optim.Adam([self.loss.log_alpha], lr=c.alpha_lr)
+        self.actor_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
+        self.qvalue_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
+        self.buffer = ReplayBuffer(storage=LazyTensorStorage(c.buffer_size, device=env.device), batch_size=c.batch_size)
+        self.updates_per_iteration = max(1, round(c.utd_ratio * self.env_steps_per_iteration))
+        self.collector = Collector(
+            env, actor, frames_per_batch=self.env_steps_per_iteration, total_frames=-1,
+            init_random_frames=c.init_random_frames,
+            auto_register_policy_transforms=False,  # the policy reads only "observation"
+        )
+        self._batches = iter(self.collector)
+        self.tracker = EpisodeReturnTracker(self.num_envs, env.device)
+        self.frames = 0
+
+    @classmethod
+    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int) -> SACLearner:
+        if loss_cfg.get("obs_norm"):
+            raise ValueError("loss=sac does not support obs_norm (the replay buffer would mix statistics)")
+        actor, _ = actor_from_config(loss_cfg, env)
+        qvalue = qvalue_from_config(loss_cfg.qvalue, env)
+        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "qvalue", "obs_norm")}
+        return cls(env, actor, qvalue, SACConfig.from_mapping(settings), total_env_steps)
+
+    @property
+    def env_steps_per_iteration(self) -> int:
+        return self.num_envs * self.config.rollout_len
+
+    def train_iteration(self) -> dict[str, float]:
+        c = self.config
+        # 1. collect into the replay buffer
+        data = next(self._batches)  # [num_envs, rollout_len]
+        finished, _ = self.tracker.update(data)
+        self.buffer.extend(data.reshape(-1).select(*_BUFFER_KEYS))
+        self.frames += data.numel()
+        metrics = {"reward": data.get(("next", "reward")).mean().item()}
+        if finished:
+            metrics["return"] = sum(finished) / len(finished)
+        # 2. gradient steps on sampled minibatches, each followed by the target update
+        if self.frames >= c.init_random_frames and len(self.buffer) >= c.batch_size:
+            sums = dict.fromkeys(("loss_actor", "loss_qvalue", "loss_alpha", "grad_norm_actor", "grad_norm_qvalue",
+                                  "entropy"), 0.0)
+            for _ in range(self.updates_per_iteration):
+                out = self.loss(self.buffer.sample())
+                total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
+                for optim in (self.actor_optim, self.qvalue_optim, self.alpha_optim):
+                    optim.zero_grad(set_to_none=True)
+                total.backward()
+                sums["grad_norm_actor"] += self.actor_guard.step(self.actor_optim, self.actor_params)["grad_norm"]
+                sums["grad_norm_qvalue"] += self.qvalue_guard.step(self.qvalue_optim, self.qvalue_params)["grad_norm"]
+                self.alpha_optim.step()
+                self.target_updater.step()
+                for key in ("loss_actor", "loss_qvalue", "loss_alpha", "entropy"):
+                    sums[key] += out[key].detach().float().mean().item()
+            metrics.update({key: value / self.updates_per_iteration for key, value in sums.items()})
+            metrics["alpha"] = self.loss.log_alpha.exp().item()
+        metrics["skipped_actor"] = self.actor_guard.skipped
+        metrics["skipped_qvalue"] = self.qvalue_guard.skipped
+        # 3. the collector gets the new weights
+        self.collector.update_policy_weights_()
+        self.iteration += 1
+        return metrics
+
+    def state_dict(self) -> dict:
+        return {
+            "iteration": self.iteration,
+            "loss": self.loss.state_dict(),  # actor, Q-networks, their targets, log_alpha
+            "actor_optimizer": self.actor_optim.state_dict(),
+            "qvalue_optimizer": self.qvalue_optim.state_dict(),
+            "alpha_optimizer": self.alpha_optim.state_dict(),
+            "actor_guard": self.actor_guard.state_dict(),
+            "qvalue_guard": self.qvalue_guard.state_dict(),
+            "tracker": self.tracker.state_dict(),
+            "collector": self.collector.state_dict(),
+            "carrier": collector_carrier_state(self.collector),
+            "frames": self.frames,
+            "buffer": self.buffer.state_dict() if self.config.save_replay_buffer else None,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.iteration = int(state["iteration"])
+        self.loss.load_state_dict(state["loss"])
+        self.actor_optim.load_state_dict(state["actor_optimizer"])
+        self.qvalue_optim.load_state_dict(state["qvalue_optimizer"])
+        self.alpha_optim.load_state_dict(state["alpha_optimizer"])
+        self.actor_guard.load_state_dict(state["actor_guard"])
+        self.qvalue_guard.load_state_dict(state["qvalue_guard"])
+        self.tracker.load_state_dict(state["tracker"])
+        self.collector.load_state_dict(state["collector"])
+        load_collector_carrier(self.collector, state["carrier"])
+        self.frames = int(state["frames"])
+        if state["buffer"] is not None:
+            self.buffer.load_state_dict(state["buffer"])
+
+    def close(self) -> None:
+        self.collector.shutdown(close_env=False)
