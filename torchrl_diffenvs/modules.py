@@ -23,12 +23,11 @@ from collections.abc import Mapping, Sequence
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import InteractionType, TensorDictModuleBase
-from tensordict.nn.probabilistic import interaction_type
 from torch import nn
 from torch.distributions import AffineTransform
-from torch.distributions.utils import _standard_normal
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
-from torchrl.modules.distributions.continuous import SafeTanhTransform
+
+from ._compat import SafeTanhTransform, current_interaction_type, sampler_has_own_generator, standard_normal
 
 __all__ = [
     "LeanModule",
@@ -237,9 +236,9 @@ class TanhNormalActor(ProbabilisticActor):
             return None
         if sampler.return_log_prob or getattr(sampler, "safe", False) or len(self.module) != 2:
             return None
-        if any(getattr(sampler, name, None) is not None for name in ("num_samples", "_generator", "_generator_key")):
+        if getattr(sampler, "num_samples", None) is not None or sampler_has_own_generator(sampler):
             return None
-        mode = interaction_type()
+        mode = current_interaction_type()
         if mode is None:
             mode = sampler.default_interaction_type
         return mode if mode in (InteractionType.RANDOM, InteractionType.DETERMINISTIC) else None
@@ -254,7 +253,7 @@ class TanhNormalActor(ProbabilisticActor):
         if mode is InteractionType.RANDOM:
             scale = tensordict.get("scale")
             # Normal.rsample: loc + eps * scale, eps from the global stream
-            pre_tanh = loc + _standard_normal(loc.shape, dtype=loc.dtype, device=loc.device) * scale
+            pre_tanh = loc + standard_normal(loc.shape, dtype=loc.dtype, device=loc.device) * scale
         action = self._tanh(pre_tanh)
         if self._affine is not None:
             action = self._affine(action)

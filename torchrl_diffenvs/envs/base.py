@@ -26,6 +26,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from .fast_rollout import fast_rollout, fast_rollout_unsupported
+
 __all__ = ["DiffEnv"]
 
 _FLOAT_DTYPES = (torch.float32, torch.float64)
@@ -309,6 +311,12 @@ class DiffEnv(EnvBase):
     # ------------------------------------------------------------------ fast rollout
     use_fast_rollout: bool = True  # False: always use EnvBase.rollout (e.g. to compare)
 
+    @classmethod
+    def overridden_methods(cls, names) -> list[str]:
+        """Those of ``names`` that ``cls`` defines differently from :class:`DiffEnv` (the lean
+        rollout reproduces DiffEnv's and TorchRL's versions only)."""
+        return [name for name in names if getattr(cls, name) is not getattr(DiffEnv, name)]
+
     def rollout(self, max_steps: int, policy=None, callback=None, **kwargs) -> TensorDictBase:
         """``EnvBase.rollout`` (same arguments, same result), through a lean loop when possible.
 
@@ -317,8 +325,6 @@ class DiffEnv(EnvBase):
         argument it does not reproduce is given (see ``fast_rollout_unsupported``).
         ``TransformedEnv`` never calls this method: it steps the base env itself.
         """
-        from .fast_rollout import fast_rollout, fast_rollout_unsupported  # base.py is imported first
-
         if fast_rollout_unsupported(self, callback, kwargs) is None:
             return fast_rollout(self, max_steps, policy, **kwargs)
         return super().rollout(max_steps, policy, callback, **kwargs)

@@ -33,15 +33,20 @@ from __future__ import annotations
 import operator
 import weakref
 from collections.abc import Callable, Iterable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import _make_compatible_policy  # the policy wrapping EnvBase.rollout applies
 
-if TYPE_CHECKING:  # pragma: no cover
-    from .base import DiffEnv
+from .._compat import (
+    ENVBASE_STEP_METHODS,
+    has_dynamic_specs,
+    make_compatible_policy,
+    rollout_machinery_in_use,
+    unchecked_tensordict,
+)
+
 
 __all__ = ["fast_rollout", "fast_rollout_unsupported", "compile_physics", "eager_physics", "FAST_ROLLOUT_KWARGS"]
 
@@ -71,19 +76,17 @@ FAST_ROLLOUT_KWARGS: dict[str, tuple | None] = {
 # Methods whose TorchRL / DiffEnv versions the lean loop reimplements: a subclass that overrides
 # one of them gets EnvBase.rollout, which calls the override.
 _REIMPLEMENTED_METHODS = (
-    "_step", "_reset", "step", "reset", "maybe_reset", "step_and_maybe_reset", "_step_and_maybe_reset",
-    "_step_proc_data", "_reset_proc_data", "rand_action", "any_done", "_output",
+    "_step", "_reset", "step", "reset", "maybe_reset", "step_and_maybe_reset", "rand_action", "any_done", "_output",
+    *ENVBASE_STEP_METHODS,
 )
 
 
-def fast_rollout_unsupported(env: DiffEnv, callback: Callable | None, kwargs: Mapping[str, Any]) -> str | None:
+def fast_rollout_unsupported(env: EnvBase, callback: Callable | None, kwargs: Mapping[str, Any]) -> str | None:
     """Why ``env.rollout(..., callback=callback, **kwargs)`` must take ``EnvBase.rollout``.
 
     Returns ``None`` when the lean path reproduces the call exactly, else a short reason
     (useful when debugging a slow rollout: ``fast_rollout_unsupported(env, None, kwargs)``).
     """
-    from .base import DiffEnv  # local: base.py imports this module
-
     if not getattr(env, "use_fast_rollout", True):
         return "env.use_fast_rollout is False"
     if callback is not None:
@@ -94,17 +97,13 @@ def fast_rollout_unsupported(env: DiffEnv, callback: Callable | None, kwargs: Ma
         allowed = FAST_ROLLOUT_KWARGS[key]
         if allowed is not None and not any(value is a or (a is not None and value == a) for a in allowed):
             return f"{key}={value!r}"
-    cls = type(env)
     # (a task with its own truncation rule overrides DiffEnv._truncated, which the loop calls)
-    for name in _REIMPLEMENTED_METHODS:
-        if getattr(cls, name) is not getattr(DiffEnv, name):
-            return f"{cls.__name__} overrides {name}"
-    if env.__dict__.get("_compiled_step_and_maybe_reset") is not None:
-        return "env.compile() is active"
-    if env.__dict__.get("_torchrl_native_autoreset", False):
-        return "native auto-reset"
-    if env._post_step_mdp_hooks is not None:
-        return "post-step-mdp hooks"
+    overridden = type(env).overridden_methods(_REIMPLEMENTED_METHODS)
+    if overridden:
+        return f"{type(env).__name__} overrides {overridden[0]}"
+    machinery = rollout_machinery_in_use(env)
+    if machinery is not None:
+        return machinery
     if env.run_type_checks:
         return "run_type_checks"
     if env.action_keys != ["action"] or env.reward_keys != ["reward"] or sorted(env.done_keys) != sorted(_FLAG_KEYS):
@@ -116,7 +115,7 @@ def fast_rollout_unsupported(env: DiffEnv, callback: Callable | None, kwargs: Ma
 
 
 def fast_rollout(
-    env: DiffEnv,
+    env: EnvBase,
     max_steps: int,
     policy: Callable[[TensorDictBase], TensorDictBase] | None = None,
     *,
@@ -148,7 +147,7 @@ def fast_rollout(
     if break_when_any_done is None:  # EnvBase's defaults
         break_when_any_done = not break_when_all_done
     if return_contiguous is None:
-        return_contiguous = not env._has_dynamic_specs
+        return_contiguous = not has_dynamic_specs(env)
     try:
         max_steps = operator.index(max_steps)
     except TypeError:
@@ -162,9 +161,7 @@ def fast_rollout(
         if hasattr(actions, "__len__"):
             max_steps = min(max_steps, len(actions))
     elif policy is not None:
-        policy = _make_compatible_policy(
-            policy, env.observation_spec, env=env, fast_wrap=True, trust_policy=trust_policy
-        )
+        policy = make_compatible_policy(policy, env, trust_policy)
 
     # The first TensorDict comes from TorchRL itself: same reset, same warnings, same in-place
     # update of a user-given ``tensordict``.
@@ -180,7 +177,7 @@ def fast_rollout(
     return loop.run(td0, max_steps, break_when_any_done, return_contiguous, set_truncated)
 
 
-def _physics_steps(env: DiffEnv, plain_truncation: bool, state: dict, params: dict, episode_step: torch.Tensor,
+def _physics_steps(env: EnvBase, plain_truncation: bool, state: dict, params: dict, episode_step: torch.Tensor,
                    actions: list[torch.Tensor]) -> list[dict]:
     """``DiffEnv._step`` on plain tensors, once per action: the ``"next"`` entries of each step.
 
@@ -218,12 +215,10 @@ def _physics_steps(env: DiffEnv, plain_truncation: bool, state: dict, params: di
 class _Physics:
     """Runs :func:`_physics_steps` eagerly, or through the functions of :func:`compile_physics`."""
 
-    def __init__(self, env: DiffEnv, all_false: torch.Tensor):
-        from .base import DiffEnv  # local: base.py imports this module
-
+    def __init__(self, env: EnvBase, all_false: torch.Tensor):
         self.env = env
         self.all_false = all_false
-        self.plain_truncation = type(env)._truncated is DiffEnv._truncated
+        self.plain_truncation = not type(env).overridden_methods(("_truncated",))
         self.compiled = env.__dict__.get("_compiled_physics")
         self.chunk = 1 if self.compiled is None else self.compiled.steps_per_chunk
 
@@ -249,7 +244,7 @@ class _Physics:
 class _CompiledPhysics:
     """``torch.compile``'d :func:`_physics_steps` for one env: chunks of ``K`` steps and single steps."""
 
-    def __init__(self, env: DiffEnv, steps_per_chunk: int, compile_kwargs: dict):
+    def __init__(self, env: EnvBase, steps_per_chunk: int, compile_kwargs: dict):
         self.steps_per_chunk = steps_per_chunk
         self.compile_kwargs = {"dynamic": False, **compile_kwargs}
         self.env_ref = weakref.ref(env)  # the env holds this object: no reference cycle
@@ -269,7 +264,7 @@ class _CompiledPhysics:
         return fn(state, params, episode_step, actions)
 
 
-def compile_physics(env: DiffEnv, steps_per_chunk: int = 8, **compile_kwargs) -> DiffEnv:
+def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) -> EnvBase:
     """Opt-in: ``env.rollout`` runs its physics through ``torch.compile``; returns ``env``.
 
     Without a policy (random actions, or ``actions=``) the lean rollout path steps
@@ -293,7 +288,7 @@ def compile_physics(env: DiffEnv, steps_per_chunk: int = 8, **compile_kwargs) ->
     return env
 
 
-def eager_physics(env: DiffEnv) -> DiffEnv:
+def eager_physics(env: EnvBase) -> EnvBase:
     """Undoes :func:`compile_physics`; returns ``env``."""
     env.__dict__.pop("_compiled_physics", None)
     return env
@@ -315,7 +310,7 @@ class _RandomActions:
 
     BLOCK_ELEMENTS = 1 << 18  # about 1 MB of float32 per block
 
-    def __init__(self, env: DiffEnv, max_steps: int):
+    def __init__(self, env: EnvBase, max_steps: int):
         space = env.action_spec.space
         self.low, self.high = space.low, space.high
         self.span = self.high - self.low
@@ -362,7 +357,7 @@ class _Loop:
     can be recognised from step to step, see :func:`_stack_time`).
     """
 
-    def __init__(self, env: DiffEnv, policy, action_source, max_steps: int):
+    def __init__(self, env: EnvBase, policy, action_source, max_steps: int):
         self.env = env
         self.policy = policy
         if action_source is None and policy is None:
@@ -525,7 +520,7 @@ class _Loop:
             source[key] = value  # "state" / "params" dicts become nested TensorDicts
         # every entry already has the right batch size and device: skip TensorDict's checks
         # (about 15 us per TensorDict; the public constructor validates the final output)
-        return TensorDict._new_unsafe(source, batch_size=self.bs, device=self.device)
+        return unchecked_tensordict(source, self.bs, self.device)
 
     # ------------------------------------------------------------------ output
     def build_output(self, roots: list[dict], nexts: list[dict], return_contiguous: bool) -> TensorDictBase:
