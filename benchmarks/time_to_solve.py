@@ -2,7 +2,7 @@
 
 Drives the project's public training entry point, ``sota_scripts/train.py`` (its ``run``
 function, on configurations composed by Hydra exactly as the command line composes them: the
-defaults of configs/, the tuned per-pair files of configs/tuned/, then the overrides below).
+defaults of configs/ (loss settings and budgets), the per-pair files of configs/tuned/, then the overrides below).
 Runs are interleaved (seed by seed, loss by loss) so that load from other processes spreads
 over all learners. Each run logs deterministic evaluations (``eval/return``, the mean return of
 ``eval.num_envs`` fixed start states) against env steps; the wall time of an evaluation is the

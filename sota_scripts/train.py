@@ -6,7 +6,8 @@
     python sota_scripts/train.py resume=outputs/<run>/checkpoints/last.pt
     python sota_scripts/train.py mode=eval checkpoint=outputs/<run>/checkpoints/last.pt
 
-Configuration: configs/ (Hydra; config groups env/, loss/, logger/, per-pair defaults in tuned/).
+Configuration: configs/ (Hydra; config groups loss/, logger/, per-pair tuning in tuned/; env=<name> from
+the task registrations).
 Everything a run writes goes to its Hydra run directory: metrics.jsonl / metrics.csv,
 final_metrics.json, checkpoints/ (last.pt and numbered ones), learning_curve.png, final.gif and,
 with the default logger, the offline W&B run in wandb/.

@@ -98,14 +98,29 @@ def test_random_actions_match_envbase(name, break_when_any_done):
         assert ref.shape[1] == STEPS and ref["next", "done"].any()
     assert_same_tensordict(got, ref)
     # the env remembers the same latest output for rendering
-    assert_same_tensordict(env._last_output, _last_output_after(EnvBase.rollout, env, break_when_any_done))
+    assert_same_render_source(env._render_source, _render_source_after(EnvBase.rollout, env, break_when_any_done))
 
 
-def _last_output_after(rollout, env, break_when_any_done):
+def _render_source_after(rollout, env, break_when_any_done):
     torch.manual_seed(0)
     env.set_seed(1)
     rollout(env, STEPS, break_when_any_done=break_when_any_done)
-    return env._last_output
+    return env._render_source
+
+
+def assert_same_render_source(got, expected):
+    if isinstance(expected, tuple):  # a partial reset: (before, fresh, mask)
+        assert isinstance(got, tuple)
+        for a, b in zip(got[:2], expected[:2]):
+            assert_same_render_source(a, b)
+        torch.testing.assert_close(got[2], expected[2], rtol=0, atol=0)
+        return
+    assert not isinstance(got, tuple) and got["num_envs"] == expected["num_envs"]
+    for part in ("state", "params"):
+        assert got[part].keys() == expected[part].keys()
+        for key in expected[part]:
+            torch.testing.assert_close(got[part][key], expected[part][key], rtol=0, atol=0)
+    torch.testing.assert_close(got["reward"], expected["reward"], rtol=0, atol=0)
 
 
 def test_terminations_and_partial_resets_match_envbase():

@@ -15,11 +15,13 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from omegaconf import OmegaConf
 from hydra import compose, initialize_config_dir
 from hydra.errors import MissingConfigException
 
 from _env_helpers import classic_envs
 from torchrl_diffenvs import list_envs
+from torchrl_diffenvs.envs import env_config
 from torchrl_diffenvs.evaluation import episode_returns
 from torchrl_diffenvs.training import (
     CheckpointError,
@@ -77,29 +79,52 @@ def read_jsonl(path: Path) -> list[dict]:
 
 
 # ---------------------------------------------------------------------- configuration
-def test_every_registered_env_has_a_config_and_every_pair_tuned_defaults():
-    env_files = {p.stem for p in (CONFIGS / "env").glob("*.yaml")}
-    assert env_files == set(list_envs())
+def test_every_registered_env_and_loss_has_a_config():
     loss_files = {p.stem for p in (CONFIGS / "loss").glob("*.yaml")}
     assert loss_files == set(LOSSES)
-    for env in classic_envs():  # the MuJoCo-model tasks have no tuned defaults yet
-        for loss in LOSSES:
-            assert (CONFIGS / "tuned" / f"{env}_{loss}.yaml").is_file(), f"no tuned defaults for {env} x {loss}"
+    assert not (CONFIGS / "env").exists(), "env sections come from the task registrations"
+    for name in list_envs():
+        cfg = make_cfg(f"env={name}", "loss=shac")
+        assert OmegaConf.to_container(cfg.env) == env_config(name)
+    # a tuned file only for a pair that exists
+    for path in (CONFIGS / "tuned").glob("*.yaml"):
+        env, _, loss = path.stem.rpartition("_")
+        assert env in list_envs() and loss in LOSSES, path.name
 
 
-@pytest.mark.parametrize("env", list_envs())
-def test_default_config_of_every_pair_is_valid(env):
-    for loss in LOSSES:
-        cfg = make_cfg(f"env={env}", f"loss={loss}")
-        assert cfg.env.name == env and cfg.loss.name == loss
-        train_script.validate_config(cfg)  # raises on any problem
+def test_a_newly_registered_task_is_trainable_without_a_config_file():
+    from torchrl_diffenvs.envs import PendulumEnv, register_env
+    from torchrl_diffenvs.envs.registry import _REGISTRY
+    from torchrl_diffenvs.training.config import register_env_configs
+
+    class LongPendulum(PendulumEnv):
+        name = "long_pendulum_test"
+
+    register_env(LongPendulum, num_envs=16)
+    try:
+        register_env_configs()
+        cfg = make_cfg("env=long_pendulum_test", "loss=bptt")
+        assert cfg.env.num_envs == 16 and cfg.env.name == "long_pendulum_test"
+        train_script.validate_config(cfg)
+    finally:
+        _REGISTRY.pop("long_pendulum_test")
+
+
+@pytest.mark.parametrize("loss, budget", [("bptt", 600_000), ("shac", 400_000), ("ppo", 500_000), ("sac", 15_000)])
+def test_each_loss_carries_its_budget(loss, budget):
+    cfg = make_cfg("env=swimmer", f"loss={loss}")
+    assert cfg.train.total_env_steps == budget
+    assert cfg.env.num_envs == (8 if loss == "sac" else 64)  # SAC: few envs, many updates per env step
 
 
 def test_tuned_defaults_override_the_loss_defaults_but_not_the_command_line():
     tuned = yaml.safe_load((CONFIGS / "tuned" / "pendulum_shac.yaml").read_text())
-    budget = tuned["train"]["total_env_steps"]
-    assert make_cfg("env=pendulum", "loss=shac").train.total_env_steps == budget
-    assert make_cfg("env=pendulum", "loss=shac", "train.total_env_steps=123").train.total_env_steps == 123
+    horizon = tuned["loss"]["horizon"]
+    assert horizon != yaml.safe_load((CONFIGS / "loss" / "shac.yaml").read_text())["loss"]["horizon"]
+    assert make_cfg("env=pendulum", "loss=shac").loss.horizon == horizon
+    assert make_cfg("env=pendulum", "loss=shac", "loss.horizon=3").loss.horizon == 3
+    assert make_cfg("env=CartPole-v1", "loss=bptt").train.total_env_steps == 200_000  # a per-pair budget
+    assert make_cfg("env=CartPole-v1", "loss=bptt", "train.total_env_steps=123").train.total_env_steps == 123
 
 
 def test_unknown_env_or_loss_lists_the_valid_choices():

@@ -4,6 +4,7 @@ import math
 import torch
 
 from .base import DiffEnv
+from .registry import register_env
 
 
 def cartpole_accelerations(theta, theta_dot, force, params):
@@ -17,6 +18,7 @@ def cartpole_accelerations(theta, theta_dot, force, params):
     return x_acc, theta_acc
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:CARTPOLE")
 class CartPoleEnv(DiffEnv):
     """Swing the pole up from any angle and balance it, keeping the cart near the centre.
 

@@ -18,6 +18,7 @@ import torch
 
 from .base import DiffEnv, angle_normalize
 from .cartpole import cartpole_accelerations
+from .registry import register_env
 
 __all__ = ["GymnasiumClassicEnv", "CartPoleV1Env", "PendulumV1Env", "MountainCarContinuousV0Env"]
 
@@ -36,6 +37,7 @@ class GymnasiumClassicEnv(DiffEnv):
         return episode_step >= self.max_episode_steps
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:CARTPOLE_V1")
 class CartPoleV1Env(GymnasiumClassicEnv):
     """Gymnasium's ``CartPole-v1`` (balance the pole; theta = 0 upright) with a continuous force.
 
@@ -82,6 +84,7 @@ class CartPoleV1Env(GymnasiumClassicEnv):
         return torch.stack([state["x"], state["xd"], state["th"], state["thd"]], dim=-1)
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:PENDULUM_V1")
 class PendulumV1Env(GymnasiumClassicEnv):
     """Gymnasium's ``Pendulum-v1``: swing up and hold a pendulum (theta = 0 upright), g = 10.
 
@@ -120,6 +123,7 @@ class PendulumV1Env(GymnasiumClassicEnv):
         return torch.stack([torch.cos(th), torch.sin(th), state["thd"]], dim=-1)
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:MOUNTAINCAR_CONTINUOUS_V0")
 class MountainCarContinuousV0Env(GymnasiumClassicEnv):
     """Gymnasium's ``MountainCarContinuous-v0``: an underpowered car must rock itself up the hill.
 

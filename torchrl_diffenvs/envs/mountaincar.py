@@ -2,8 +2,10 @@
 import torch
 
 from .base import DiffEnv
+from .registry import register_env
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:MOUNTAINCAR")
 class MountainCarEnv(DiffEnv):
     """Drive the car up to the goal; the motor is strong enough to climb directly.
 

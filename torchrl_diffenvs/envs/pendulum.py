@@ -4,8 +4,10 @@ import math
 import torch
 
 from .base import DiffEnv
+from .registry import register_env
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:PENDULUM")
 class PendulumEnv(DiffEnv):
     """Swing a pendulum up and keep it upright.
 

@@ -4,8 +4,10 @@ import math
 import torch
 
 from .base import DiffEnv
+from .registry import register_env
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:REACHER", options={"num_links": 2, "goal_sampling": "reachable"})
 class ReacherEnv(DiffEnv):
     """Move the tip of an ``num_links``-link arm (absolute link angles) onto a goal point.
 

@@ -1,20 +1,67 @@
-"""Name -> env class registry behind :func:`make_env` and :func:`list_envs`."""
+"""The task registry behind :func:`make_env` and :func:`list_envs`.
+
+A task is one file: its physics (a :class:`~torchrl_diffenvs.DiffEnv` subclass) and, above the
+class, one registration that names it, says how it is drawn and gives its training config::
+
+    @register_env(drawer="torchrl_diffenvs.rendering.tasks:PENDULUM")
+    class PendulumEnv(DiffEnv):
+        name = "pendulum"
+        ...
+
+The drawer is a ``"module:attribute"`` path, imported only when the task is first drawn (so
+Pillow stays optional); the training script's ``env=<name>`` config is generated from the
+registration (:func:`env_config`).
+"""
 from __future__ import annotations
 
-from .base import DiffEnv
+import importlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
-_REGISTRY: dict[str, type[DiffEnv]] = {}
+__all__ = ["TaskSpec", "env_class", "env_config", "list_envs", "make_env", "register_env", "task_drawer", "task_spec"]
 
 
-def register_env(cls: type[DiffEnv], name: str | None = None) -> type[DiffEnv]:
-    """Adds an env class under ``name`` (default ``cls.name``); usable as a decorator."""
-    key = name or cls.name
-    if not key:
-        raise ValueError(f"{cls.__name__} has no name to register under")
-    if key in _REGISTRY and _REGISTRY[key] is not cls:
-        raise ValueError(f"an env named {key!r} is already registered ({_REGISTRY[key].__name__})")
-    _REGISTRY[key] = cls
-    return cls
+@dataclass(frozen=True)
+class TaskSpec:
+    """One registered task.
+
+    Attributes:
+        cls: the env class (a ``DiffEnv`` subclass).
+        drawer: how the task is drawn: a ``"module:attribute"`` path to a
+            :class:`~torchrl_diffenvs.rendering.Drawer` (or to a callable ``(env_class) -> Drawer``),
+            a ``Drawer`` itself, or ``None``.
+        options: task options shown in (and passed from) the training config's ``env.options``.
+        num_envs: the training config's default batch size.
+    """
+
+    cls: type
+    drawer: object = None
+    options: Mapping = field(default_factory=dict)
+    num_envs: int = 64
+
+
+_REGISTRY: dict[str, TaskSpec] = {}
+_DRAWERS: dict[str, object] = {}  # resolved drawers, by task name
+
+
+def register_env(cls: type | None = None, name: str | None = None, *, drawer=None, options: Mapping | None = None,
+                 num_envs: int = 64):
+    """Registers an env class under ``name`` (default ``cls.name``); usable as a decorator, with
+    or without arguments (``@register_env`` or ``@register_env(drawer=...)``)."""
+
+    def add(cls: type) -> type:
+        key = name or getattr(cls, "name", "")
+        if not key:
+            raise ValueError(f"{cls.__name__} has no name to register under")
+        if key in _REGISTRY and _REGISTRY[key].cls is not cls:
+            raise ValueError(f"an env named {key!r} is already registered ({_REGISTRY[key].cls.__name__})")
+        if drawer is not None and isinstance(drawer, str) and ":" not in drawer:
+            raise ValueError(f"register_env({key!r}): drawer must be a 'module:attribute' path, got {drawer!r}")
+        _REGISTRY[key] = TaskSpec(cls, drawer, dict(options or {}), int(num_envs))
+        _DRAWERS.pop(key, None)
+        return cls
+
+    return add if cls is None else add(cls)
 
 
 def list_envs() -> list[str]:
@@ -22,15 +69,46 @@ def list_envs() -> list[str]:
     return sorted(_REGISTRY)
 
 
-def env_class(name: str) -> type[DiffEnv]:
-    """The class :func:`make_env` builds for ``name``."""
+def _spec(name: str) -> TaskSpec:
     try:
         return _REGISTRY[name]
     except (KeyError, TypeError):
         raise ValueError(f"unknown env {name!r}; valid names: {', '.join(list_envs())}") from None
 
 
-def make_env(name: str, num_envs: int = 1, **kwargs) -> DiffEnv:
+def task_spec(name: str) -> TaskSpec:
+    """The registration of task ``name``."""
+    return _spec(name)
+
+
+def env_class(name: str) -> type:
+    """The class :func:`make_env` builds for ``name``."""
+    return _spec(name).cls
+
+
+def task_drawer(name: str):
+    """The drawer registered with task ``name`` (imported on first use), or ``None``."""
+    spec = _spec(name)
+    if name in _DRAWERS:
+        return _DRAWERS[name]
+    drawer = spec.drawer
+    if isinstance(drawer, str):
+        module, _, attribute = drawer.partition(":")
+        drawer = getattr(importlib.import_module(module), attribute)
+    if drawer is not None and not hasattr(drawer, "picture"):  # a factory: (env class) -> Drawer
+        drawer = drawer(spec.cls)
+    _DRAWERS[name] = drawer
+    return drawer
+
+
+def env_config(name: str) -> dict:
+    """The training script's ``env`` section for task ``name`` (``python sota_scripts/train.py env=<name>``)."""
+    spec = _spec(name)
+    return {"name": name, "num_envs": spec.num_envs, "max_episode_steps": None, "options": dict(spec.options),
+            "params": {}}
+
+
+def make_env(name: str, num_envs: int = 1, **kwargs):
     """Builds a batched differentiable env by name, e.g. ``make_env("swimmer", num_envs=64)``.
 
     Keyword arguments go to the env class: ``device``, ``dtype``, ``seed``,

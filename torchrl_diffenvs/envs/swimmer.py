@@ -2,8 +2,10 @@
 import torch
 
 from .base import DiffEnv
+from .registry import register_env
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:SWIMMER", options={"num_urchins": 5, "urchin_clearance": 0.25})
 class SwimmerEnv(DiffEnv):
     """Steer a point mass to the goal around ``num_urchins`` urchins.
 

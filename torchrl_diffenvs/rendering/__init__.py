@@ -1,8 +1,9 @@
 """Rendering without a display: RGB frames of every task, grids of envs, GIF export.
 
 ``env.render(td=None, env_index=0 | [i, ...] | "all", size=256)`` returns an ``np.ndarray``
-``[H, W, 3]`` uint8 drawn with Pillow; :func:`save_gif` writes a list of frames. New tasks add
-their picture with :func:`register_drawer`. Needs the ``render`` extra (Pillow).
+``[H, W, 3]`` uint8 drawn with Pillow; :func:`save_gif` writes a list of frames. A task names its
+drawer in its registration (``@register_env(drawer="module:attribute")``, imported on first use);
+:func:`register_drawer` adds or overrides one by name. Needs the ``render`` extra (Pillow).
 """
 from .core import (
     Canvas,
@@ -16,10 +17,7 @@ from .core import (
     tile_frames,
     transform,
 )
-from .tasks import register_task_drawers
 from .video import save_gif
-
-register_task_drawers()
 
 __all__ = [
     "Canvas", "Drawer", "get_drawer", "list_drawers", "register_drawer", "render_frame", "reward_color",

@@ -197,24 +197,36 @@ def register_drawer(
 
 
 def list_drawers() -> list[str]:
-    """The task names that have a drawer."""
-    return sorted(_DRAWERS)
+    """The task names that have a drawer (registered tasks with one, and :func:`register_drawer`'s)."""
+    from ..envs.registry import list_envs, task_spec
+
+    return sorted(set(_DRAWERS) | {name for name in list_envs() if task_spec(name).drawer is not None})
 
 
 def get_drawer(env_or_name) -> Drawer:
-    """The drawer of an env (by its ``name``, then its base classes' names) or of a task name."""
+    """The drawer of an env or a task name: one added with :func:`register_drawer` (by the env's
+    ``name``, then its base classes' names), else the one named in the task's registration."""
+    from ..envs.registry import list_envs, task_drawer
+
     if isinstance(env_or_name, str):
         names = [env_or_name]
     else:
         names = [getattr(env_or_name, "name", None)]
         names += [getattr(cls, "name", None) for cls in type(env_or_name).__mro__]
+    names = [n for n in names if isinstance(n, str) and n]
     for name in names:
-        if isinstance(name, str) and name in _DRAWERS:
+        if name in _DRAWERS:
             return _DRAWERS[name]
-    what = repr(env_or_name) if isinstance(env_or_name, str) else f"{names[0]!r} ({type(env_or_name).__name__})"
+    for name in names:
+        if name in list_envs():
+            drawer = task_drawer(name)
+            if drawer is not None:
+                return drawer
+    what = repr(env_or_name) if isinstance(env_or_name, str) else f"{names[0] if names else None!r} ({type(env_or_name).__name__})"
     raise KeyError(
         f"no drawer registered for env {what}; drawers exist for: {', '.join(list_drawers())}. "
-        "Add one with torchrl_diffenvs.rendering.register_drawer(name, draw, bounds=...)."
+        "Add one with torchrl_diffenvs.rendering.register_drawer(name, draw, bounds=...), or name one in the "
+        "task's registration: @register_env(drawer='module:attribute')."
     )
 
 
@@ -225,15 +237,16 @@ def _to_python(value: torch.Tensor):
 
 
 def _snapshot(source, index: int, default_params: TensorDictBase):
-    """``(state, params, reward)`` of env ``index``; ``source`` is a TensorDict or a partial-reset triple."""
+    """``(state, params, reward)`` of env ``index``; ``source`` is a TensorDict, the env's latest
+    output (a dict, see ``DiffEnv._remember_for_render``) or a partial-reset triple of those."""
     if isinstance(source, tuple):
         # (output before the reset, reset output, "_reset" mask): only masked envs were reset
         previous, fresh, mask = source
         return _snapshot(fresh if bool(mask.reshape(-1)[index]) else previous, index, default_params)
     state = {key: _to_python(value[index]) for key, value in source.get("state").items()}
-    params_td = source.get("params", None)
-    params_td = default_params if params_td is None else params_td
-    params = {key: _to_python(value[index]) for key, value in params_td.items()}
+    params_source = source.get("params", None)
+    params_source = default_params if params_source is None else params_source
+    params = {key: _to_python(value[index]) for key, value in params_source.items()}
     reward = source.get("reward", None)
     reward = None if reward is None else float(reward[index].detach().reshape(-1)[0])
     return state, params, reward
@@ -242,11 +255,11 @@ def _snapshot(source, index: int, default_params: TensorDictBase):
 def _check_source(env, tensordict) -> tuple[Any, int]:
     """Returns the TensorDict (or partial-reset triple) to draw and its number of envs."""
     if tensordict is None:
-        source = getattr(env, "_last_output", None)
+        source = getattr(env, "_render_source", None)
         if source is None:
             raise RuntimeError(f"{env.name}: nothing to render yet; call env.reset() or env.step() first, or pass a TensorDict")
         fresh = source[1] if isinstance(source, tuple) else source  # partial-reset triple: see _snapshot
-        return source, fresh.batch_size[0]
+        return source, fresh["num_envs"]
     if not isinstance(tensordict, TensorDictBase):
         raise TypeError(f"{env.name}: render expects a TensorDict or None, got {type(tensordict).__name__}")
     if "state" not in tensordict.keys():

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .core import Canvas
+from .core import Canvas, Drawer
 
 __all__ = ["MuJoCoView", "geom_outlines", "geom_world_poses"]
 
@@ -143,10 +143,10 @@ def geom_outlines(model_file: str, qpos, plane: str = "xz") -> list[tuple[int, n
 
 @dataclass(frozen=True)
 class MuJoCoView:
-    """How to look at one MuJoCo-model task.
+    """How to look at one MuJoCo-model task; ``view(env_class)`` is its
+    :class:`~torchrl_diffenvs.rendering.Drawer` (the model drawn is ``env_class.model_file``).
 
     Attributes:
-        task: the registered env name; its class's ``model_file`` is the model drawn.
         plane: ``"xz"`` (side view) or ``"xy"`` (top view).
         bounds: the world box shown, ``(umin, umax, vmin, vmax)``; with ``follow`` its horizontal
             range is centred on the followed body.
@@ -156,7 +156,6 @@ class MuJoCoView:
         reward_range: rewards mapped onto the colour's ``[0, 1]`` (red to green).
     """
 
-    task: str
     plane: str
     bounds: tuple[float, float, float, float]
     highlight: tuple[str, ...]
@@ -164,29 +163,28 @@ class MuJoCoView:
     follow: str | None = None
     reward_range: tuple[float, float] = (0.0, 1.0)
 
-    @property
-    def model_file(self) -> str:
-        from ..envs.registry import env_class
+    def __call__(self, env_class) -> Drawer:
+        model_file = env_class.model_file
+        return Drawer(functools.partial(self.draw, model_file),
+                      bounds=functools.partial(self.view_bounds, model_file), reward_range=self.reward_range)
 
-        return env_class(self.task).model_file
-
-    def view_bounds(self, state, params) -> tuple[float, float, float, float]:
+    def view_bounds(self, model_file: str, state, params) -> tuple[float, float, float, float]:
         umin, umax, vmin, vmax = self.bounds
         if self.follow is None:
             return self.bounds
-        model, _ = _tree(self.model_file)
-        _, body_pos = _body_poses(self.model_file, state["qpos"])
+        model, _ = _tree(model_file)
+        _, body_pos = _body_poses(model_file, state["qpos"])
         centre = float(body_pos[model.body_index(self.follow), _AXES[self.plane[0]]])
         if not math.isfinite(centre):
             centre = 0.0
         return (centre + umin, centre + umax, vmin, vmax)
 
-    def draw(self, canvas: Canvas, state, params, color) -> None:
-        model, _ = _tree(self.model_file)
+    def draw(self, model_file: str, canvas: Canvas, state, params, color) -> None:
+        model, _ = _tree(model_file)
         highlight = {model.body_index(b) for b in self.highlight}
         goal = {model.body_index(b) for b in self.goal}
         umin, umax, vmin, _ = canvas.view
-        for g, outline in geom_outlines(self.model_file, state["qpos"], self.plane):
+        for g, outline in geom_outlines(model_file, state["qpos"], self.plane):
             body = int(model.geom_body[g])
             if isinstance(outline, float):  # the ground, with a tick every metre so motion shows
                 canvas.polygon([(umin, outline), (umax, outline), (umax, vmin - 1.0), (umin, vmin - 1.0)], GROUND)
@@ -201,12 +199,12 @@ class MuJoCoView:
             canvas.polygon(outline, fill, outline=INK if body in highlight else None)
 
 
-#: The view of every built-in MuJoCo-model task.
-VIEWS = (
-    MuJoCoView("InvertedPendulum-v5", "xz", (-1.1, 1.1, -0.35, 0.85), ("pole",)),
-    MuJoCoView("InvertedDoublePendulum-v5", "xz", (-1.1, 1.1, -0.3, 1.4), ("pole2",), reward_range=(0.0, 10.0)),
-    MuJoCoView("Reacher-v5", "xy", (-0.35, 0.35, -0.35, 0.35), ("fingertip",), goal=("target",), reward_range=(-0.5, 0.0)),
-    MuJoCoView("HalfCheetah-v5", "xz", (-1.5, 1.5, -0.3, 1.5), ("torso",), follow="torso", reward_range=(-1.0, 5.0)),
-    MuJoCoView("Hopper-v5", "xz", (-1.5, 1.5, -0.2, 1.8), ("torso",), follow="torso", reward_range=(0.0, 4.0)),
-    MuJoCoView("Walker2d-v5", "xz", (-1.5, 1.5, -0.2, 1.8), ("torso",), follow="torso", reward_range=(0.0, 5.0)),
-)
+# The view of every built-in MuJoCo-model task, named in its registration
+# (``@register_env(drawer="torchrl_diffenvs.rendering.mujoco:HOPPER")``). Reward colour ranges:
+# HalfCheetah [-1, 5] (about its forward speed), Hopper [0, 4], Walker2d [0, 5], Reacher [-0.5, 0].
+INVERTED_PENDULUM = MuJoCoView("xz", (-1.1, 1.1, -0.35, 0.85), ("pole",))
+INVERTED_DOUBLE_PENDULUM = MuJoCoView("xz", (-1.1, 1.1, -0.3, 1.4), ("pole2",), reward_range=(0.0, 10.0))
+REACHER = MuJoCoView("xy", (-0.35, 0.35, -0.35, 0.35), ("fingertip",), goal=("target",), reward_range=(-0.5, 0.0))
+HALF_CHEETAH = MuJoCoView("xz", (-1.5, 1.5, -0.3, 1.5), ("torso",), follow="torso", reward_range=(-1.0, 5.0))
+HOPPER = MuJoCoView("xz", (-1.5, 1.5, -0.2, 1.8), ("torso",), follow="torso", reward_range=(0.0, 4.0))
+WALKER2D = MuJoCoView("xz", (-1.5, 1.5, -0.2, 1.8), ("torso",), follow="torso", reward_range=(0.0, 5.0))

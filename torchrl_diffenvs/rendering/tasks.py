@@ -3,7 +3,8 @@
 Every drawer receives one env's ``state`` and ``params`` (floats / float64 arrays) and the
 reward colour of the main body, ``RGB(1 - r, r, 0)``. The Gymnasium-compatible tasks reuse the
 Ivy drawers (their states have the same names); their rewards are mapped onto ``[0, 1]`` by
-each drawer's ``reward_range`` (see :func:`register_task_drawers`).
+each drawer's ``reward_range`` (the constants at the end). Each task names its drawer in its
+registration, e.g. ``@register_env(drawer="torchrl_diffenvs.rendering.tasks:PENDULUM")``.
 """
 from __future__ import annotations
 
@@ -11,8 +12,7 @@ import math
 
 import numpy as np
 
-from .core import Canvas, register_drawer, transform
-from .mujoco import VIEWS as MUJOCO_VIEWS
+from .core import Canvas, Drawer, transform
 
 INK = (0, 0, 0)
 JOINT = (128, 128, 128)
@@ -145,28 +145,20 @@ def draw_swimmer(canvas: Canvas, state, params, color) -> None:
 PENDULUM_V1_MIN_REWARD = -(math.pi**2 + 0.1 * 8**2 + 0.001 * 2**2)
 
 
-def register_task_drawers() -> None:
-    """Registers the drawers of every built-in task (called once on import).
+SQUARE = lambda r: (-r, r, -r, r)  # noqa: E731
 
-    Colours of the Gymnasium-compatible tasks, whose rewards are not in ``[0, 1]``:
-    ``CartPole-v1`` maps ``[0, 1]`` (its reward is +1 every step, so the pole stays green);
-    ``Pendulum-v1`` maps its reward range ``[-16.27, 0]`` linearly (upright and still is
-    green; its reward is computed on the pre-step state, so the colour lags one step);
-    ``MountainCarContinuous-v0`` maps ``[0, 100]`` (red while driving, whose reward is only the
-    small action cost, green on the step that reaches the flag). The MuJoCo-model tasks' ranges
-    are in :data:`torchrl_diffenvs.rendering.mujoco.VIEWS` (HalfCheetah: ``[-1, 5]``, about its
-    forward speed; Hopper ``[0, 4]``; Walker2d ``[0, 5]``; Reacher ``[-0.5, 0]``).
-    """
-    square = lambda r: (-r, r, -r, r)  # noqa: E731
-    register_drawer("cartpole", draw_cartpole, bounds=square(2.7))
-    register_drawer("CartPole-v1", draw_cartpole, bounds=square(2.7))
-    register_drawer("pendulum", draw_pendulum, bounds=_pendulum_bounds)
-    register_drawer("Pendulum-v1", draw_pendulum, bounds=_pendulum_bounds, reward_range=(PENDULUM_V1_MIN_REWARD, 0.0))
-    # Gymnasium's view of the valley: x in [-1.2, 0.6] (the walls of MountainCarContinuous)
-    register_drawer("mountaincar", draw_mountaincar, bounds=(-1.2, 0.6, 0.0, 1.25))
-    register_drawer("MountainCarContinuous-v0", draw_mountaincar, bounds=(-1.2, 0.6, 0.0, 1.25), reward_range=(0.0, 100.0))
-    register_drawer("reacher", draw_reacher, bounds=_reacher_bounds)
-    register_drawer("swimmer", draw_swimmer, bounds=square(1.5))
-    # the MuJoCo-model tasks: every geom projected on the side (or, for Reacher, the top) plane
-    for view in MUJOCO_VIEWS:
-        register_drawer(view.task, view.draw, bounds=view.view_bounds, reward_range=view.reward_range)
+# One drawer per built-in task, named in its registration (``@register_env(drawer=...)``).
+# Colours of the Gymnasium-compatible tasks, whose rewards are not in [0, 1]: CartPole-v1 maps
+# [0, 1] (its reward is +1 every step, so the pole stays green); Pendulum-v1 maps its reward
+# range [-16.27, 0] linearly (upright and still is green; its reward is computed on the pre-step
+# state, so the colour lags one step); MountainCarContinuous-v0 maps [0, 100] (red while driving,
+# whose reward is only the small action cost, green on the step that reaches the flag).
+CARTPOLE = Drawer(draw_cartpole, bounds=SQUARE(2.7))
+CARTPOLE_V1 = CARTPOLE
+PENDULUM = Drawer(draw_pendulum, bounds=_pendulum_bounds)
+PENDULUM_V1 = Drawer(draw_pendulum, bounds=_pendulum_bounds, reward_range=(PENDULUM_V1_MIN_REWARD, 0.0))
+# Gymnasium's view of the valley: x in [-1.2, 0.6] (the walls of MountainCarContinuous)
+MOUNTAINCAR = Drawer(draw_mountaincar, bounds=(-1.2, 0.6, 0.0, 1.25))
+MOUNTAINCAR_CONTINUOUS_V0 = Drawer(draw_mountaincar, bounds=(-1.2, 0.6, 0.0, 1.25), reward_range=(0.0, 100.0))
+REACHER = Drawer(draw_reacher, bounds=_reacher_bounds)
+SWIMMER = Drawer(draw_swimmer, bounds=SQUARE(1.5))

@@ -13,12 +13,13 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ..checks import is_int as _is_int
-from ..envs import list_envs, make_env
+from ..envs import env_config, list_envs, make_env
 from ..learners import LEARNERS
 from ..modules import ACTIVATIONS, DISTRIBUTIONS
 
 __all__ = [
     "ConfigError",
+    "register_env_configs",
     "DTYPES",
     "LOGGERS",
     "LOSSES",
@@ -38,6 +39,21 @@ LOGGERS = ("wandb", "csv", "none")
 WANDB_MODES = ("offline", "online", "disabled")
 MODES = ("train", "eval")
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+def register_env_configs() -> None:
+    """Makes ``env=<name>`` of the training script's configuration (a Hydra config group) know
+    every registered task: its section is generated from the task's registration
+    (:func:`~torchrl_diffenvs.envs.registry.env_config`), so a new task needs no config file.
+    Runs on import; call it again after registering a task of your own."""
+    from hydra.core.config_store import ConfigStore
+
+    store = ConfigStore.instance()
+    for name in list_envs():
+        store.store(group="env", name=name, node=env_config(name))
+
+
+register_env_configs()
+
 
 class ConfigError(ValueError):
     """A configuration that cannot run; the message lists every problem found."""

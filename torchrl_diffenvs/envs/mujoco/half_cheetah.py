@@ -1,7 +1,9 @@
 """Gymnasium's ``HalfCheetah-v5`` (half_cheetah.xml) with smooth, differentiable ground contact."""
+from ..registry import register_env
 from .locomotion import PlanarLocomotionEnv
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.mujoco:HALF_CHEETAH")
 class HalfCheetahV5Env(PlanarLocomotionEnv):
     """Run forward with a planar cheetah (6 motors, ``ctrl`` in ``[-1, 1]``).
 

@@ -1,9 +1,11 @@
 """Gymnasium's ``Hopper-v5`` (hopper.xml) with smooth, differentiable ground contact."""
 import math
 
+from ..registry import register_env
 from .locomotion import PlanarLocomotionEnv
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.mujoco:HOPPER")
 class HopperV5Env(PlanarLocomotionEnv):
     """Hop forward on one leg without falling (3 motors, ``ctrl`` in ``[-1, 1]``).
 

@@ -1,10 +1,12 @@
 """Gymnasium's ``InvertedDoublePendulum-v5``: balance two poles on a cart (inverted_double_pendulum.xml)."""
 import torch
 
+from ..registry import register_env
 from ...articulated.dynamics import constraint_force, forward_kinematics, site_positions
 from .base import MuJoCoModelEnv
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.mujoco:INVERTED_DOUBLE_PENDULUM")
 class InvertedDoublePendulumV5Env(MuJoCoModelEnv):
     """Keep the tip of a double pendulum on a cart high (``ctrl`` in ``[-1, 1]``, gear 500).
 

@@ -1,9 +1,11 @@
 """Gymnasium's ``InvertedPendulum-v5``: balance a pole on a cart (MuJoCo's inverted_pendulum.xml)."""
 import torch
 
+from ..registry import register_env
 from .base import MuJoCoModelEnv
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.mujoco:INVERTED_PENDULUM")
 class InvertedPendulumV5Env(MuJoCoModelEnv):
     """Keep the hinged pole within 0.2 rad of upright by pushing the cart (``ctrl`` in ``[-3, 3]``).
 

@@ -1,10 +1,12 @@
 """Gymnasium's ``Reacher-v5``: a two-link arm reaches for a target (MuJoCo's reacher.xml)."""
 import torch
 
+from ..registry import register_env
 from ...articulated.dynamics import forward_kinematics
 from .base import MuJoCoModelEnv
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.mujoco:REACHER")
 class ReacherV5Env(MuJoCoModelEnv):
     """Move the fingertip of a planar two-link arm onto a random target (``ctrl`` in ``[-1, 1]``).
 

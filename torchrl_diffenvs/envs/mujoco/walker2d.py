@@ -1,7 +1,9 @@
 """Gymnasium's ``Walker2d-v5`` (walker2d_v5.xml) with smooth, differentiable ground contact."""
+from ..registry import register_env
 from .locomotion import PlanarLocomotionEnv
 
 
+@register_env(drawer="torchrl_diffenvs.rendering.mujoco:WALKER2D")
 class Walker2dV5Env(PlanarLocomotionEnv):
     """Walk forward on two legs without falling (6 motors, ``ctrl`` in ``[-1, 1]``).
 
