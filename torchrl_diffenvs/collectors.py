@@ -91,6 +91,9 @@ class DiffWindowCollector:
             instead of all together (their first episodes are shorter). This decorrelates the
             batch; it needs an env with ``max_episode_steps``.
         generator: torch generator for ``stagger_episodes`` (seeding).
+        reset_input: for a batch-unlocked env (``batch_size`` ``[]``, batched by what ``reset``
+            receives, like TorchRL's ``PendulumEnv``): a function returning the TensorDict to
+            reset with, e.g. ``lambda: env.gen_params(batch_size=[64])``; its batch size is ``N``.
 
     Attributes:
         finished_returns: the undiscounted returns of the episodes that ended in the last window.
@@ -118,13 +121,29 @@ class DiffWindowCollector:
         start_state: TensorDictBase | None = None,
         stagger_episodes: bool = False,
         generator: torch.Generator | None = None,
+        reset_input=None,
     ):
         if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
             raise ValueError(f"DiffWindowCollector: horizon must be a positive integer, got {horizon!r}")
         if total_windows is not None and (not isinstance(total_windows, int) or total_windows < 0):
             raise ValueError(f"DiffWindowCollector: total_windows must be None or an integer >= 0, got {total_windows!r}")
-        if len(env.batch_size) != 1:
-            raise ValueError(f"DiffWindowCollector: expected an env with a 1-D batch size [N], got {tuple(env.batch_size)}")
+        self.reset_input = reset_input
+        if reset_input is not None:
+            if len(env.batch_size) != 0:
+                raise ValueError("DiffWindowCollector: reset_input is for batch-unlocked envs (batch_size []); "
+                                 f"this env is batched already, batch_size={tuple(env.batch_size)}")
+            batch = reset_input().batch_size
+            if len(batch) != 1:
+                raise ValueError(f"DiffWindowCollector: reset_input() must return a TensorDict of batch size [N], "
+                                 f"got {tuple(batch)}")
+            self._num_envs = batch[0]
+        elif len(env.batch_size) == 1:
+            self._num_envs = env.batch_size[0]
+        else:
+            hint = (" For a batch-unlocked env (batched through what reset receives, like TorchRL's PendulumEnv), "
+                    "pass reset_input=lambda: env.gen_params(batch_size=[N])." if len(env.batch_size) == 0 else "")
+            raise ValueError(f"DiffWindowCollector: expected a batched env with batch size [N], got "
+                             f"{tuple(env.batch_size)} ({type(env).__name__}).{hint}")
         self.env = env
         self.policy = policy
         self.horizon = horizon
@@ -144,7 +163,7 @@ class DiffWindowCollector:
 
     @property
     def num_envs(self) -> int:
-        return self.env.batch_size[0]
+        return self._num_envs
 
     @property
     def frames(self) -> int:
@@ -157,6 +176,9 @@ class DiffWindowCollector:
         ``collector.reset(td, set_state=True)`` starts the next window from ``td["state"]`` (a
         fixed start state, as in trajectory optimisation).
         """
+        if tensordict is None and self.reset_input is not None:
+            tensordict = self.reset_input()
+            reset_kwargs.setdefault("set_state", False)  # it carries the batch (e.g. parameters), not a state
         td = self.env.reset(tensordict, **reset_kwargs) if tensordict is not None else self.env.reset(**reset_kwargs)
         self._carried = td.select(*self._carry_keys, strict=False).detach()
         if self.stagger_episodes:
@@ -185,7 +207,7 @@ class DiffWindowCollector:
         self._carried = (
             None
             if carried is None
-            else TensorDict(carried, batch_size=self.env.batch_size, device=self.env.device)
+            else TensorDict(carried, batch_size=[self.num_envs], device=self.env.device)
         )
         self.tracker.load_state_dict(state["tracker"])
         self.finished_returns = list(state["finished_returns"])
@@ -210,12 +232,29 @@ class DiffWindowCollector:
                 break_when_any_done=False,
                 return_contiguous=True,
             )
+        if self.windows == 0:
+            self._check_differentiable(window)
         self._track_returns(window)
         # where the next window starts: the last step's "next" entries, done envs reset
         last = window[:, -1].get("next").select(*self._carry_keys, strict=False).detach()
         self._carried = self.env.maybe_reset(last).select(*self._carry_keys, strict=False).detach()
         self.windows += 1
         return window
+
+    def _check_differentiable(self, window: TensorDictBase) -> None:
+        """A window whose actions carry gradients must give rewards or observations that do."""
+        action = window.get("action", None)
+        if action is None or not action.requires_grad:
+            return  # nothing to differentiate (e.g. a policy without parameters)
+        nxt = window.get("next")
+        outputs = [nxt.get(key, None) for key in ("reward", "observation")]
+        if not any(value is not None and value.requires_grad for value in outputs):
+            raise RuntimeError(
+                f"DiffWindowCollector: {type(self.env).__name__} returned rewards and observations without "
+                "gradient w.r.t. the actions, so BPTT and SHAC cannot learn through it. They need a differentiable "
+                "env: its step must compute ('next', 'reward') and ('next', 'observation') from the action with "
+                "differentiable torch operations (no .detach(), .item(), numpy or torch.no_grad inside _step)."
+            )
 
     @torch.no_grad()
     def _track_returns(self, window: TensorDictBase) -> None:

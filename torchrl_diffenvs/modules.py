@@ -36,6 +36,7 @@ __all__ = [
     "StateIndependentNormalHead",
     "TanhNormalActor",
     "actor_from_config",
+    "env_dims",
     "critic_from_config",
     "make_actor",
     "make_critic",
@@ -188,6 +189,27 @@ class _ScaledTanh(nn.Module):
         return self.low + (torch.tanh(x) + 1) * (0.5 * (self.high - self.low))
 
 
+def env_dims(env, in_key="observation") -> tuple[int, int, torch.dtype]:
+    """``(observation size, action size, float dtype)`` of any TorchRL env the networks are built for.
+
+    Our envs carry them as attributes (``observation_dim``, ``action_dim``, ``float_dtype``); for
+    any other ``EnvBase`` they are read from its specs: the last dimension of ``in_key`` in the
+    observation spec and of the action spec.
+    """
+    if all(hasattr(env, name) for name in ("observation_dim", "action_dim", "float_dtype")):
+        return env.observation_dim, env.action_dim, env.float_dtype
+    observation = env.observation_spec.get(in_key, None)
+    if observation is None:
+        raise ValueError(
+            f"{type(env).__name__}: the networks read {in_key!r}, which its observation spec lacks (it has "
+            f"{sorted(map(str, env.observation_spec.keys()))}); add one with a transform, e.g. "
+            f"TransformedEnv(env, CatTensors(in_keys=[...], out_key={in_key!r}, del_keys=False))"
+        )
+    if not observation.dtype.is_floating_point:
+        raise ValueError(f"{type(env).__name__}: {in_key!r} must be floating point, got {observation.dtype}")
+    return int(observation.shape[-1]), int(env.action_spec.shape[-1]), observation.dtype
+
+
 def _action_bounds(env) -> tuple[float, float]:
     spec = env.action_spec_unbatched
     low, high = spec.space.low, spec.space.high
@@ -275,8 +297,8 @@ def make_actor(
     """A policy for ``env`` reading ``in_key`` and writing ``"action"``.
 
     Args:
-        env: a :class:`~torchrl_diffenvs.DiffEnv` (or any env with ``observation_dim``,
-            ``action_dim``, ``float_dtype`` and a bounded action spec).
+        env: a :class:`~torchrl_diffenvs.DiffEnv`, or any TorchRL env with a floating-point
+            ``in_key`` observation and a bounded action spec (sizes from :func:`env_dims`).
         hidden, activation, layer_norm: the MLP (SHAC's reference: ``(64, 64)``, ELU, LayerNorm).
         init_log_std: initial log standard deviation (pre-tanh) of the stochastic policy.
         distribution: ``"tanh_normal"`` (default): a ``ProbabilisticActor`` with a ``TanhNormal``
@@ -292,13 +314,13 @@ def make_actor(
     """
     if distribution not in DISTRIBUTIONS:
         raise ValueError(f"make_actor: unknown distribution {distribution!r}; valid: {DISTRIBUTIONS}")
-    dtype = env.float_dtype
+    observation_dim, action_dim, dtype = env_dims(env, in_key)
     low, high = _action_bounds(env)
-    net = make_mlp(env.observation_dim, env.action_dim, hidden, activation, layer_norm, dtype)
+    net = make_mlp(observation_dim, action_dim, hidden, activation, layer_norm, dtype)
     prefix = [normalizer] if normalizer is not None else []
     if distribution == "deterministic":
         return LeanModule(nn.Sequential(*prefix, net, _ScaledTanh(low, high)), in_keys=[in_key], out_keys=["action"])
-    head = StateIndependentNormalHead(nn.Sequential(*prefix, net), env.action_dim, init_log_std, dtype)
+    head = StateIndependentNormalHead(nn.Sequential(*prefix, net), action_dim, init_log_std, dtype)
     module = LeanModule(head, in_keys=[in_key], out_keys=["loc", "scale"])
     return TanhNormalActor(module, low, high, spec=env.action_spec_unbatched, return_log_prob=return_log_prob)
 
@@ -312,7 +334,8 @@ def make_critic(
     in_key: str = "observation",
 ) -> LeanModule:
     """A state-value network ``V(observation)`` writing ``"state_value"`` (``[..., 1]``)."""
-    net = make_mlp(env.observation_dim, 1, hidden, activation, layer_norm, env.float_dtype)
+    observation_dim, _, dtype = env_dims(env, in_key)
+    net = make_mlp(observation_dim, 1, hidden, activation, layer_norm, dtype)
     if normalizer is not None:
         net = nn.Sequential(normalizer, net)
     return LeanModule(net, in_keys=[in_key], out_keys=["state_value"])
@@ -332,7 +355,8 @@ class _ConcatInputs(nn.Module):
 def make_qvalue(env, hidden: Sequence[int] = (256, 256), activation: type[nn.Module] = nn.ReLU,
                 layer_norm: bool = False) -> ValueOperator:
     """``Q(observation, action)`` writing ``"state_action_value"`` (what TorchRL's ``SACLoss`` expects)."""
-    net = make_mlp(env.observation_dim + env.action_dim, 1, hidden, activation, layer_norm, env.float_dtype)
+    observation_dim, action_dim, dtype = env_dims(env)
+    net = make_mlp(observation_dim + action_dim, 1, hidden, activation, layer_norm, dtype)
     return ValueOperator(_ConcatInputs(net), in_keys=["observation", "action"], out_keys=["state_action_value"])
 
 
@@ -361,7 +385,8 @@ def actor_from_config(loss_cfg: Mapping, env, return_log_prob: bool = False):
     """
     normalizer = None
     if loss_cfg.get("obs_norm", False):
-        normalizer = ObservationNormalizer(env.observation_dim, dtype=env.float_dtype).to(env.device)
+        observation_dim, _, dtype = env_dims(env)
+        normalizer = ObservationNormalizer(observation_dim, dtype=dtype).to(env.device)
     actor_cfg = loss_cfg["actor"]
     actor = make_actor(env, **network_kwargs(actor_cfg), distribution=actor_cfg.get("distribution", "tanh_normal"),
                        normalizer=normalizer, return_log_prob=return_log_prob)

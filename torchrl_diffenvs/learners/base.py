@@ -120,7 +120,9 @@ class Learner(ABC):
     :meth:`from_config` builds one from a ``loss`` configuration section.
 
     Args:
-        env: the batched training env (any TorchRL ``EnvBase`` with a batch dimension ``[N]``).
+        env: the training env: any TorchRL ``EnvBase`` with a batch dimension ``[N]`` (BPTT and
+            SHAC also take a batch-unlocked one with ``reset_input``); BPTT and SHAC need its
+            rewards or observations to carry gradients w.r.t. the actions.
         config: the learner's settings (its :class:`LearnerConfig` subclass).
         total_env_steps: the training budget; the learning-rate schedules run over it, and it can
             be changed later (a resumed run with a larger budget).
@@ -130,13 +132,20 @@ class Learner(ABC):
     config_class: type[LearnerConfig] = LearnerConfig
     policy: TensorDictModuleBase
 
-    def __init__(self, env, config: LearnerConfig, total_env_steps: int):
+    def __init__(self, env, config: LearnerConfig, total_env_steps: int, *, reset_input=None):
         if not isinstance(config, self.config_class):
             raise TypeError(f"{type(self).__name__}: config must be a {self.config_class.__name__}, "
                             f"got {type(config).__name__}")
-        if len(env.batch_size) != 1:
-            raise ValueError(f"{type(self).__name__}: expected an env with one batch dimension [N] (a batched env), "
-                             f"got batch_size={tuple(env.batch_size)}")
+        if reset_input is not None:
+            self._num_envs = reset_input().batch_size[0]
+        elif len(env.batch_size) == 1:
+            self._num_envs = env.batch_size[0]
+        else:
+            hint = (" For a batch-unlocked env (batched through what reset receives, like TorchRL's PendulumEnv), "
+                    "pass reset_input=lambda: env.gen_params(batch_size=[N]) (BPTT and SHAC)."
+                    if len(env.batch_size) == 0 else "")
+            raise ValueError(f"{type(self).__name__}: expected a batched env with batch size [N], got "
+                             f"{tuple(env.batch_size)} ({type(env).__name__}).{hint}")
         self.env = env
         self.config = config
         self.total_env_steps = int(total_env_steps)
@@ -149,7 +158,7 @@ class Learner(ABC):
 
     @property
     def num_envs(self) -> int:
-        return self.env.batch_size[0]
+        return self._num_envs
 
     @property
     @abstractmethod

@@ -55,18 +55,22 @@ class BPTTLearner(Learner):
             to update after every window, if any.
         start_state: start every window from this TensorDict's ``"state"`` instead of carrying
             the env state on (trajectory optimisation from a fixed start).
+        reset_input: for a batch-unlocked env (TorchRL's ``PendulumEnv``), what to reset it with:
+            ``lambda: env.gen_params(batch_size=[N])`` (see :class:`DiffWindowCollector`).
     """
 
     name = "bptt"
     config_class = BPTTConfig
 
     def __init__(self, env, actor, config: BPTTConfig = BPTTConfig(), total_env_steps: int = 1_000_000, *,
-                 normalizer: ObservationNormalizer | None = None, start_state: TensorDictBase | None = None):
-        super().__init__(env, config, total_env_steps)
+                 normalizer: ObservationNormalizer | None = None, start_state: TensorDictBase | None = None,
+                 reset_input=None):
+        super().__init__(env, config, total_env_steps, reset_input=reset_input)
         c = config
         self.actor = self.policy = actor
         self.normalizer = normalizer
-        self.collector = DiffWindowCollector(env, actor, horizon=c.horizon, start_state=start_state)
+        self.collector = DiffWindowCollector(env, actor, horizon=c.horizon, start_state=start_state,
+                                             reset_input=reset_input)
         self.loss = BPTTLoss(actor, gamma=c.gamma)
         self.actor_params = [p for p in actor.parameters() if p.requires_grad]
         # foreach: one kernel per Adam operation for all tensors (about 2x faster for small nets on CPU)

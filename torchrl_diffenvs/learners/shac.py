@@ -64,18 +64,20 @@ class SHACLearner(Learner):
         total_env_steps: the budget the learning-rate schedules run over.
         normalizer: the :class:`~torchrl_diffenvs.modules.ObservationNormalizer` inside the actor
             and the critic to update after every window, if any.
+        reset_input: for a batch-unlocked env (TorchRL's ``PendulumEnv``), what to reset it with:
+            ``lambda: env.gen_params(batch_size=[N])`` (see :class:`DiffWindowCollector`).
     """
 
     name = "shac"
     config_class = SHACConfig
 
     def __init__(self, env, actor, critic, config: SHACConfig = SHACConfig(), total_env_steps: int = 1_000_000, *,
-                 normalizer: ObservationNormalizer | None = None):
-        super().__init__(env, config, total_env_steps)
+                 normalizer: ObservationNormalizer | None = None, reset_input=None):
+        super().__init__(env, config, total_env_steps, reset_input=reset_input)
         c = config
         self.actor = self.policy = actor
         self.normalizer = normalizer
-        self.collector = DiffWindowCollector(env, actor, horizon=c.horizon)
+        self.collector = DiffWindowCollector(env, actor, horizon=c.horizon, reset_input=reset_input)
         self.loss = SHACLoss(actor, critic, gamma=c.gamma, lmbda=c.lmbda)
         self.target_updater = self.loss.make_target_updater(tau=c.target_tau)
         self.actor_params = [p for p in actor.parameters() if p.requires_grad]
