@@ -1,57 +1,49 @@
-"""Small helpers shared by the demo scripts (argument parsing, plots)."""
+"""Small helpers shared by the demo scripts: typed ``key=value`` arguments (OmegaConf, as the
+training script's Hydra uses) and plots."""
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
 import torch
-from torchrl_diffenvs import list_envs
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from torchrl_diffenvs.checks import Settings
 
 
-def parse_args(defaults: dict, argv: list[str] | None = None, usage: str = "") -> dict:
-    """Parses ``key=value`` arguments, converting each value to the type of its default."""
-    argv = sys.argv[1:] if argv is None else argv
-    args = dict(defaults)
+def parse_settings(settings_class: type[Settings], argv: list[str] | None = None, usage: str = "") -> Settings:
+    """Parses ``key=value`` arguments into ``settings_class`` (a :class:`~torchrl_diffenvs.checks.Settings`
+    dataclass) with OmegaConf, the configuration system of ``sota_scripts/train.py``: values are
+    converted to the fields' types, unknown keys and failed checks stop with a message."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if any(item in ("-h", "--help") for item in argv):
+        defaults = " ".join(f"{k}={v}" for k, v in settings_class.defaults().items())
+        print((usage or "") + f"\narguments (key=value), with their defaults: {defaults}")
+        raise SystemExit(0)
+    valid = settings_class.defaults()
     for item in argv:
-        if item in ("-h", "--help"):
-            print(usage or "arguments (key=value): " + " ".join(f"{k}={v}" for k, v in defaults.items()))
-            raise SystemExit(0)
-        key, sep, value = item.partition("=")
-        if not sep or key not in defaults:
-            raise SystemExit(f"unknown argument {item!r}; valid keys (key=value): {', '.join(defaults)}")
-        kind = type(defaults[key])
-        if kind is bool:
-            if value.lower() not in ("true", "false", "1", "0"):
-                raise SystemExit(f"{key} expects true/false, got {value!r}")
-            args[key] = value.lower() in ("true", "1")
-        elif defaults[key] is None:
-            args[key] = value
-        else:
-            try:
-                args[key] = kind(value)
-            except ValueError:
-                raise SystemExit(f"{key} expects a {kind.__name__}, got {value!r}") from None
-    return args
+        key, sep, _ = item.partition("=")
+        if not sep or key not in valid:
+            raise SystemExit(f"error: unknown argument {item!r}; valid keys (key=value): {', '.join(valid)}")
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(settings_class), OmegaConf.from_dotlist(argv))
+        return OmegaConf.to_object(merged)
+    except OmegaConfBaseException as err:  # a value of the wrong type
+        key = getattr(err, "full_key", None)
+        raise SystemExit(f"error: {key}: {str(err).splitlines()[0]}" if key else f"error: {err}") from None
+    except ValueError as err:  # a field's check
+        raise SystemExit(f"error: {err}") from None
 
 
-def start_demo(
-    defaults: dict, argv: list[str] | None = None, usage: str = "", choices: dict[str, tuple] | None = None,
-    check=None,
-) -> tuple[dict, Path]:
-    """Parses the arguments, checks the env name, the ``choices`` (key -> valid values) and
-    ``check(args)`` (raises ``SystemExit`` on a bad value), seeds torch and creates ``out_dir``;
-    returns the arguments and ``out_dir``."""
-    args = parse_args(defaults, argv, usage)
-    valid = {**({"env": tuple(list_envs())} if "env" in defaults else {}), **(choices or {})}
-    for key, values in valid.items():
-        if args[key] not in values:
-            raise SystemExit(f"unknown {key} {args[key]!r}; valid: {', '.join(values)}")
-    if check is not None:
-        check(args)
-    torch.manual_seed(args["seed"])
-    out_dir = Path(args["out_dir"])
+def start_demo(settings_class: type[Settings], argv: list[str] | None = None, usage: str = "") -> tuple[Settings, Path]:
+    """Parses the settings (:func:`parse_settings`), seeds torch and creates ``settings.out_dir``;
+    returns the settings and ``out_dir``."""
+    settings = parse_settings(settings_class, argv, usage)
+    torch.manual_seed(settings.seed)
+    out_dir = Path(settings.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    return args, out_dir
+    return settings, out_dir
 
 
 def plot_curve(path: Path, curves: dict[str, tuple[list, list]], xlabel: str, ylabel: str, title: str) -> Path:

@@ -11,36 +11,34 @@ one env, 128 per cell in a grid). Actions are uniform in the action spec; episod
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
+from dataclasses import dataclass
 
 import torch
 
-from torchrl_diffenvs import list_envs, make_env
+from demo_utils import parse_settings
+from torchrl_diffenvs import checks, list_envs, make_env
+from torchrl_diffenvs.checks import Settings, checked
 from torchrl_diffenvs.rendering import save_gif
 
-DEFAULTS = {"env": "cartpole", "steps": 250, "num_envs": 1, "out": None, "seed": 0, "fps": 25, "size": None, "show": 16}
-INTS = {"steps", "num_envs", "seed", "fps", "size", "show"}
+def optional_positive_int(value) -> str | None:
+    return None if value is None else checks.positive_int(value)
 
 
-def parse_args(argv: list[str]) -> dict:
-    """``key=value`` pairs -> options; raises ``SystemExit(2)`` with a message on bad input."""
-    options = dict(DEFAULTS)
-    for arg in argv:
-        key, sep, value = arg.partition("=")
-        if not sep or key not in DEFAULTS:
-            raise SystemExit(f"run_through: expected key=value with key in {sorted(DEFAULTS)}, got {arg!r}")
-        if key in INTS:
-            try:
-                value = int(value)
-            except ValueError:
-                raise SystemExit(f"run_through: {key} must be an integer, got {value!r}") from None
-            if value < (0 if key == "seed" else 1):
-                raise SystemExit(f"run_through: {key} must be {'>= 0' if key == 'seed' else '>= 1'}, got {value}")
-        options[key] = value
-    if options["env"] not in list_envs():
-        raise SystemExit(f"run_through: unknown env {options['env']!r}; valid names: {', '.join(list_envs())}")
-    return options
+@dataclass(frozen=True)
+class RunThroughSettings(Settings):
+    """The demo's arguments (``key=value``)."""
+
+    env: str = checked("cartpole", checks.one_of(list_envs()))
+    steps: int = checked(250, checks.positive_int)
+    num_envs: int = checked(1, checks.positive_int)
+    out: str | None = None  # default outputs/run_through/<env>.gif
+    seed: int = checked(0, checks.nonnegative_int)
+    fps: int = checked(25, checks.positive_int)
+    size: int | None = checked(None, optional_positive_int)  # pixels of one env's picture
+    show: int = checked(16, checks.positive_int)  # envs drawn in the grid, at most
 
 
 def run_through(env: str, steps: int, num_envs: int, out: str | None, seed: int, fps: int, size: int | None, show: int):
@@ -69,7 +67,7 @@ def run_through(env: str, steps: int, num_envs: int, out: str | None, seed: int,
 
 
 def main(argv: list[str] | None = None) -> int:
-    options = parse_args(sys.argv[1:] if argv is None else argv)
+    options = dataclasses.asdict(parse_settings(RunThroughSettings, argv, usage=__doc__))
     start = time.perf_counter()
     path, frames, mean_reward = run_through(**options)
     seconds = time.perf_counter() - start

@@ -32,44 +32,56 @@ import json
 import math
 import time
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
 from demo_utils import plot_curve, start_demo
-from torchrl_diffenvs import make_env
+from torchrl_diffenvs import checks, make_env
 from torchrl_diffenvs.articulated import gymnasium_asset
+from torchrl_diffenvs.checks import Settings, checked
 
 TASK = "InvertedDoublePendulum-v5"
 BODIES = ("cart", "pole", "pole2")  # one geom each: its mass is the body's
 JOINTS = ("slider", "hinge", "hinge2")
 SEARCH_RANGE = 4.0  # the fit searches e^-4 to e^4 times the unedited file's values
 
-DEFAULTS = {
-    "true_mass": "8.0,3.0,5.0",  # kg, cart, pole, pole2 (the file's: 10.47, 4.19, 4.19)
-    "true_damping": "0.6,0.25,0.1",  # slider, hinge, hinge2 (the file's: 0.05 each)
-    "trajectories": 8,
-    "steps": 40,  # env steps per recorded trajectory (0.05 s each)
-    "segment": 2,  # env steps our model predicts from each recorded state (short: a near-convex fit)
-    "action_scale": 0.3,  # random actions U(-scale, scale) (the motor's gear is 500 N)
-    "noise": 0.0,  # std of Gaussian noise added to the recorded qpos/qvel (sensor noise)
-    "iterations": 10,  # L-BFGS iterations (each up to 10 function evaluations)
-    "seed": 0,
-    "out_dir": "outputs/system_identification",
-    "progress": True,
-}
-
-
-def parse_values(text: str, name: str) -> list[float]:
+def three_positive_numbers(text) -> str | None:
     try:
-        values = [float(v) for v in text.split(",")]
+        values = [float(v) for v in str(text).split(",")]
     except ValueError:
-        raise SystemExit(f"{name} expects {len(BODIES)} comma-separated numbers, got {text!r}") from None
-    if len(values) != 3 or not all(v > 0 and math.isfinite(v) for v in values):
-        raise SystemExit(f"{name} expects 3 positive numbers ({', '.join(BODIES if 'mass' in name else JOINTS)}), "
-                         f"got {text!r}")
-    return values
+        return "expected 3 comma-separated numbers"
+    ok = len(values) == 3 and all(v > 0 and math.isfinite(v) for v in values)
+    return None if ok else "expected 3 positive comma-separated numbers"
+
+
+@dataclass(frozen=True)
+class IdentificationSettings(Settings):
+    """The demo's arguments (``key=value``)."""
+
+    true_mass: str = checked("8.0,3.0,5.0", three_positive_numbers)  # kg: cart, pole, pole2 (the file's: 10.47, 4.19, 4.19)
+    true_damping: str = checked("0.6,0.25,0.1", three_positive_numbers)  # slider, hinge, hinge2 (the file's: 0.05 each)
+    trajectories: int = checked(8, checks.positive_int)
+    steps: int = checked(40, checks.positive_int)  # env steps per recorded trajectory (0.05 s each)
+    segment: int = checked(2, checks.positive_int)  # env steps predicted from each recorded state (short: near-convex)
+    action_scale: float = checked(0.3, checks.positive)  # random actions U(-scale, scale) (the motor's gear is 500 N)
+    noise: float = checked(0.0, checks.nonnegative)  # std of Gaussian noise added to the recorded qpos/qvel
+    iterations: int = checked(10, checks.positive_int)  # L-BFGS iterations (each up to 10 function evaluations)
+    seed: int = checked(0, checks.nonnegative_int)
+    out_dir: str = "outputs/system_identification"
+    progress: bool = checked(True, checks.boolean)
+
+    @classmethod
+    def relation_problems(cls, values, where: str = "") -> list[str]:
+        if values["steps"] < values["segment"]:
+            return [f"need steps >= segment, got steps={values['steps']}, segment={values['segment']}"]
+        return []
+
+
+def parse_values(text: str) -> list[float]:
+    return [float(v) for v in text.split(",")]  # checked by three_positive_numbers
 
 
 def edit_model(masses: list[float], damping: list[float], path) -> None:
@@ -148,28 +160,18 @@ class SegmentModel:
         return (((self.predict(mass, damping) - self.target) / self.scale) ** 2).mean()
 
 
-def check_args(args: dict) -> None:
-    for key in ("true_mass", "true_damping"):
-        parse_values(args[key], key)
-    if args["segment"] < 1 or args["steps"] < args["segment"] or args["trajectories"] < 1:
-        raise SystemExit(f"need trajectories >= 1 and steps >= segment >= 1, got trajectories={args['trajectories']}, "
-                         f"steps={args['steps']}, segment={args['segment']}")
-    if not args["noise"] >= 0:
-        raise SystemExit(f"noise must be >= 0 (a standard deviation), got {args['noise']}")
-
-
 def main(argv: list[str] | None = None) -> dict:
-    args, out_dir = start_demo(DEFAULTS, argv, usage=__doc__, check=check_args)
-    true_mass, true_damping = parse_values(args["true_mass"], "true_mass"), parse_values(args["true_damping"], "true_damping")
+    args, out_dir = start_demo(IdentificationSettings, argv, usage=__doc__)
+    true_mass, true_damping = parse_values(args.true_mass), parse_values(args.true_damping)
 
     edited = out_dir / "edited_model.xml"
     edit_model(true_mass, true_damping, edited)
-    data = record(edited, args["trajectories"], args["steps"], args["action_scale"], args["seed"])
-    if args["noise"] > 0:
-        rng = np.random.default_rng(args["seed"] + 1)
+    data = record(edited, args.trajectories, args.steps, args.action_scale, args.seed)
+    if args.noise > 0:
+        rng = np.random.default_rng(args.seed + 1)
         for key in ("qpos", "qvel"):
-            data[key] = data[key] + rng.normal(0.0, args["noise"], data[key].shape)
-    model = SegmentModel(data, args["segment"])
+            data[key] = data[key] + rng.normal(0.0, args.noise, data[key].shape)
+    model = SegmentModel(data, args.segment)
 
     # the unknowns: log-ratios to the unedited file's values, kept smooth and bounded (e^-4 to e^4
     # times the file's value) so that no line-search step makes a body massless
@@ -193,7 +195,7 @@ def main(argv: list[str] | None = None) -> dict:
     with torch.no_grad():
         losses = [model.loss(*values()).item()]
     start = time.perf_counter()
-    bar = tqdm(range(args["iterations"]), desc="system identification", disable=not args["progress"])
+    bar = tqdm(range(args.iterations), desc="system identification", disable=not args.progress)
     for _ in bar:
         optimizer.step(closure)
         with torch.no_grad():
@@ -206,8 +208,8 @@ def main(argv: list[str] | None = None) -> dict:
     rows += [(f"damping {j}", t, i, r) for j, t, i, r in zip(JOINTS, true_damping, model.default_damping.tolist(),
                                                               recovered_damping)]
     summary = {
-        "task": TASK, "pieces": len(model.start_qpos), "segment": args["segment"], "noise": args["noise"],
-        "iterations": args["iterations"],
+        "task": TASK, "pieces": len(model.start_qpos), "segment": args.segment, "noise": args.noise,
+        "iterations": args.iterations,
         "seconds": round(seconds, 2), "loss": losses,
         "parameters": [{"name": n, "true": t, "initial": i, "recovered": r, "relative_error": abs(r - t) / t}
                        for n, t, i, r in rows],
@@ -218,7 +220,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"{'parameter':<16} {'true':>9} {'initial':>9} {'recovered':>10} {'rel. error':>10}")
     for p in summary["parameters"]:
         print(f"{p['name']:<16} {p['true']:>9.4f} {p['initial']:>9.4f} {p['recovered']:>10.4f} {p['relative_error']:>10.1e}")
-    print(f"{len(model.start_qpos)} pieces of {args['segment']} steps, {args['iterations']} L-BFGS iterations, "
+    print(f"{len(model.start_qpos)} pieces of {args.segment} steps, {args.iterations} L-BFGS iterations, "
           f"{seconds:.1f} s")
     return summary
 

@@ -112,13 +112,31 @@ def test_demo_scripts_write_a_learning_curve_and_a_gif(tmp_path, monkeypatch, sc
     with pytest.raises(SystemExit, match="unknown argument"):
         module.main(["nonsense=1"])
     not_created = tmp_path / "not_created"
-    with pytest.raises(SystemExit, match="unknown env 'Swimmer'; valid: .*swimmer"):
+    with pytest.raises(SystemExit, match="env='Swimmer': valid: .*swimmer"):
         module.main(["env=Swimmer", f"out_dir={not_created}"])
     if script == "optimize_policy":
-        with pytest.raises(SystemExit, match="unknown loss 'ppo'; valid: bptt, shac"):
+        with pytest.raises(SystemExit, match="loss='ppo': valid: bptt, shac"):
             module.main(["loss=ppo", f"out_dir={not_created}"])
+    with pytest.raises(SystemExit, match="iterations: Value 'two' of type 'str' could not be converted to Integer"):
+        module.main(["iterations=two", f"out_dir={not_created}"])
     assert not not_created.exists()
     sys.modules.pop(script, None)
+
+
+def test_run_through_writes_a_gif_and_checks_its_arguments(tmp_path, monkeypatch):
+    pytest.importorskip("PIL")
+    import importlib
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "sota_scripts"))
+    module = importlib.import_module("run_through")
+    out = tmp_path / "cp.gif"
+    assert module.main(["env=cartpole", "steps=3", "num_envs=2", f"out={out}", "size=32"]) == 0
+    assert out.read_bytes()[:6] == b"GIF89a"
+    with pytest.raises(SystemExit, match="size=0: expected an integer >= 1"):
+        module.main(["size=0"])
+    with pytest.raises(SystemExit, match="unknown argument 'stepz=3'"):
+        module.main(["stepz=3"])
 
 
 def test_system_identification_recovers_edited_masses_and_damping(tmp_path, monkeypatch):
@@ -141,7 +159,7 @@ def test_system_identification_recovers_edited_masses_and_damping(tmp_path, monk
         assert abs(p["initial"] - p["true"]) / p["true"] > 0.1  # the fit had something to find
     assert summary["loss"][-1] < 1e-12 * summary["loss"][0]
     not_created = tmp_path / "not_created"
-    with pytest.raises(SystemExit, match="true_mass expects 3 positive numbers"):
+    with pytest.raises(SystemExit, match="true_mass='1,2': expected 3 positive comma-separated numbers"):
         module.main(["true_mass=1,2", f"out_dir={not_created}"])
     with pytest.raises(SystemExit, match="steps >= segment"):
         module.main(["steps=1", "segment=2", f"out_dir={not_created}"])

@@ -1,4 +1,4 @@
-"""Value checks shared by the learners' settings and the training configuration.
+"""Value checks and typed settings shared by the learners, the training configuration and the demos.
 
 Each check returns ``None`` for a valid value, else what was expected, so that callers can either
 raise at once (a learner built from Python) or collect every problem of a configuration
@@ -6,11 +6,12 @@ raise at once (a learner built from Python) or collect every problem of a config
 """
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 __all__ = [
-    "Check", "adam_betas", "boolean", "in_interval", "is_int", "is_number", "learning_rate", "nonnegative", "nonnegative_int", "one_of", "optional_positive",
+    "Check", "Settings", "checked", "adam_betas", "boolean", "in_interval", "is_int", "is_number", "learning_rate", "nonnegative", "nonnegative_int", "one_of", "optional_positive",
     "positive", "positive_int",
 ]
 
@@ -77,3 +78,62 @@ def adam_betas(value) -> str | None:
 
 def boolean(value) -> str | None:
     return None if isinstance(value, bool) else "expected true or false"
+
+
+def checked(default, check: Check):
+    """A settings field with its default and the check its values must pass."""
+    if isinstance(default, (list, tuple)):
+        return dataclasses.field(default_factory=lambda: tuple(default), metadata={"check": check})
+    return dataclasses.field(default=default, metadata={"check": check})
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """Base of typed settings: a frozen dataclass whose fields carry their default and their
+    check (:func:`checked`). Building one checks every field (``ValueError`` naming each bad
+    one); :meth:`problems` lists them without raising (the training script reports all at once).
+    The learners' settings and the demos' arguments are such dataclasses."""
+
+    @classmethod
+    def problems(cls, values: Mapping, where: str = "") -> list[str]:
+        """Every problem of ``values`` (unknown keys and values that fail their field's check)."""
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        problems = []
+        for key, value in values.items():
+            name = f"{where}{key}"
+            if key not in fields:
+                problems.append(f"{name}: unknown setting of {cls.__name__}; valid: {', '.join(fields)}")
+                continue
+            check = fields[key].metadata.get("check")
+            message = None if check is None else check(value)
+            if message is not None:
+                problems.append(f"{name}={value!r}: {message}")
+        if not problems:
+            problems = cls.relation_problems({**cls.defaults(), **values}, where)
+        return problems
+
+    @classmethod
+    def relation_problems(cls, values: Mapping, where: str = "") -> list[str]:
+        """Problems between fields (each valid alone); override where settings constrain each other."""
+        return []
+
+    @classmethod
+    def defaults(cls) -> dict:
+        return {f.name: f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+                for f in dataclasses.fields(cls)}
+
+    def __post_init__(self):
+        problems = self.problems({f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
+        if problems:
+            raise ValueError(f"{type(self).__name__}: " + "; ".join(problems))
+
+    @classmethod
+    def from_mapping(cls, values: Mapping) -> Settings:
+        """Builds the settings from a mapping (e.g. a Hydra ``loss`` section without its networks);
+        lists become tuples."""
+        plain = {k: tuple(v) if isinstance(v, (list, tuple)) or type(v).__name__ == "ListConfig" else v
+                 for k, v in values.items()}
+        problems = cls.problems(plain)
+        if problems:
+            raise ValueError(f"{cls.__name__}: " + "; ".join(problems))
+        return cls(**plain)

@@ -2,7 +2,6 @@
 the learning-rate schedules."""
 from __future__ import annotations
 
-import dataclasses
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
@@ -10,70 +9,20 @@ from collections.abc import Callable, Mapping
 import torch
 from tensordict.nn import TensorDictModuleBase
 
-from ..checks import Check
+from ..checks import Settings, checked
 
-__all__ = ["LR_SCHEDULES", "Learner", "LearnerConfig", "checked", "load_lr_scheduler", "lr_scheduler"]
+__all__ = ["LR_SCHEDULES", "Learner", "LearnerConfig", "checked", "load_lr_scheduler", "lr_scheduler"]  # checked: re-exported for the learner files
 
 LR_SCHEDULES = ("linear", "exponential", "constant")
 
 
-def checked(default, check: Check):
-    """A settings field with its default and the check its values must pass."""
-    if isinstance(default, (list, tuple)):
-        return dataclasses.field(default_factory=lambda: tuple(default), metadata={"check": check})
-    return dataclasses.field(default=default, metadata={"check": check})
-
-
-@dataclasses.dataclass(frozen=True)
-class LearnerConfig:
-    """Base of a learner's settings: a frozen dataclass whose fields carry their checks.
+class LearnerConfig(Settings):
+    """Base of a learner's settings: a frozen dataclass whose fields carry their checks
+    (:func:`~torchrl_diffenvs.checks.checked`).
 
     The fields are the keys of the learner's ``configs/loss/<name>.yaml`` (besides ``name`` and
     the network sections), so the training script and Python code build learners alike.
     """
-
-    @classmethod
-    def problems(cls, values: Mapping, where: str = "") -> list[str]:
-        """Every problem of ``values`` (unknown keys and values that fail their field's check)."""
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        problems = []
-        for key, value in values.items():
-            name = f"{where}{key}"
-            if key not in fields:
-                problems.append(f"{name}: unknown setting of {cls.__name__}; valid: {', '.join(fields)}")
-                continue
-            message = fields[key].metadata["check"](value)
-            if message is not None:
-                problems.append(f"{name}={value!r}: {message}")
-        if not problems:
-            problems = cls.relation_problems({**cls.defaults(), **values}, where)
-        return problems
-
-    @classmethod
-    def relation_problems(cls, values: Mapping, where: str = "") -> list[str]:
-        """Problems between fields (each valid alone); override where settings constrain each other."""
-        return []
-
-    @classmethod
-    def defaults(cls) -> dict:
-        return {f.name: f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
-                for f in dataclasses.fields(cls)}
-
-    def __post_init__(self):
-        problems = self.problems({f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
-        if problems:
-            raise ValueError(f"{type(self).__name__}: " + "; ".join(problems))
-
-    @classmethod
-    def from_mapping(cls, values: Mapping) -> LearnerConfig:
-        """Builds the settings from a mapping (e.g. a Hydra ``loss`` section without its networks);
-        lists become tuples."""
-        plain = {k: tuple(v) if isinstance(v, (list, tuple)) or type(v).__name__ == "ListConfig" else v
-                 for k, v in values.items()}
-        problems = cls.problems(plain)
-        if problems:
-            raise ValueError(f"{cls.__name__}: " + "; ".join(problems))
-        return cls(**plain)
 
 
 def lr_scheduler(optimizer: torch.optim.Optimizer, kind: str, total_iterations: Callable[[], int], *,
