@@ -129,3 +129,64 @@ def test_evaluate_counts_only_the_first_episode():
     assert min(lengths) < 60  # random actions do make some pole fall before the limit
     assert stats["return"] == pytest.approx(sum(lengths) / len(lengths))
     assert stats["reward_mean"] == pytest.approx(1.0)
+
+
+# ---------------------------------------------------------------------------- fidelity knobs
+def test_elementwise_clip_clamps_each_element_and_norm_clip_keeps_the_direction():
+    from torchrl_diffenvs.objectives import GradientGuard
+
+    for clip, expected in (("elementwise", [1.0, -0.5, -1.0]), ("norm", [3 / 3.640055, -0.5 / 3.640055, -2 / 3.640055])):
+        weight = torch.zeros(3, requires_grad=True)
+        optim = torch.optim.SGD([weight], lr=1.0)
+        weight.grad = torch.tensor([3.0, -0.5, -2.0])  # norm 3.640055
+        info = GradientGuard(max_norm=1.0, clip=clip).step(optim, [weight])
+        assert info["grad_norm"] == pytest.approx(3.640055, rel=1e-6)
+        torch.testing.assert_close(weight.detach(), -torch.tensor(expected), rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="clip must be one of"):
+        GradientGuard(clip="value")
+
+
+def test_network_layer_order_and_orthogonal_init():
+    from torch import nn
+
+    from torchrl_diffenvs.modules import make_mlp
+
+    pre = [type(m) for m in make_mlp(3, 1, (8,), nn.ELU, True)]
+    post = [type(m) for m in make_mlp(3, 1, (8,), nn.ELU, True, norm_after_activation=True)]
+    assert pre == [nn.Linear, nn.LayerNorm, nn.ELU, nn.Linear]
+    assert post == [nn.Linear, nn.ELU, nn.LayerNorm, nn.Linear]  # DiffRL's order
+    net = make_mlp(16, 4, (32,), nn.ELU, False, dtype=torch.float64, init="orthogonal")
+    first, last = net[0].weight.detach(), net[-1].weight.detach()
+    torch.testing.assert_close(first.T @ first, 2.0 * torch.eye(16, dtype=torch.float64))  # 32x16: orthonormal columns x gain^2
+    torch.testing.assert_close(last @ last.T, 2.0 * torch.eye(4, dtype=torch.float64))
+    assert not net[0].bias.any() and not net[-1].bias.any()
+
+
+@pytest.mark.parametrize("shuffle, distinct_splits", [("every_pass", 3), ("once_per_window", 1)])
+def test_critic_minibatch_order(shuffle, distinct_splits):
+    """DiffRL visits one split of the window in the same order on every pass; ours re-draws it per pass."""
+    torch.manual_seed(0)
+    env = make_env("pendulum", num_envs=8, seed=0, max_episode_steps=10)
+    settings = SHACConfig(horizon=4, critic_passes=3, critic_minibatches=2, critic_shuffle=shuffle)
+    learner = SHACLearner(env, make_actor(env, hidden=(8,)), make_critic(env, hidden=(8,)), settings, 1000)
+    seen = []
+    original = learner.loss.critic_loss
+
+    def recording(batch):
+        seen.append(tuple(batch.get("value_target").flatten().tolist()))
+        return original(batch)
+
+    learner.loss.critic_loss = recording
+    learner.train_iteration()
+    passes = [tuple(seen[i:i + 2]) for i in range(0, len(seen), 2)]
+    assert len(passes) == 3 and len(set(passes)) == distinct_splits
+
+
+def test_bptt_reference_knobs_reach_the_learner():
+    env = make_env("pendulum", num_envs=16, seed=0, max_episode_steps=50)
+    settings = BPTTConfig(horizon=4, grad_clip="elementwise", stagger_episodes=True)
+    learner = BPTTLearner(env, make_actor(env, hidden=(8,)), settings, 1000)
+    assert learner.actor_guard.clip == "elementwise"
+    learner.train_iteration()
+    phases = learner.collector._carried.get("episode_step")
+    assert len(set(phases.tolist())) > 4  # the envs no longer share one episode phase

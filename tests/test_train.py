@@ -79,9 +79,12 @@ def read_jsonl(path: Path) -> list[dict]:
 
 
 # ---------------------------------------------------------------------- configuration
+REFERENCE_LOSSES = ("bptt_reference", "shac_reference")
+
+
 def test_every_registered_env_and_loss_has_a_config():
     loss_files = {p.stem for p in (CONFIGS / "loss").glob("*.yaml")}
-    assert loss_files == set(LOSSES)
+    assert loss_files == set(LOSSES) | set(REFERENCE_LOSSES)
     assert not (CONFIGS / "env").exists(), "env sections come from the task registrations"
     for name in list_envs():
         cfg = make_cfg(f"env={name}", "loss=shac")
@@ -108,6 +111,25 @@ def test_a_newly_registered_task_is_trainable_without_a_config_file():
         train_script.validate_config(cfg)
     finally:
         _REGISTRY.pop("long_pendulum_test")
+
+
+@pytest.mark.parametrize("choice, name", [("bptt_reference", "bptt"), ("shac_reference", "shac")])
+def test_reference_configs_are_the_learner_with_the_references_settings(tmp_path, choice, name):
+    cfg = make_cfg("env=pendulum", f"loss={choice}")
+    assert cfg.loss.name == name and cfg.loss.horizon == 32
+    train_script.validate_config(cfg)
+    if name == "shac":  # DiffRL
+        assert (cfg.loss.critic_passes, cfg.loss.critic_minibatches, cfg.loss.critic_shuffle) == (16, 4, "once_per_window")
+        assert cfg.loss.critic.init == "orthogonal" and cfg.loss.actor.norm_after_activation
+    else:  # Brax APG
+        assert (cfg.loss.grad_clip, cfg.loss.stagger_episodes, cfg.loss.lr_schedule) == ("elementwise", True, "exponential")
+    overrides = ["env.num_envs=4", "env.max_episode_steps=12", "eval.num_envs=2", "eval.interval=64", "loss.horizon=4",
+                 "loss.actor.hidden=[8]", "train.total_env_steps=32", "train.checkpoint_interval=32", "logger=none",
+                 "eval.gif=false", "train.progress_bar=false"]
+    if name == "shac":
+        overrides += ["loss.critic.hidden=[8]", "loss.critic_passes=2"]
+    result = train_script.run(make_cfg("env=pendulum", f"loss={choice}", *overrides), tmp_path)
+    assert result["env_steps"] == 32 and math.isfinite(result["eval/return"])
 
 
 @pytest.mark.parametrize("loss, budget", [("bptt", 600_000), ("shac", 400_000), ("ppo", 500_000), ("sac", 15_000)])
@@ -155,6 +177,10 @@ def test_unknown_env_or_loss_lists_the_valid_choices():
         (["loss=ppo", "+loss.actor.distribution=deterministic"], "loss=ppo needs a stochastic policy"),
         (["loss=sac", "+loss.obs_norm=true"], "loss.obs_norm=true is not supported by loss=sac"),
         (["loss=sac", "loss.buffer_size=10", "loss.batch_size=64"], "loss.buffer_size=10 is smaller than"),
+        (["loss=shac", "loss.critic.init=xavier"], "loss.critic.init='xavier': valid: default, orthogonal"),
+        (["loss=shac", "loss.critic_shuffle=never"], "loss.critic_shuffle='never': valid: every_pass, once_per_window"),
+        (["loss=bptt", "loss.grad_clip=value"], "loss.grad_clip='value': valid: norm, elementwise"),
+        (["loss=bptt", "+loss.actor.widths=[3]"], "loss.actor: unknown key(s) ['widths']"),
     ],
 )
 def test_bad_configs_stop_before_training_with_a_clear_message(overrides, message):

@@ -18,6 +18,7 @@ env gives float64 networks (gradient checks).
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -47,6 +48,7 @@ __all__ = [
 
 DISTRIBUTIONS = ("tanh_normal", "deterministic")
 ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "elu": nn.ELU, "relu": nn.ReLU}
+NETWORK_INITS = ("default", "orthogonal")
 
 
 class ObservationNormalizer(nn.Module):
@@ -151,16 +153,29 @@ def make_mlp(
     activation: type[nn.Module] = nn.ELU,
     layer_norm: bool = True,
     dtype: torch.dtype = torch.float32,
+    norm_after_activation: bool = False,
+    init: str = "default",
 ) -> nn.Sequential:
-    """``[Linear -> (LayerNorm) -> activation] * len(hidden) -> Linear``."""
+    """``[Linear -> (LayerNorm) -> activation] * len(hidden) -> Linear``.
+
+    ``norm_after_activation=True`` gives ``Linear -> activation -> LayerNorm`` per hidden layer (the
+    order of DiffRL's SHAC networks). ``init="orthogonal"`` initialises every Linear with orthogonal
+    weights of gain sqrt(2) and zero biases (DiffRL's critic); ``"default"`` keeps PyTorch's.
+    """
+    if init not in NETWORK_INITS:
+        raise ValueError(f"make_mlp: init must be one of {NETWORK_INITS}, got {init!r}")
     layers: list[nn.Module] = []
     for width in hidden:
         layers.append(nn.Linear(in_dim, width, dtype=dtype))
-        if layer_norm:
-            layers.append(nn.LayerNorm(width, dtype=dtype))
-        layers.append(activation())
+        norm = [nn.LayerNorm(width, dtype=dtype)] if layer_norm else []
+        layers.extend([activation(), *norm] if norm_after_activation else [*norm, activation()])
         in_dim = width
     layers.append(nn.Linear(in_dim, out_dim, dtype=dtype))
+    if init == "orthogonal":
+        for layer in layers:
+            if isinstance(layer, nn.Linear):
+                nn.init.orthogonal_(layer.weight, gain=math.sqrt(2))
+                nn.init.zeros_(layer.bias)
     return nn.Sequential(*layers)
 
 
@@ -288,6 +303,8 @@ def make_actor(
     hidden: Sequence[int] = (64, 64),
     activation: type[nn.Module] = nn.ELU,
     layer_norm: bool = True,
+    norm_after_activation: bool = False,
+    init: str = "default",
     init_log_std: float = -1.0,
     distribution: str = "tanh_normal",
     normalizer: ObservationNormalizer | None = None,
@@ -299,7 +316,8 @@ def make_actor(
     Args:
         env: a :class:`~torchrl_diffenvs.DiffEnv`, or any TorchRL env with a floating-point
             ``in_key`` observation and a bounded action spec (sizes from :func:`env_dims`).
-        hidden, activation, layer_norm: the MLP (SHAC's reference: ``(64, 64)``, ELU, LayerNorm).
+        hidden, activation, layer_norm, norm_after_activation, init: the MLP (:func:`make_mlp`;
+            SHAC's reference: ``(64, 64)``, ELU, LayerNorm after the activation).
         init_log_std: initial log standard deviation (pre-tanh) of the stochastic policy.
         distribution: ``"tanh_normal"`` (default): a ``ProbabilisticActor`` with a ``TanhNormal``
             squashed into the action bounds; it writes ``"loc"``, ``"scale"``, ``"action"`` (and
@@ -316,7 +334,7 @@ def make_actor(
         raise ValueError(f"make_actor: unknown distribution {distribution!r}; valid: {DISTRIBUTIONS}")
     observation_dim, action_dim, dtype = env_dims(env, in_key)
     low, high = _action_bounds(env)
-    net = make_mlp(observation_dim, action_dim, hidden, activation, layer_norm, dtype)
+    net = make_mlp(observation_dim, action_dim, hidden, activation, layer_norm, dtype, norm_after_activation, init)
     prefix = [normalizer] if normalizer is not None else []
     if distribution == "deterministic":
         return LeanModule(nn.Sequential(*prefix, net, _ScaledTanh(low, high)), in_keys=[in_key], out_keys=["action"])
@@ -330,12 +348,14 @@ def make_critic(
     hidden: Sequence[int] = (64, 64),
     activation: type[nn.Module] = nn.ELU,
     layer_norm: bool = True,
+    norm_after_activation: bool = False,
+    init: str = "default",
     normalizer: ObservationNormalizer | None = None,
     in_key: str = "observation",
 ) -> LeanModule:
     """A state-value network ``V(observation)`` writing ``"state_value"`` (``[..., 1]``)."""
     observation_dim, _, dtype = env_dims(env, in_key)
-    net = make_mlp(observation_dim, 1, hidden, activation, layer_norm, dtype)
+    net = make_mlp(observation_dim, 1, hidden, activation, layer_norm, dtype, norm_after_activation, init)
     if normalizer is not None:
         net = nn.Sequential(normalizer, net)
     return LeanModule(net, in_keys=[in_key], out_keys=["state_value"])
@@ -353,16 +373,17 @@ class _ConcatInputs(nn.Module):
 
 
 def make_qvalue(env, hidden: Sequence[int] = (256, 256), activation: type[nn.Module] = nn.ReLU,
-                layer_norm: bool = False) -> ValueOperator:
+                layer_norm: bool = False, norm_after_activation: bool = False, init: str = "default") -> ValueOperator:
     """``Q(observation, action)`` writing ``"state_action_value"`` (what TorchRL's ``SACLoss`` expects)."""
     observation_dim, action_dim, dtype = env_dims(env)
-    net = make_mlp(observation_dim + action_dim, 1, hidden, activation, layer_norm, dtype)
+    net = make_mlp(observation_dim + action_dim, 1, hidden, activation, layer_norm, dtype, norm_after_activation, init)
     return ValueOperator(_ConcatInputs(net), in_keys=["observation", "action"], out_keys=["state_action_value"])
 
 
 # ---------------------------------------------------------------------- from a loss config section
 def network_kwargs(section: Mapping) -> dict:
-    """``hidden`` / ``activation`` / ``layer_norm`` (/ ``init_log_std``) of a network section
+    """``hidden`` / ``activation`` / ``layer_norm`` (/ ``norm_after_activation``, ``init``,
+    ``init_log_std``) of a network section
     (``loss.actor``, ``loss.critic``, ``loss.qvalue``) as keyword arguments of the builders."""
     activation = section.get("activation", "elu")
     if activation not in ACTIVATIONS:
@@ -374,6 +395,9 @@ def network_kwargs(section: Mapping) -> dict:
     }
     if "init_log_std" in section:
         kwargs["init_log_std"] = float(section["init_log_std"])
+    for key, cast in (("norm_after_activation", bool), ("init", str)):
+        if key in section:
+            kwargs[key] = cast(section[key])
     return kwargs
 
 

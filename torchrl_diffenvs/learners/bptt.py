@@ -38,8 +38,10 @@ class BPTTConfig(LearnerConfig):
     lr_schedule: str = checked("linear", checks.one_of(LR_SCHEDULES))
     min_lr: float = checked(1e-5, checks.learning_rate)  # end of the linear schedule
     lr_decay: float = checked(0.997, checks.in_interval(0.0, 1.0))  # per iteration, exponential schedule
-    max_grad_norm: float | None = checked(1.0, checks.optional_positive)  # clip the gradient norm
+    max_grad_norm: float | None = checked(1.0, checks.optional_positive)  # the clip threshold
+    grad_clip: str = checked("norm", checks.one_of(GradientGuard.CLIP_MODES))  # Brax APG: elementwise
     skip_above: float | None = checked(1e6, checks.optional_positive)  # skip steps with a larger norm
+    stagger_episodes: bool = checked(False, checks.boolean)  # random episode phases (Brax APG: true)
     obs_norm: bool = checked(True, checks.boolean)  # running observation normalisation (from_config)
 
 
@@ -70,12 +72,12 @@ class BPTTLearner(Learner):
         self.actor = self.policy = actor
         self.normalizer = normalizer
         self.collector = DiffWindowCollector(env, actor, horizon=c.horizon, start_state=start_state,
-                                             reset_input=reset_input)
+                                             stagger_episodes=c.stagger_episodes, reset_input=reset_input)
         self.loss = BPTTLoss(actor, gamma=c.gamma)
         self.actor_params = [p for p in actor.parameters() if p.requires_grad]
         # foreach: one kernel per Adam operation for all tensors (about 2x faster for small nets on CPU)
         self.actor_optim = torch.optim.Adam(self.actor_params, lr=c.actor_lr, betas=c.betas, foreach=True)
-        self.actor_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=c.skip_above)
+        self.actor_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=c.skip_above, clip=c.grad_clip)
         self.actor_schedule = lr_scheduler(self.actor_optim, c.lr_schedule, lambda: self.total_iterations,
                                            min_lr=c.min_lr, decay=c.lr_decay)
 

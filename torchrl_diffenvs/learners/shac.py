@@ -46,6 +46,9 @@ class SHACConfig(LearnerConfig):
     lr_decay: float = checked(0.997, checks.in_interval(0.0, 1.0))  # per iteration, exponential schedule
     critic_passes: int = checked(2, checks.positive_int)  # the reference: 16 passes x 4 minibatches
     critic_minibatches: int = checked(2, checks.positive_int)
+    # every_pass: a new random split for each pass; once_per_window: one split, visited in the same
+    # order by every pass (DiffRL's reference)
+    critic_shuffle: str = checked("every_pass", checks.one_of(("every_pass", "once_per_window")))
     target_tau: float = checked(0.8, checks.in_interval(0.0, 1.0))  # the reference keeps 0.2 of the old target
     max_grad_norm: float | None = checked(1.0, checks.optional_positive)  # clip both gradient norms
     skip_above: float | None = checked(1e6, checks.optional_positive)  # skip steps with a larger norm
@@ -119,8 +122,10 @@ class SHACLearner(Learner):
         flat = data.select(*self.loss.critic_network.in_keys, self.loss.tensor_keys.value_target).reshape(-1)
         # 4. critic passes over shuffled minibatches
         critic_losses = []
-        for _ in range(c.critic_passes):
-            for batch in torch.randperm(flat.shape[0]).chunk(c.critic_minibatches):
+        for critic_pass in range(c.critic_passes):
+            if critic_pass == 0 or c.critic_shuffle == "every_pass":
+                split = torch.randperm(flat.shape[0]).chunk(c.critic_minibatches)
+            for batch in split:
                 critic_loss = self.loss.critic_loss(flat[batch])["loss_critic"]
                 self.critic_optim.zero_grad(set_to_none=True)
                 critic_loss.backward()

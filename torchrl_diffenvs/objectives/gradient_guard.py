@@ -10,7 +10,7 @@ __all__ = ["GradientGuard"]
 
 
 class GradientGuard:
-    """Clips the gradient norm and skips optimiser steps whose gradient is unusable.
+    """Clips the gradient (its norm, or each element) and skips optimiser steps whose gradient is unusable.
 
     Differentiating through long rollouts can produce exploding or non-finite gradients (chaotic
     dynamics, a NaN reward). :meth:`step` computes the total pre-clip gradient norm of
@@ -24,6 +24,9 @@ class GradientGuard:
 
     Args:
         max_norm: clip the total gradient norm to this value; ``None`` disables clipping.
+        clip: ``"norm"`` (default: scale the whole gradient so its norm is at most ``max_norm``,
+            keeping its direction) or ``"elementwise"`` (clamp every element to
+            ``[-max_norm, max_norm]``, as Brax's APG does with ``optax.clip``).
         skip_above: skip the step when the pre-clip norm exceeds this; ``None`` skips only on
             NaN/inf.
 
@@ -35,15 +38,20 @@ class GradientGuard:
         info = guard.step(optimizer, actor.parameters(), loss=loss)  # {"grad_norm": ..., "skipped": False}
     """
 
-    def __init__(self, max_norm: float | None = 1.0, skip_above: float | None = 1e6):
+    def __init__(self, max_norm: float | None = 1.0, skip_above: float | None = 1e6, clip: str = "norm"):
         if max_norm is not None and not max_norm > 0:
             raise ValueError(f"GradientGuard: max_norm must be > 0 or None, got {max_norm!r}")
         if skip_above is not None and not skip_above > 0:
             raise ValueError(f"GradientGuard: skip_above must be > 0 or None, got {skip_above!r}")
+        if clip not in self.CLIP_MODES:
+            raise ValueError(f"GradientGuard: clip must be one of {self.CLIP_MODES}, got {clip!r}")
+        self.clip = clip
         self.max_norm = max_norm
         self.skip_above = skip_above
         self.skipped = 0
         self.steps = 0
+
+    CLIP_MODES = ("norm", "elementwise")
 
     def step(
         self,
@@ -77,7 +85,10 @@ class GradientGuard:
         if not loss_ok or not math.isfinite(norm) or (self.skip_above is not None and norm > self.skip_above):
             self.skipped += 1
             return {"grad_norm": norm, "skipped": True}
-        if self.max_norm is not None and norm > self.max_norm:
+        if self.max_norm is not None and self.clip == "elementwise":
+            for p in params:
+                p.grad.detach().clamp_(-self.max_norm, self.max_norm)
+        elif self.max_norm is not None and norm > self.max_norm:
             scale = self.max_norm / (norm + 1e-6)
             for p in params:
                 p.grad.detach().mul_(scale)
@@ -92,4 +103,5 @@ class GradientGuard:
         self.steps = int(state["steps"])
 
     def __repr__(self) -> str:
-        return f"GradientGuard(max_norm={self.max_norm}, skip_above={self.skip_above}, skipped={self.skipped}/{self.steps})"
+        return (f"GradientGuard(max_norm={self.max_norm}, clip={self.clip!r}, skip_above={self.skip_above}, "
+                f"skipped={self.skipped}/{self.steps})")

@@ -15,7 +15,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from ..checks import is_int as _is_int
 from ..envs import env_config, list_envs, make_env
 from ..learners import LEARNERS
-from ..modules import ACTIVATIONS, DISTRIBUTIONS
+from ..modules import ACTIVATIONS, DISTRIBUTIONS, NETWORK_INITS
 
 __all__ = [
     "ConfigError",
@@ -113,6 +113,9 @@ def make_env_from_config(cfg: DictConfig, num_envs: int, seed: int):
     )
 
 
+_NETWORK_KEYS = ("hidden", "activation", "layer_norm", "norm_after_activation", "init", "init_log_std", "distribution")
+
+
 def _check_network(section, where: str, problems: list[str]) -> None:
     hidden = section.get("hidden")
     if not isinstance(hidden, (list, ListConfig)) or not all(_is_int(h) and h >= 1 for h in hidden):
@@ -123,6 +126,15 @@ def _check_network(section, where: str, problems: list[str]) -> None:
     distribution = section.get("distribution")
     if distribution is not None and distribution not in DISTRIBUTIONS:
         problems.append(f"{where}.distribution={distribution!r}: valid: {', '.join(DISTRIBUTIONS)}")
+    init = section.get("init")
+    if init is not None and init not in NETWORK_INITS:
+        problems.append(f"{where}.init={init!r}: valid: {', '.join(NETWORK_INITS)}")
+    for key in ("layer_norm", "norm_after_activation"):
+        if key in section and not isinstance(section[key], bool):
+            problems.append(f"{where}.{key}={section[key]!r}: expected true or false")
+    unknown = sorted(set(section) - set(_NETWORK_KEYS))
+    if unknown:
+        problems.append(f"{where}: unknown key(s) {unknown}; valid: {', '.join(_NETWORK_KEYS)}")
 
 
 def _check_loss(loss, problems: list[str]) -> None:
