@@ -2,7 +2,7 @@
 
 Measurement rules (the machine these run on is usually shared, 2 CPU cores):
 
-* one torch intra-op thread by default (``--threads 2`` for two); the count is recorded;
+* one torch intra-op thread by default (``threads=2`` for two); the count is recorded;
 * candidates are timed *interleaved*: round ``r`` runs every candidate once, so a burst of load
   from another process hits all of them; ratios are taken within a round, then the median
   over rounds is reported;
@@ -12,7 +12,6 @@ Measurement rules (the machine these run on is usually shared, 2 CPU cores):
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -21,18 +20,28 @@ import statistics
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+
+from torchrl_diffenvs import checks
+from torchrl_diffenvs.checks import Settings, checked, parse_cli
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
 
-def base_parser(description: str) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=description)
-    parser.add_argument("--quick", action="store_true", help="tiny sizes and 2 repeats: a smoke run in seconds")
-    parser.add_argument("--threads", type=int, default=1, choices=(1, 2), help="torch intra-op threads (default 1)")
-    parser.add_argument("--repeats", type=int, default=None, help="timed rounds per configuration")
-    parser.add_argument("--out", type=Path, default=None, help="JSON output path (default benchmarks/results/<name>.json)")
-    return parser
+@dataclass(frozen=True)
+class BenchmarkSettings(Settings):
+    """What every benchmark takes (``key=value`` arguments, as the training script and the demos)."""
+
+    quick: bool = checked(False, checks.boolean)  # tiny sizes and 2 repeats: a smoke run in seconds
+    threads: int = checked(1, checks.one_of((1, 2)))  # torch intra-op threads
+    repeats: int | None = None  # timed rounds per configuration (default: the script's)
+    out: str | None = None  # JSON output path (default benchmarks/results/<name>.json)
+
+
+def parse(settings_class: type[BenchmarkSettings], argv=None, usage: str = "") -> BenchmarkSettings:
+    """The script's settings from ``key=value`` arguments (:func:`torchrl_diffenvs.checks.parse_cli`)."""
+    return parse_cli(settings_class, argv, usage)
 
 
 def setup_threads(threads: int) -> None:
@@ -133,8 +142,8 @@ def print_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str
     return text
 
 
-def write_json(name: str, payload: dict, out: Path | None) -> Path:
-    path = out if out is not None else RESULTS_DIR / f"{name}.json"
+def write_json(name: str, payload: dict, out: str | Path | None) -> Path:
+    path = Path(out) if out is not None else RESULTS_DIR / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(payload, indent=1, default=str) + "\n")
     print(f"# wrote {path}")

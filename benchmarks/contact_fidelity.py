@@ -8,13 +8,14 @@ Speed is measured by ``benchmarks/mujoco_throughput.py``. Needs ``pip install "t
 """
 from __future__ import annotations
 
-import argparse
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from torchrl_diffenvs import make_env
+from torchrl_diffenvs.checks import Settings, parse_cli
 
 CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5"]
 
@@ -59,9 +60,13 @@ def fidelity(task, seconds_rest=2.0, seconds_open_loop=1.0):
     }
 
 
+@dataclass(frozen=True)
+class ContactFidelitySettings(Settings):
+    """No arguments."""
+
+
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    args = parser.parse_args(argv)
+    parse_cli(ContactFidelitySettings, argv, __doc__)  # no arguments; -h prints the description
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore")
     for task in CONTACT_TASKS:

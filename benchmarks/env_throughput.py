@@ -10,7 +10,7 @@ For every registered task and N in {1, 64, 1024, 4096, 16384}, timed interleaved
   kept): the speed limit of eager torch for this physics;
 * ``raw + resets``: the same loop with the episode bookkeeping of an RL env (step counter,
   time limit, termination, auto-reset of done envs), still nothing kept;
-* ``ours compiled`` (``--compile``): ``compile_physics(env, steps_per_chunk=8)``; its
+* ``ours compiled`` (``compile=true``): ``compile_physics(env, steps_per_chunk=8)``; its
   compile time is reported separately;
 * for the Gymnasium ids: gymnasium's ``SyncVectorEnv`` of the same task and, for CartPole-v1,
   gymnasium's own numpy-vectorised CartPole (``make_vec(vectorization_mode=
@@ -23,7 +23,8 @@ to bound memory: the rollout output is 100-300 bytes per env-step); gymnasium an
 PendulumEnv run as many steps as fit in about a quarter of a second.
 
     python benchmarks/env_throughput.py            # full run, several minutes
-    python benchmarks/env_throughput.py --quick    # smoke run, seconds
+    python benchmarks/env_throughput.py quick=true    # smoke run, seconds
+    python benchmarks/env_throughput.py tasks=[pendulum,CartPole-v1] sizes=[64,1024] compile=true gym=false
 """
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ import math
 import sys
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -107,13 +109,16 @@ def calibrated_steps(fn_of_steps, target_seconds: float, max_steps: int) -> int:
     return int(max(2, min(max_steps, target_seconds / max(per_step, 1e-9))))
 
 
+@dataclass(frozen=True)
+class EnvThroughputSettings(C.BenchmarkSettings):
+    tasks: list[str] | None = None  # task names (default: every registered env)
+    sizes: list[int] | None = None  # batch sizes N (default 1 64 1024 4096 16384)
+    compile: bool = False  # also time compile_physics (compiles per task and N)
+    gym: bool = True  # false: skip gymnasium and TorchRL's PendulumEnv
+
+
 def main(argv=None) -> dict:
-    parser = C.base_parser(__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="*", default=None, help="task names (default: every registered env)")
-    parser.add_argument("--sizes", nargs="*", type=int, default=None, help="batch sizes N (default 1 64 1024 16384)")
-    parser.add_argument("--compile", action="store_true", help="also time compile_physics (compiles per task and N)")
-    parser.add_argument("--no-gym", action="store_true", help="skip gymnasium and TorchRL's PendulumEnv")
-    args = parser.parse_args(argv)
+    args = C.parse(EnvThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
 
     import gymnasium
@@ -136,7 +141,7 @@ def main(argv=None) -> dict:
     for n in sizes:
         steps = 5 if quick else max(10, min(1000, 1_000_000 // n))
         reference = {}  # TorchRL's PendulumEnv for this N
-        if not args.no_gym:
+        if args.gym:
             trl = TorchRLPendulum()
             start = trl.reset(trl.gen_params(batch_size=[n]), set_state=False)
             trl_steps = calibrated_steps(
@@ -164,7 +169,7 @@ def main(argv=None) -> dict:
                     compile_seconds = time.perf_counter() - t0
                 candidates["ours compiled"] = (lambda cenv=cenv: cenv.rollout(steps, break_when_any_done=False), steps)
             gym_envs = []
-            if not args.no_gym and task in GYM_IDS:
+            if args.gym and task in GYM_IDS:
                 modes = [("gymnasium SyncVectorEnv", "sync")]
                 if task == "CartPole-v1":
                     modes.append(("gymnasium vectorised CartPole", "vector_entry_point"))

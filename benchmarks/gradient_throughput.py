@@ -29,16 +29,20 @@ Memory, per env-step (bytes / (N H)), counted once per candidate outside the tim
   this physics and policy. The target compares ours' ``held`` with it.
 
     python benchmarks/gradient_throughput.py           # full run, several minutes
-    python benchmarks/gradient_throughput.py --quick   # smoke run, seconds
+    python benchmarks/gradient_throughput.py quick=true   # smoke run, seconds
 """
 from __future__ import annotations
 
 import gc
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
+
+from torchrl_diffenvs import checks  # noqa: E402
+from torchrl_diffenvs.checks import checked  # noqa: E402
 
 
 def make_policy(env, hidden: int = 64, seed: int = 0):
@@ -96,13 +100,16 @@ def count_memory(forward):
     return sum(saved.values()), sum(held.values())
 
 
+@dataclass(frozen=True)
+class GradientThroughputSettings(C.BenchmarkSettings):
+    tasks: list[str] | None = None  # tasks (default: pendulum cartpole)
+    horizons: list[int] | None = None  # window lengths (default 32 1000)
+    sizes: list[int] | None = None  # N (default 1 64 1024, +16384 for H <= 32)
+    modes: list[str] = checked(["policy", "open-loop"], checks.each(checks.one_of(("policy", "open-loop"))))
+
+
 def main(argv=None) -> dict:
-    parser = C.base_parser(__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="*", default=None, help="tasks (default: pendulum cartpole)")
-    parser.add_argument("--horizons", nargs="*", type=int, default=None, help="window lengths (default 32 1000)")
-    parser.add_argument("--sizes", nargs="*", type=int, default=None, help="N (default 1 64 1024, +16384 for H<=32)")
-    parser.add_argument("--modes", nargs="*", default=("policy", "open-loop"), choices=("policy", "open-loop"))
-    args = parser.parse_args(argv)
+    args = C.parse(GradientThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
 
     import torch

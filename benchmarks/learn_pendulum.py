@@ -1,46 +1,47 @@
 """Time to swing up the Ivy-style Pendulum with SHAC and BPTT (N=64 envs, default physics).
 
-Every ``eval_every`` iterations the deterministic policy runs one episode (``--episode-steps``,
+Every ``eval_every`` iterations the deterministic policy runs one episode (``episode_steps``,
 default 100 as in Ivy Gym) in 256 envs from fresh random starts (a fixed evaluation seed); the clock
 counts training time only (collection, losses, updates), not evaluation. For each run the script
 reports the training time and iterations until the evaluation's mean per-step reward first reaches
-each of ``--thresholds``, and until its last-20-step reward (the pendulum held upright at the end of
+each of ``thresholds``, and until its last-20-step reward (the pendulum held upright at the end of
 the episode) reaches 0.9.
 
 Reference points printed alongside: uniformly random actions, and a hand-written energy-pumping +
 PD swing-up controller (the motor is weak: thdd = 14.7 sin th + 3 u, so swinging up from the bottom
 takes several seconds and no policy's 100-step mean per-step reward gets near 1; the controller
-scores 0.74 with 100-step episodes, 0.87 with 200, 0.935 with 400). ``--episode-steps`` sets the
-episode length of the evaluation envs, and of the training envs unless ``--train-episode-steps``
+scores 0.74 with 100-step episodes, 0.87 with 200, 0.935 with 400). ``episode_steps`` sets the
+episode length of the evaluation envs, and of the training envs unless ``train_episode_steps``
 is given.
 
 Usage (one thread; the machine is shared, so wall times carry noise)::
 
-    OMP_NUM_THREADS=1 python benchmarks/learn_pendulum.py --configs shac bptt --seeds 0 1 2
+    OMP_NUM_THREADS=1 python benchmarks/learn_pendulum.py configs=[shac,bptt] seeds=[0,1,2]
     # mean per-step reward 0.9 is reachable only with longer episodes: evaluate on 400-step
     # episodes, train on 100-step ones (training on 400-step episodes stays on the spinning plateau)
-    OMP_NUM_THREADS=1 python benchmarks/learn_pendulum.py --configs shac bptt --seeds 0 1 \
-        --episode-steps 400 --train-episode-steps 100 --thresholds 0.6 0.7 0.8 0.9 \
-        --max-seconds 150 --max-iterations 1000 --out benchmarks/results/learn_pendulum_400.json
+    OMP_NUM_THREADS=1 python benchmarks/learn_pendulum.py configs=[shac,bptt] seeds=[0,1] \
+        episode_steps=400 train_episode_steps=100 thresholds=[0.6,0.7,0.8,0.9] \
+        max_seconds=150 max_iterations=1000 out=benchmarks/results/learn_pendulum_400.json
 
-Writes a JSON with every evaluation point to ``--out`` (default benchmarks/results/learn_pendulum.json).
+Writes a JSON with every evaluation point to ``out`` (default benchmarks/results/learn_pendulum.json).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
 import platform
 import statistics
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from torchrl_diffenvs import make_env
+from torchrl_diffenvs import checks, make_env
+from torchrl_diffenvs.checks import Settings, checked, parse_cli
 from torchrl_diffenvs.evaluation import evaluate
 from torchrl_diffenvs.learners import BPTTConfig, BPTTLearner, SHACConfig, SHACLearner
 from torchrl_diffenvs.modules import ObservationNormalizer, make_actor, make_critic
@@ -140,27 +141,26 @@ def run(config: dict, seed: int, max_iterations: int, max_seconds: float, eval_e
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--configs", nargs="+", default=["shac", "bptt"], choices=sorted(CONFIGS))
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--num-envs", type=int, default=64)
-    parser.add_argument("--max-iterations", type=int, default=400)
-    parser.add_argument("--max-seconds", type=float, default=180.0, help="training-time budget per run")
-    parser.add_argument("--eval-every", type=int, default=10)
-    parser.add_argument("--episode-steps", type=int, default=100,
-                        help="episode length (max_episode_steps) of the evaluation envs, and of the training "
-                             "envs unless --train-episode-steps is given")
-    parser.add_argument("--train-episode-steps", type=int, default=None,
-                        help="episode length of the training envs (default: --episode-steps)")
-    parser.add_argument("--thresholds", nargs="+", type=float, default=list(DEFAULT_REWARD_THRESHOLDS),
-                        help="mean per-step rewards whose first-reach time is reported")
-    parser.add_argument("--out", default="benchmarks/results/learn_pendulum.json")
-    args = parser.parse_args()
-    if args.episode_steps < 20:
-        parser.error(f"--episode-steps must be at least 20 (the last-20-step reward), got {args.episode_steps}")
-    if args.train_episode_steps is not None and args.train_episode_steps < 1:
-        parser.error(f"--train-episode-steps must be a positive integer, got {args.train_episode_steps}")
+@dataclass(frozen=True)
+class LearnPendulumSettings(Settings):
+    """The benchmark's arguments (``key=value``)."""
+
+    configs: list[str] = checked(["shac", "bptt"], checks.each(checks.one_of(sorted(CONFIGS))))
+    seeds: list[int] = checked([0, 1, 2], checks.each(checks.nonnegative_int))
+    num_envs: int = checked(64, checks.positive_int)
+    max_iterations: int = checked(400, checks.positive_int)
+    max_seconds: float = checked(180.0, checks.positive)  # training-time budget per run
+    eval_every: int = checked(10, checks.positive_int)
+    # episode length of the evaluation envs (and of the training envs unless train_episode_steps is
+    # given); at least 20: the last-20-step reward
+    episode_steps: int = checked(100, lambda v: None if checks.is_int(v) and v >= 20 else "expected an integer >= 20")
+    train_episode_steps: int | None = checked(None, lambda v: None if v is None else checks.positive_int(v))
+    thresholds: list[float] = checked(list(DEFAULT_REWARD_THRESHOLDS), checks.each(lambda v: None if checks.is_number(v) else "expected a number"))
+    out: str = "benchmarks/results/learn_pendulum.json"
+
+
+def main(argv=None) -> None:
+    args = parse_cli(LearnPendulumSettings, argv, __doc__)
 
     ref_env = make_env("pendulum", num_envs=256, seed=10_000, max_episode_steps=args.episode_steps)
     references = {

@@ -17,7 +17,7 @@ taken within a round. Unit: env-steps/s (a batched step of N envs counts N) from
 The target of issue 9: ``ours`` at N = 1024 above one gymnasium env.
 
     OMP_NUM_THREADS=1 python benchmarks/mujoco_throughput.py            # several minutes
-    python benchmarks/mujoco_throughput.py --quick                      # smoke run, seconds
+    python benchmarks/mujoco_throughput.py quick=true                     # smoke run, seconds
 
 Needs ``pip install "torchrl_diffenvs[mujoco]"`` (gymnasium's MuJoCo envs).
 """
@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import sys
 import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -100,11 +101,14 @@ def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int) -> 
     return fns, counts
 
 
+@dataclass(frozen=True)
+class MuJoCoThroughputSettings(C.BenchmarkSettings):
+    tasks: list[str] = field(default_factory=lambda: list(TASKS))
+    sizes: list[int] | None = None  # N values (default 1 64 1024 4096)
+
+
 def main(argv=None) -> dict:
-    parser = C.base_parser(__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="+", default=list(TASKS), help=f"default: {' '.join(TASKS)}")
-    parser.add_argument("--sizes", nargs="+", type=int, default=None, help="N values (default 1 64 1024 4096)")
-    args = parser.parse_args(argv)
+    args = C.parse(MuJoCoThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
     warnings.filterwarnings("ignore")
     sizes = args.sizes or ([1, 4] if args.quick else [1, 64, 1024, 4096])

@@ -15,14 +15,15 @@ PPO's time to its own final level divided by that time. The issue's target: SHAC
 the pendulum.
 
     python benchmarks/time_to_solve.py                          # pendulum + cartpole, seeds 0 1 2
-    python benchmarks/time_to_solve.py --envs pendulum --seeds 0 --steps ppo=500000
-    python benchmarks/time_to_solve.py --quick                  # a few iterations each: smoke run
+    python benchmarks/time_to_solve.py envs=[pendulum] seeds=[0] steps=[ppo=500000]
+    python benchmarks/time_to_solve.py quick=true               # a few iterations each: smoke run
     # a sweep: variants of one learner against fixed return levels (no PPO needed)
-    python benchmarks/time_to_solve.py --envs pendulum --losses shac --seeds 0 1 --eval-interval 20000 \
-        --variant "default=" "H8=loss.horizon=8 loss.actor_lr=2e-2" --levels 74.2 72.3 70.4
+    python benchmarks/time_to_solve.py envs=[pendulum] losses=[shac] seeds=[0,1] eval_interval=20000 \
+        'variant=["default=","H8=loss.horizon=8 loss.actor_lr=2e-2"]' levels=[74.2,72.3,70.4]
 
-A variant (``--variant LABEL=OVERRIDE ...``) runs every loss again with those Hydra overrides and
-is reported as ``loss:LABEL``; ``--levels`` adds columns with the time to reach fixed returns.
+Arguments are ``key=value`` (lists as ``[a,b]``), as for the training script. A variant
+(``variant=["LABEL=OVERRIDES", ...]``) runs every loss again with those Hydra overrides and is
+reported as ``loss:LABEL``; ``levels`` adds columns with the time to reach fixed returns.
 """
 from __future__ import annotations
 
@@ -34,17 +35,21 @@ import statistics
 import sys
 import json
 import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
+
+from torchrl_diffenvs import checks  # noqa: E402
+from torchrl_diffenvs.checks import checked  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "sota_scripts" / "train.py"
 CONFIGS = ROOT / "configs"
 LOSSES = ("shac", "bptt", "ppo", "sac")
 
-# --quick: tiny networks and batches, a few iterations per learner (mirrors tests/test_train.py)
+# quick=true: tiny networks and batches, a few iterations per learner (mirrors tests/test_train.py)
 QUICK = {
     "common": ["env.num_envs=4", "env.max_episode_steps=12", "eval.num_envs=2", "eval.interval=16"],
     "bptt": ["loss.horizon=4", "loss.actor.hidden=[16]", "train.total_env_steps=32"],
@@ -126,10 +131,10 @@ def parse_variants(items: list[str]) -> list[tuple[str, list[str]]]:
     for item in items:
         label, sep, overrides = item.partition("=")
         if not sep or not label or ":" in label:
-            raise SystemExit(f"time_to_solve: --variant expects LABEL=OVERRIDES (LABEL without ':'), got {item!r}")
+            raise SystemExit(f"time_to_solve: variant expects LABEL=OVERRIDES (LABEL without ':'), got {item!r}")
         variants.append((label, overrides.split()))
     if len({label for label, _ in variants}) != len(variants):
-        raise SystemExit(f"time_to_solve: --variant labels must be distinct, got {[v[0] for v in variants]}")
+        raise SystemExit(f"time_to_solve: variant labels must be distinct, got {[v[0] for v in variants]}")
     return variants
 
 
@@ -209,25 +214,25 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
     return summary, table
 
 
+@dataclass(frozen=True)
+class TimeToSolveSettings(C.BenchmarkSettings):
+    envs: list[str] | None = None  # envs (default: pendulum cartpole)
+    losses: list[str] = checked(list(LOSSES), checks.each(checks.one_of(LOSSES)))
+    seeds: list[int] | None = None  # seeds (default 0 1 2)
+    steps: list[str] = checked([], checks.each(lambda v: None if "=" in str(v) else "expected LOSS=N"))  # budgets
+    eval_interval: int | None = None  # env steps between evaluations
+    override: list[str] = field(default_factory=list)  # extra Hydra overrides for every run
+    # LABEL=OVERRIDES: run every loss once per variant, with these space-separated Hydra overrides
+    variant: list[str] = field(default_factory=list)
+    levels: list[float] = field(default_factory=list)  # also report the wall time to reach these returns
+    keep_runs: str | None = None  # keep the run directories here
+    summarise: str | None = None  # only re-print the summary of an earlier result file (JSON)
+
+
 def main(argv=None) -> dict:
-    parser = C.base_parser(__doc__.splitlines()[0])
-    parser.add_argument("--envs", nargs="*", default=None, help="envs (default: pendulum cartpole)")
-    parser.add_argument("--losses", nargs="*", default=list(LOSSES), choices=LOSSES)
-    parser.add_argument("--seeds", nargs="*", type=int, default=None, help="seeds (default 0 1 2)")
-    parser.add_argument("--steps", nargs="*", default=[], metavar="LOSS=N",
-                        help="env-step budget per loss (default: each pair's configured train.total_env_steps)")
-    parser.add_argument("--eval-interval", type=int, default=None, help="env steps between evaluations")
-    parser.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
-    parser.add_argument("--variant", nargs="*", default=[], metavar="LABEL=OVERRIDES",
-                        help="run every loss once per variant, with these space-separated Hydra overrides")
-    parser.add_argument("--levels", nargs="*", type=float, default=[], metavar="RETURN",
-                        help="also report the wall time to reach these evaluation returns")
-    parser.add_argument("--keep-runs", type=Path, default=None, help="keep the run directories here")
-    parser.add_argument("--summarise", type=Path, default=None, metavar="JSON",
-                        help="only re-print the summary of an earlier result file")
-    args = parser.parse_args(argv)
+    args = C.parse(TimeToSolveSettings, argv, __doc__)
     if args.summarise is not None:
-        payload = json.loads(args.summarise.read_text())
+        payload = json.loads(Path(args.summarise).read_text())
         runs = payload["runs"]
         envs = list(dict.fromkeys(r["env"] for r in runs))
         payload["summary"], payload["table"] = summarise(runs, envs, list(dict.fromkeys(r["loss"] for r in runs)),
@@ -244,7 +249,7 @@ def main(argv=None) -> dict:
     variants = parse_variants(args.variant) or [("", [])]
     info = C.versions()
     C.print_header("time to solve (sota_scripts/train.py, interleaved runs)", info)
-    runs_root = args.keep_runs or Path(tempfile.mkdtemp(prefix="time_to_solve_"))
+    runs_root = Path(args.keep_runs) if args.keep_runs else Path(tempfile.mkdtemp(prefix="time_to_solve_"))
 
     runs = []
     for seed in seeds:

@@ -2,38 +2,16 @@
 training script's Hydra uses) and plots."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
-from omegaconf.errors import OmegaConfBaseException
 
-from torchrl_diffenvs.checks import Settings
+from torchrl_diffenvs.checks import Settings, parse_cli
 
 
 def parse_settings(settings_class: type[Settings], argv: list[str] | None = None, usage: str = "") -> Settings:
-    """Parses ``key=value`` arguments into ``settings_class`` (a :class:`~torchrl_diffenvs.checks.Settings`
-    dataclass) with OmegaConf, the configuration system of ``sota_scripts/train.py``: values are
-    converted to the fields' types, unknown keys and failed checks stop with a message."""
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if any(item in ("-h", "--help") for item in argv):
-        defaults = " ".join(f"{k}={v}" for k, v in settings_class.defaults().items())
-        print((usage or "") + f"\narguments (key=value), with their defaults: {defaults}")
-        raise SystemExit(0)
-    valid = settings_class.defaults()
-    for item in argv:
-        key, sep, _ = item.partition("=")
-        if not sep or key not in valid:
-            raise SystemExit(f"error: unknown argument {item!r}; valid keys (key=value): {', '.join(valid)}")
-    try:
-        merged = OmegaConf.merge(OmegaConf.structured(settings_class), OmegaConf.from_dotlist(argv))
-        return OmegaConf.to_object(merged)
-    except OmegaConfBaseException as err:  # a value of the wrong type
-        key = getattr(err, "full_key", None)
-        raise SystemExit(f"error: {key}: {str(err).splitlines()[0]}" if key else f"error: {err}") from None
-    except ValueError as err:  # a field's check
-        raise SystemExit(f"error: {err}") from None
+    """``key=value`` arguments into typed settings (:func:`torchrl_diffenvs.checks.parse_cli`)."""
+    return parse_cli(settings_class, argv, usage)
 
 
 def start_demo(settings_class: type[Settings], argv: list[str] | None = None, usage: str = "") -> tuple[Settings, Path]:

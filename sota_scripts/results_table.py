@@ -1,7 +1,7 @@
 """Collects the final metrics of training runs into a markdown table (one row per env x loss).
 
     python sota_scripts/train.py -m env=cartpole,pendulum loss=bptt,shac,ppo,sac hydra.sweep.dir=results/table
-    python sota_scripts/results_table.py results/table [--output results/table.md]
+    python sota_scripts/results_table.py dirs=[results/table] [output=results/table.md] [only_run=true]
 
 Every ``final_metrics.json`` found under the given directories is one run (sota_scripts/train.py
 writes it at the end of training). Runs of the same env and loss (different seeds) are grouped:
@@ -11,13 +11,14 @@ full grid (every registered env x every loss) with no run are listed as "not run
 """
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
-from torchrl_diffenvs import list_envs
+from torchrl_diffenvs import checks, list_envs
+from torchrl_diffenvs.checks import Settings, checked, parse_cli
 from torchrl_diffenvs.training.config import LOSSES
 
 
@@ -71,19 +72,26 @@ def markdown_table(runs: list[dict], full_grid: bool = True) -> str:
     return "\n".join(lines) + "\n"
 
 
+@dataclass(frozen=True)
+class TableSettings(Settings):
+    """The script's arguments (``key=value``)."""
+
+    dirs: list[str] = checked([], lambda v: None if v else "give the run or sweep directories: dirs=[path,...]")
+    output: str | None = None  # also write the table to this file
+    only_run: bool = checked(False, checks.boolean)  # leave out the pairs that have no run
+
+
 def main(argv: list[str] | None = None) -> str:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("directories", nargs="+", type=Path, help="run or sweep directories to search")
-    parser.add_argument("--output", type=Path, default=None, help="also write the table to this file")
-    parser.add_argument("--only-run", action="store_true", help="leave out the pairs that have no run")
-    args = parser.parse_args(argv)
-    runs = collect(args.directories)
+    args = parse_cli(TableSettings, argv, __doc__)
+    directories = [Path(d) for d in args.dirs]
+    runs = collect(directories)
     if not runs:
-        raise SystemExit(f"error: no final_metrics.json under {', '.join(map(str, args.directories))}")
+        raise SystemExit(f"error: no final_metrics.json under {', '.join(map(str, directories))}")
     table = markdown_table(runs, full_grid=not args.only_run)
     if args.output is not None:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(table)
+        output = Path(args.output)
+        output.parent.mkdir(parents=True, exist_ok=True)
+        output.write_text(table)
     sys.stdout.write(table)
     return table
 

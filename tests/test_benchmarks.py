@@ -6,6 +6,7 @@ they run end to end and report what they claim, in seconds, in-process.
 import importlib.util
 import json
 import math
+import sys
 from pathlib import Path
 
 import pytest
@@ -17,6 +18,7 @@ BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 def load(name: str):
     spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the file runs
     spec.loader.exec_module(module)
     return module
 
@@ -36,7 +38,7 @@ def positive_rates(candidates: dict) -> None:
 
 def test_env_throughput_quick(tmp_path):
     out = tmp_path / "env.json"
-    payload = load("env_throughput").main(["--quick", "--out", str(out)])
+    payload = load("env_throughput").main(["quick=true", f"out={out}"])
     assert json.loads(out.read_text())["benchmark"] == "env_throughput"
     assert payload["info"]["torch_threads"] == 1
     rows = {row["task"]: row for row in payload["results"]}
@@ -50,7 +52,7 @@ def test_env_throughput_quick(tmp_path):
 
 
 def test_gradient_throughput_quick(tmp_path):
-    payload = load("gradient_throughput").main(["--quick", "--out", str(tmp_path / "grad.json")])
+    payload = load("gradient_throughput").main(["quick=true", f"out={tmp_path / 'grad.json'}"])
     assert [(r["mode"], r["H"], r["N"]) for r in payload["results"]] == [("policy", 4, 2), ("open-loop", 4, 2)]
     for row in payload["results"]:
         positive_rates(row["candidates"])
@@ -61,7 +63,7 @@ def test_gradient_throughput_quick(tmp_path):
 
 
 def test_time_to_solve_quick(tmp_path):
-    payload = load("time_to_solve").main(["--quick", "--out", str(tmp_path / "tts.json")])
+    payload = load("time_to_solve").main(["quick=true", f"out={tmp_path / 'tts.json'}"])
     assert [(r["env"], r["loss"]) for r in payload["summary"]] == [("pendulum", l) for l in ("shac", "bptt", "ppo", "sac")]
     for run in payload["runs"]:
         assert run["env_steps"] >= 32 and run["curve"], run["loss"]
@@ -74,8 +76,8 @@ def test_time_to_solve_quick(tmp_path):
 
 def test_time_to_solve_variants_and_fixed_levels(tmp_path):
     tts = load("time_to_solve")
-    payload = tts.main(["--quick", "--losses", "shac", "--variant", "default=", "fast=loss.actor_lr=2e-2",
-                        "--levels", "0", "1e9", "--out", str(tmp_path / "tts.json")])
+    payload = tts.main(["quick=true", "losses=[shac]", 'variant=["default=","fast=loss.actor_lr=2e-2"]',
+                        "levels=[0,1e9]", f"out={tmp_path / 'tts.json'}"])
     assert [r["loss"] for r in payload["summary"]] == ["shac:default", "shac:fast"]
     assert [r["variant"] for r in payload["runs"]] == ["default", "fast"]
     assert "loss.actor_lr=2e-2" in payload["runs"][1]["overrides"]
@@ -90,9 +92,19 @@ def test_time_to_solve_variants_and_fixed_levels(tmp_path):
         tts.parse_variants(["a=x=1", "a=y=2"])
 
 
+def test_benchmark_arguments_are_checked_like_the_training_scripts():
+    tts = load("time_to_solve")
+    with pytest.raises(SystemExit, match=r"losses=\['dqn'\]: element 'dqn': valid: shac, bptt, ppo, sac"):
+        tts.main(["losses=[dqn]"])
+    with pytest.raises(SystemExit, match="unknown argument '--quick'"):
+        tts.main(["--quick"])
+    with pytest.raises(SystemExit, match="threads=3: valid: 1, 2"):
+        load("env_throughput").main(["threads=3"])
+
+
 def test_mujoco_throughput_quick(tmp_path):
     pytest.importorskip("mujoco")
-    payload = load("mujoco_throughput").main(["--quick", "--tasks", "Hopper-v5", "--out", str(tmp_path / "mj.json")])
+    payload = load("mujoco_throughput").main(["quick=true", "tasks=[Hopper-v5]", f"out={tmp_path / 'mj.json'}"])
     assert [(r["task"], r["N"]) for r in payload["results"]] == [("Hopper-v5", 1), ("Hopper-v5", 4)]
     for row in payload["results"]:
         positive_rates(row["candidates"])

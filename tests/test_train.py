@@ -39,6 +39,7 @@ SCRIPT = ROOT / "sota_scripts" / "train.py"
 def _load_script(name: str, path: Path):
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up while the file runs
     spec.loader.exec_module(module)
     return module
 
@@ -448,7 +449,7 @@ def test_hydra_multirun_sweep_and_results_table(tmp_path, monkeypatch):
     assert [p.parent.name for p in runs] == [
         "0_pendulum_bptt_seed0", "1_pendulum_bptt_seed1", "2_cartpole_bptt_seed0", "3_cartpole_bptt_seed1",
     ]
-    table = results_table.main([str(sweep_dir), "--output", str(tmp_path / "table.md")])
+    table = results_table.main([f"dirs=[{sweep_dir}]", f"output={tmp_path / 'table.md'}"])
     assert (tmp_path / "table.md").read_text() == table
     rows = {tuple(c.strip() for c in line.split("|")[1:3]): line for line in table.splitlines()[2:]}
     assert len(rows) == len(list_envs()) * len(LOSSES)

@@ -11,7 +11,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 
 __all__ = [
-    "Check", "Settings", "checked", "adam_betas", "boolean", "in_interval", "is_int", "is_number", "learning_rate", "nonnegative", "nonnegative_int", "one_of", "optional_positive",
+    "Check", "Settings", "checked", "parse_cli", "adam_betas", "boolean", "in_interval", "is_int", "each", "is_number", "learning_rate", "nonnegative", "nonnegative_int", "one_of", "optional_positive",
     "positive", "positive_int",
 ]
 
@@ -76,14 +76,30 @@ def adam_betas(value) -> str | None:
     return None if ok else "expected two Adam betas in [0, 1), e.g. [0.7, 0.95]"
 
 
+def each(check: Check) -> Check:
+    """Every element of a list passes ``check``."""
+
+    def check_all(values) -> str | None:
+        if isinstance(values, (str, bytes)) or not isinstance(values, Sequence):
+            return "expected a list, e.g. [a,b]"
+        for value in values:
+            message = check(value)
+            if message is not None:
+                return f"element {value!r}: {message}"
+        return None
+
+    return check_all
+
+
 def boolean(value) -> str | None:
     return None if isinstance(value, bool) else "expected true or false"
 
 
 def checked(default, check: Check):
-    """A settings field with its default and the check its values must pass."""
+    """A settings field with its default and the check its values must pass (a list default
+    stays a list, a tuple default a tuple)."""
     if isinstance(default, (list, tuple)):
-        return dataclasses.field(default_factory=lambda: tuple(default), metadata={"check": check})
+        return dataclasses.field(default_factory=lambda: type(default)(default), metadata={"check": check})
     return dataclasses.field(default=default, metadata={"check": check})
 
 
@@ -137,3 +153,36 @@ class Settings:
         if problems:
             raise ValueError(f"{cls.__name__}: " + "; ".join(problems))
         return cls(**plain)
+
+
+def parse_cli(settings_class: type[Settings], argv: Sequence[str] | None = None, usage: str = "") -> Settings:
+    """Parses ``key=value`` command-line arguments into ``settings_class`` with OmegaConf (the
+    configuration system behind the training script's Hydra): values are converted to the fields'
+    types (lists as ``key=[1,2]``); unknown keys, values of the wrong type and failed checks stop
+    the script with one clear message (``SystemExit``). Used by the demos and the benchmarks.
+    """
+    import sys
+
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    valid = settings_class.defaults()
+    if any(item in ("-h", "--help") for item in argv):
+        defaults = " ".join(f"{k}={v}" for k, v in valid.items())
+        print((usage or "").rstrip() + f"\n\narguments (key=value), with their defaults: {defaults}")
+        raise SystemExit(0)
+    for item in argv:
+        key, sep, _ = item.partition("=")
+        if not sep or key not in valid:
+            raise SystemExit(f"error: unknown argument {item!r}; valid keys (key=value): {', '.join(valid)}")
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(settings_class), OmegaConf.from_dotlist(argv))
+        values = OmegaConf.to_container(merged, resolve=True)
+    except OmegaConfBaseException as err:  # a value of the wrong type
+        key = getattr(err, "full_key", None)
+        raise SystemExit(f"error: {key}: {str(err).splitlines()[0]}" if key else f"error: {err}") from None
+    try:
+        return settings_class(**values)
+    except ValueError as err:  # a field's check
+        raise SystemExit(f"error: {err}") from None
