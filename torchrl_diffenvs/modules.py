@@ -23,10 +23,10 @@ from collections.abc import Mapping, Sequence
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import InteractionType, TensorDictModuleBase
+from tensordict.nn import AddStateIndependentNormalScale, InteractionType, TensorDictModuleBase
 from torch import nn
 from torch.distributions import AffineTransform
-from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 
 from ._compat import SafeTanhTransform, current_interaction_type, sampler_has_own_generator, standard_normal
 
@@ -34,7 +34,6 @@ __all__ = [
     "LeanModule",
     "ObservationNormalizer",
     "OpenLoopActor",
-    "StateIndependentNormalHead",
     "TanhNormalActor",
     "actor_from_config",
     "env_dims",
@@ -156,41 +155,38 @@ def make_mlp(
     norm_after_activation: bool = False,
     init: str = "default",
 ) -> nn.Sequential:
-    """``[Linear -> (LayerNorm) -> activation] * len(hidden) -> Linear``.
+    """``[Linear -> (LayerNorm) -> activation] * len(hidden) -> Linear``: TorchRL's ``MLP``.
 
     ``norm_after_activation=True`` gives ``Linear -> activation -> LayerNorm`` per hidden layer (the
-    order of DiffRL's SHAC networks). ``init="orthogonal"`` initialises every Linear with orthogonal
-    weights of gain sqrt(2) and zero biases (DiffRL's critic); ``"default"`` keeps PyTorch's.
+    order of DiffRL's SHAC networks), which TorchRL's ``MLP`` cannot build: then a plain
+    ``nn.Sequential`` of the same layers. ``init="orthogonal"`` initialises every Linear with
+    orthogonal weights of gain sqrt(2) and zero biases (DiffRL's critic); ``"default"`` keeps
+    PyTorch's. Parameters are created in ``dtype`` (float64 networks for gradient checks).
     """
     if init not in NETWORK_INITS:
         raise ValueError(f"make_mlp: init must be one of {NETWORK_INITS}, got {init!r}")
-    layers: list[nn.Module] = []
-    for width in hidden:
-        layers.append(nn.Linear(in_dim, width, dtype=dtype))
-        norm = [nn.LayerNorm(width, dtype=dtype)] if layer_norm else []
-        layers.extend([activation(), *norm] if norm_after_activation else [*norm, activation()])
-        in_dim = width
-    layers.append(nn.Linear(in_dim, out_dim, dtype=dtype))
+    hidden = [int(width) for width in hidden]
+    if not norm_after_activation:
+        norm = {}
+        if layer_norm:
+            norm = {"norm_class": nn.LayerNorm,
+                    "norm_kwargs": [{"normalized_shape": width, "dtype": dtype} for width in hidden]}
+        net = MLP(in_features=in_dim, out_features=out_dim, num_cells=hidden, activation_class=activation,
+                  layer_kwargs={"dtype": dtype}, **norm)
+    else:
+        layers: list[nn.Module] = []
+        for width in hidden:
+            layers.append(nn.Linear(in_dim, width, dtype=dtype))
+            layers.extend([activation(), nn.LayerNorm(width, dtype=dtype)] if layer_norm else [activation()])
+            in_dim = width
+        layers.append(nn.Linear(in_dim, out_dim, dtype=dtype))
+        net = nn.Sequential(*layers)
     if init == "orthogonal":
-        for layer in layers:
+        for layer in net:
             if isinstance(layer, nn.Linear):
                 nn.init.orthogonal_(layer.weight, gain=math.sqrt(2))
                 nn.init.zeros_(layer.bias)
-    return nn.Sequential(*layers)
-
-
-class StateIndependentNormalHead(nn.Module):
-    """Maps features to ``(loc, scale)`` with ``loc = net(x)`` and a learned, state-independent
-    ``scale = exp(log_std)`` (one value per action dimension, initialised to ``init_log_std``)."""
-
-    def __init__(self, net: nn.Module, action_dim: int, init_log_std: float = -1.0, dtype=torch.float32):
-        super().__init__()
-        self.net = net
-        self.log_std = nn.Parameter(torch.full((action_dim,), float(init_log_std), dtype=dtype))
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc = self.net(x)
-        return loc, self.log_std.exp().expand_as(loc)
+    return net
 
 
 class _ScaledTanh(nn.Module):
@@ -338,7 +334,9 @@ def make_actor(
     prefix = [normalizer] if normalizer is not None else []
     if distribution == "deterministic":
         return LeanModule(nn.Sequential(*prefix, net, _ScaledTanh(low, high)), in_keys=[in_key], out_keys=["action"])
-    head = StateIndependentNormalHead(nn.Sequential(*prefix, net), action_dim, init_log_std, dtype)
+    # loc = MLP(observation), scale = exp(log-std), one learned value per action dimension
+    scale = AddStateIndependentNormalScale(action_dim, scale_mapping="exp", init_value=float(init_log_std))
+    head = nn.Sequential(*prefix, net, scale.to(dtype))
     module = LeanModule(head, in_keys=[in_key], out_keys=["loc", "scale"])
     return TanhNormalActor(module, low, high, spec=env.action_spec_unbatched, return_log_prob=return_log_prob)
 
