@@ -473,3 +473,18 @@ def test_wandb_sweep_file_drives_the_same_script_through_hydra_overrides(sweep_f
     train_script.validate_config(cfg)
     assert cfg.logger.mode == "online" and cfg.logger.backend == "wandb"
     assert sweep["metric"]["name"] == "eval/return"
+
+
+@pytest.mark.parametrize("loss", LOSSES)
+def test_loss_files_list_every_setting_with_the_learners_defaults(loss):
+    """configs/loss/<loss>.yaml shows every setting of the learner's dataclass, with its default (one
+    source of truth: the dataclass; the file is what users read and override)."""
+    from torchrl_diffenvs.learners import LEARNERS
+
+    section = OmegaConf.to_container(OmegaConf.load(CONFIGS / "loss" / f"{loss}.yaml").loss)  # parses 1e-3 as Hydra does
+    settings = {k: v for k, v in section.items() if not isinstance(v, dict) and k != "name"}
+    defaults = LEARNERS[loss].config_class.defaults()
+    assert set(settings) == set(defaults)
+    for key, value in settings.items():
+        expected = list(defaults[key]) if isinstance(defaults[key], tuple) else defaults[key]
+        assert value == expected, (key, value, expected)
