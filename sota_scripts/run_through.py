@@ -18,9 +18,8 @@ from dataclasses import dataclass
 
 import torch
 
-from demo_utils import parse_settings
 from torchrl_diffenvs import checks, list_envs, make_env
-from torchrl_diffenvs.checks import Settings, checked
+from torchrl_diffenvs.checks import Settings, checked, parse_cli
 from torchrl_diffenvs.rendering import save_gif
 
 def optional_positive_int(value) -> str | None:
@@ -67,7 +66,7 @@ def run_through(env: str, steps: int, num_envs: int, out: str | None, seed: int,
 
 
 def main(argv: list[str] | None = None) -> int:
-    options = dataclasses.asdict(parse_settings(RunThroughSettings, argv, usage=__doc__))
+    options = dataclasses.asdict(parse_cli(RunThroughSettings, argv, usage=__doc__))
     start = time.perf_counter()
     path, frames, mean_reward = run_through(**options)
     seconds = time.perf_counter() - start

@@ -20,7 +20,7 @@ from _env_helpers import (
     F64, ReplayPolicy, in_spec_actions, is_gymnasium_variant, make, obs_weights, run_steps, signal, start_td,
     use_rollout_path,
 )
-from torchrl_diffenvs import list_envs, make_env
+from torchrl_diffenvs import make_env
 
 ALL_ENVS = classic_envs()
 IVY_TASKS = [n for n in ALL_ENVS if not is_gymnasium_variant(n)]

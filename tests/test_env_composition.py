@@ -18,7 +18,6 @@ from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from _env_helpers import classic_envs, F64, ReplayPolicy, in_spec_actions, make, obs_weights, signal, use_rollout_path
-from torchrl_diffenvs import list_envs
 
 ALL_ENVS = classic_envs()
 

@@ -19,7 +19,6 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from _env_helpers import classic_envs, F64, ReplayPolicy, in_spec_actions, make, obs_weights, signal, start_td, use_rollout_path
-from torchrl_diffenvs import list_envs
 
 ALL_ENVS = classic_envs()
 EPS = 1e-6  # central differences in float64: truncation ~1e-12, round-off ~1e-10

@@ -5,11 +5,9 @@ same env with the same seeds (torch's global generator for random actions and po
 env's generator for resets). Compared: TensorDict types, batch sizes, names, devices, key sets,
 dtypes, values (bitwise) and gradients.
 """
-import math
 
 import pytest
 import torch
-from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.envs import EnvBase, StepCounter, TransformedEnv

@@ -123,22 +123,6 @@ def test_demo_scripts_write_a_learning_curve_and_a_gif(tmp_path, monkeypatch, sc
     sys.modules.pop(script, None)
 
 
-def test_run_through_writes_a_gif_and_checks_its_arguments(tmp_path, monkeypatch):
-    pytest.importorskip("PIL")
-    import importlib
-    from pathlib import Path
-
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "sota_scripts"))
-    module = importlib.import_module("run_through")
-    out = tmp_path / "cp.gif"
-    assert module.main(["env=cartpole", "steps=3", "num_envs=2", f"out={out}", "size=32"]) == 0
-    assert out.read_bytes()[:6] == b"GIF89a"
-    with pytest.raises(SystemExit, match="size=0: expected an integer >= 1"):
-        module.main(["size=0"])
-    with pytest.raises(SystemExit, match="unknown argument 'stepz=3'"):
-        module.main(["stepz=3"])
-
-
 def test_system_identification_recovers_edited_masses_and_damping(tmp_path, monkeypatch):
     """The demo end to end, small: MuJoCo (gymnasium's env) records a model file whose masses and
     damping were edited; our model, fitted by L-BFGS through autograd, recovers them."""

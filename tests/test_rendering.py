@@ -6,6 +6,7 @@ task's view; colours against Ivy Gym's rule RGB(1 - r, r, 0).
 """
 import importlib.util
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ import torch
 from PIL import Image
 
 from _env_helpers import classic_envs
-from torchrl_diffenvs import DiffEnv, list_envs, make_env
+from torchrl_diffenvs import DiffEnv, make_env
 from torchrl_diffenvs.envs import CartPoleEnv
 from torchrl_diffenvs.rendering import get_drawer, register_drawer, render_frame, rollout_frames, save_gif
 from torchrl_diffenvs.rendering import core as rendering_core
@@ -143,7 +144,7 @@ def test_reacher_tip_on_goal_when_reward_is_one():
 
 def test_mountaincar_car_on_the_hill_and_flag_at_goal():
     env, nxt = stepped("mountaincar", num_envs=1)
-    frame_size, view = 256, (-1.2, 0.6, 0.0, 1.25)  # widened to a square: 1.8 x 1.8
+    frame_size = 256  # the view (-1.2, 0.6, 0.0, 1.25), widened to a square: 1.8 x 1.8
     half, cx, cy = 0.9, -0.3, 0.625
     for x in [-0.9, -0.5, 0.2]:
         td = with_state(env, nxt, x=x)
@@ -221,3 +222,164 @@ def test_the_env_does_not_keep_a_rollouts_graph_alive():
         gc.collect()
         assert all(ref() is None for ref in saved), "the env still holds the rollout's graph"
         env.render()  # drawing the latest output still works
+
+
+def test_rollout_frames_and_grad_carrying_tensors():
+    env = make_env("reacher", num_envs=3, seed=1)
+    actions = torch.zeros(3, 2, requires_grad=True)
+    rollout = env.rollout(4, lambda td: td.set("action", actions * 1.0), auto_cast_to_device=False)
+    assert rollout["next", "reward"].requires_grad
+    frames = rollout_frames(env, rollout, env_index=[0, 2], size=48)
+    assert len(frames) == 5 and all(f.shape == (48, 96, 3) for f in frames)
+    assert np.array_equal(frames[-1], env.render(rollout[:, -1]["next"], env_index=[0, 2], size=48))
+
+
+# ---------------------------------------------------------------------------- errors and extension
+def test_bad_inputs_give_clear_errors():
+    env, nxt = stepped("cartpole", num_envs=3)
+    with pytest.raises(IndexError, match="out of range for 3 envs"):
+        env.render(env_index=3)
+    with pytest.raises(ValueError, match="'all'"):
+        env.render(env_index="every")
+    with pytest.raises(KeyError, match=r"'state' entry.*pass td\['next'\]"):
+        env.render(nxt.exclude("state").set("next", nxt))
+    with pytest.raises(ValueError, match="rollout_frames"):
+        env.render(env.rollout(2))
+    with pytest.raises(ValueError, match="size"):
+        env.render(size=(0, 10))
+    with pytest.raises(KeyError, match="no drawer registered for env 'nope'.*cartpole"):
+        get_drawer("nope")
+
+
+def test_non_finite_state_is_drawn_without_touching_other_envs():
+    env, nxt = stepped("swimmer", num_envs=2)
+    td = nxt.clone()
+    td["state", "pos"][0] = float("nan")
+    grid = env.render(td, env_index="all", size=64)
+    assert np.array_equal(grid[16:63, 64 + 1 : 127], env.render(nxt, env_index=1, size=64)[16:63, 1:63])
+    frame = env.render(td, env_index=0)
+    label = frame[:20, :120].astype(int)
+    assert ((label[..., 0] > 150) & (label[..., 1] < 90)).sum() > 20, "a red 'non-finite state' label"
+    assert count(frame, (102, 153, 255)) > 100, "the goal is still drawn"
+
+
+class DotEnv(DiffEnv):
+    """A point on a line: the smallest task, to show how a new task adds its drawer."""
+
+    name = "dot_for_rendering_test"
+    default_params = {"dt": 0.1}
+
+    def initial_state(self, params, n):
+        return {"x": self.uniform(-1.0, 1.0, n)}
+
+    def transition(self, state, action, params):
+        x = state["x"] + params["dt"] * action[..., 0]
+        return {"x": x}, torch.exp(-(x**2)), None
+
+    def observation(self, state, params):
+        return state["x"].unsqueeze(-1)
+
+
+def test_new_task_registers_its_drawer_and_subclasses_inherit_one():
+    env = DotEnv(2, seed=0)
+    env.reset()
+    with pytest.raises(KeyError, match="no drawer registered for env 'dot_for_rendering_test'"):
+        env.render()
+    try:
+        @register_drawer("dot_for_rendering_test", bounds=(-2, 2, -2, 2))
+        def draw_dot(canvas, state, params, color):
+            canvas.circle((state["x"], 0.0), 0.3, color)
+
+        td = env.reset()
+        td["action"] = torch.zeros(2, 1)
+        nxt = env.step(td)["next"]
+        nxt["reward"] = torch.ones_like(nxt["reward"])
+        px, py = centroid(env.render(nxt), GREEN)
+        ex, ey = world_to_pixel(nxt["state", "x"][0].item(), 0.0, 2.0)
+        assert abs(px - ex) < 1 and abs(py - ey) < 1
+        with pytest.raises(ValueError, match="already registered"):
+            register_drawer("dot_for_rendering_test", draw_dot, bounds=(-1, 1, -1, 1))
+    finally:
+        rendering_core._DRAWERS.pop("dot_for_rendering_test", None)
+
+    class MyCartPole(CartPoleEnv):
+        name = "my_cartpole_for_rendering_test"
+
+    env = MyCartPole(1, seed=0)
+    env.reset()
+    assert get_drawer(env) is get_drawer("cartpole")
+    assert env.render().shape == (256, 256, 3)
+
+
+# ---------------------------------------------------------------------------- GIF and run-through
+def test_save_gif_round_trip(tmp_path):
+    env = make_env("reacher", num_envs=2, seed=0)
+    rollout = env.rollout(6, lambda td: td.set("action", torch.ones(2, 2)))
+    frames = rollout_frames(env, rollout, env_index="all", size=64)
+    path = save_gif(frames, tmp_path / "sub" / "reacher.gif", fps=20)
+    with Image.open(path) as gif:
+        assert gif.n_frames == len(frames) == 7
+        for i, frame in enumerate(frames):
+            gif.seek(i)
+            assert gif.info["duration"] == 50
+            assert np.array_equal(np.asarray(gif.convert("RGB")), frame), f"frame {i} changed"
+    with pytest.raises(ValueError, match="no frames"):
+        save_gif([], tmp_path / "empty.gif")
+    with pytest.raises(ValueError, match=r"frame 1 has shape"):
+        save_gif([frames[0], frames[0][:10]], tmp_path / "bad.gif")
+    with pytest.raises(TypeError, match="uint8"):
+        save_gif([frames[0].astype(np.float32)], tmp_path / "bad.gif")
+
+
+def load_run_through():
+    spec = importlib.util.spec_from_file_location("run_through", REPO / "sota_scripts" / "run_through.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["run_through"] = module  # dataclasses look their module up while the file runs
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_run_through_script(tmp_path, capsys):
+    run_through = load_run_through()
+    out = tmp_path / "rt.gif"
+    assert run_through.main(["env=reacher", "steps=12", f"out={out}", "seed=3", "fps=25"]) == 0
+    assert "End of Run Through Demo!" in capsys.readouterr().out
+    with Image.open(out) as gif:
+        assert gif.size == (256, 256)
+        durations = []
+        for i in range(gif.n_frames):
+            gif.seek(i)
+            durations.append(gif.info["duration"])
+    assert sum(durations) == 12 * 40, "12 frames at 25 fps (identical frames are merged, time is kept)"
+    # several envs: a grid; running past max_episode_steps (100) auto-resets
+    out = tmp_path / "grid.gif"
+    run_through.main(["env=cartpole", "steps=105", "num_envs=3", f"out={out}", "size=32"])
+    with Image.open(out) as gif:
+        assert gif.size == (2 * 32, 2 * 32)
+    with pytest.raises(SystemExit, match="env='nope': valid: .*swimmer"):
+        run_through.main(["env=nope"])
+    with pytest.raises(SystemExit, match="unknown argument 'stepz=3'"):
+        run_through.main(["stepz=3"])
+    with pytest.raises(SystemExit, match="steps: Value 'many' of type 'str' could not be converted to Integer"):
+        run_through.main(["steps=many"])
+    with pytest.raises(SystemExit, match="size=0: expected an integer >= 1"):
+        run_through.main(["size=0"])
+
+
+# ---------------------------------------------------------------------------- TorchRL video tooling
+@pytest.mark.parametrize("pass_tensordict", [False, True])
+def test_torchrl_pixel_render_transform_and_video_recorder(tmp_path, pass_tensordict):
+    from torchrl.envs import TransformedEnv
+    from torchrl.record import PixelRenderTransform, VideoRecorder
+    from torchrl.record.loggers.csv import CSVLogger
+
+    env = make_env("cartpole", num_envs=3, seed=0)
+    logger = CSVLogger(exp_name="video", log_dir=str(tmp_path), video_format="pt")
+    tenv = TransformedEnv(env, PixelRenderTransform(pass_tensordict=pass_tensordict, env_index="all", size=32))
+    tenv.append_transform(VideoRecorder(logger=logger, tag="cartpole"))
+    rollout = tenv.rollout(4)
+    tenv.transform[-1].dump()
+    video = torch.load(tmp_path / "video" / "videos" / "cartpole_0.pt")
+    assert video.shape == (1, 5, 3, 64, 64) and video.dtype == torch.uint8  # reset + 4 steps, 2x2 grid
+    expected = render_frame(env, rollout[:, -1]["next"], env_index="all", size=32)
+    assert np.array_equal(video[0, -1].permute(1, 2, 0).numpy(), expected)

@@ -96,6 +96,14 @@ def test_every_registered_env_and_loss_has_a_config():
         assert env in list_envs() and loss in LOSSES, path.name
 
 
+@pytest.mark.parametrize("env", list_envs())
+def test_default_config_of_every_pair_is_valid(env):
+    for loss in (*LOSSES, *REFERENCE_LOSSES):
+        cfg = make_cfg(f"env={env}", f"loss={loss}")
+        assert cfg.env.name == env and cfg.loss.name == loss.removesuffix("_reference")
+        train_script.validate_config(cfg)  # raises on any problem
+
+
 def test_a_newly_registered_task_is_trainable_without_a_config_file():
     from torchrl_diffenvs.envs import PendulumEnv, register_env
     from torchrl_diffenvs.envs.registry import _REGISTRY

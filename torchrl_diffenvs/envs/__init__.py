@@ -23,7 +23,7 @@ from .registry import env_class, env_config, list_envs, make_env, register_env
 from .swimmer import SwimmerEnv
 
 __all__ = [
-    "DiffEnv", "CartPoleEnv", "PendulumEnv", "MountainCarEnv", "ReacherEnv", "SwimmerEnv",
+    "DiffEnv", "MUJOCO_TASKS", "CartPoleEnv", "PendulumEnv", "MountainCarEnv", "ReacherEnv", "SwimmerEnv",
     "CartPoleV1Env", "PendulumV1Env", "MountainCarContinuousV0Env", "MuJoCoModelEnv", "InvertedPendulumV5Env",
     "InvertedDoublePendulumV5Env", "ReacherV5Env", "HalfCheetahV5Env", "HopperV5Env", "Walker2dV5Env",
     "env_class", "env_config", "list_envs", "make_env", "register_env", "compile_physics", "eager_physics",

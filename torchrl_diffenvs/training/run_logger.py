@@ -18,7 +18,7 @@ import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from torchrl.record.loggers import get_logger
 
 __all__ = ["RunLogger", "plot_learning_curve"]
