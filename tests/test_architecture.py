@@ -80,3 +80,15 @@ def test_private_torchrl_and_tensordict_names_only_in_compat():
             if pattern.search(line) and not line.lstrip().startswith("#"):
                 offenders.append(f"{path.relative_to(PACKAGE.parent)}:{number}: {line.strip()}")
     assert not offenders, "private names outside _compat.py:\n" + "\n".join(offenders)
+
+
+def test_building_envs_and_training_configs_imports_no_rendering():
+    """Rendering (and Pillow, an optional extra) is imported only when something is drawn."""
+    import subprocess
+    import sys
+
+    code = ("import sys, torchrl_diffenvs; from torchrl_diffenvs.training import config; "
+            "[torchrl_diffenvs.make_env(n) for n in torchrl_diffenvs.list_envs()]; "
+            "print(sorted(m for m in ('PIL', 'torchrl_diffenvs.rendering') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
