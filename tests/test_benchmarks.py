@@ -110,3 +110,21 @@ def test_mujoco_throughput_quick(tmp_path):
         positive_rates(row["candidates"])
         assert {"ours", "ours fwd+bwd", "gymnasium", "mj_step (C)", "gymnasium SyncVectorEnv"} == set(row["candidates"])
         assert set(row["ratios_cpu"]) == {f"ours / {name}" for name in row["candidates"] if name != "ours"}
+
+
+def test_jax_comparison_quick(tmp_path):
+    """Runs with or without the bench extra: without jax/gymnax the JAX columns are skipped, with a note."""
+    bench = load("jax_comparison")
+    payload = bench.main(["quick=true", "tasks=[Pendulum-v1,swimmer]", f"out={tmp_path / 'jax.json'}"])
+    kinds = [(r["kind"], r["task"]) for r in payload["results"]]
+    assert kinds == [("forward", "Pendulum-v1"), ("forward", "swimmer"), ("BPTT", "Pendulum-v1")]
+    pendulum = payload["results"][0]["candidates"]
+    assert {"ours", "raw torch"} <= set(pendulum)
+    if bench.jax_available() is None:
+        assert payload["jax_skipped"] is None
+        assert {"gymnax", "raw JAX"} <= set(pendulum)
+        assert "JAX value_and_grad" in payload["results"][2]["candidates"]
+    else:
+        assert "pip install" in payload["jax_skipped"] and "gymnax" not in pendulum
+    for result in payload["results"]:
+        positive_rates(result["candidates"])
