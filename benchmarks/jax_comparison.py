@@ -65,9 +65,11 @@ class JaxComparisonSettings(C.BenchmarkSettings):
 
 def jax_available() -> str | None:
     """``None`` when jax and gymnax import, else why not."""
+    import importlib
+
     try:
-        import gymnax  # noqa: F401
-        import jax  # noqa: F401
+        for module in ("jax", "gymnax"):
+            importlib.import_module(module)
     except ImportError as err:
         return f"{err.name or err} is not installed (pip install -e '.[bench]')"
     return None
@@ -105,7 +107,6 @@ def torch_mlp(in_dim: int, out_dim: int, hidden, dtype):
 
 def ours_bptt(n: int, h: int, hidden):
     """Our BPTT window on Pendulum-v1: rollout with the policy, then backward."""
-    import torch
     from tensordict.nn import TensorDictModule
 
     from torchrl_diffenvs import make_env
