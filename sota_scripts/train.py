@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import random
 import time
 import warnings
@@ -95,6 +96,7 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
         check_resume_compatible(OmegaConf.create(ckpt["config"]), cfg)
         learner.load_state_dict(ckpt["learner"])
         progress, history, wandb_run_id = ckpt["progress"], ckpt["history"], ckpt.get("wandb_run_id")
+        progress.pop("won", None)  # a resumed run trains on, even past an earlier score_to_win
         restore_rng_state(ckpt["rng"], {"env": env.rng})  # last: building the learner drew numbers
         log.info(f"resumed {cfg.resume} at env step {progress['env_steps']:,}")
     logger = RunLogger(cfg, run_dir, history, wandb_run_id)
@@ -103,7 +105,8 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
     for row in history:  # what the progress bar and the final metrics show after a resume
         last.update({k: v for k, v in row.items() if k in last or k == "eval/random_return"})
 
-    def checkpoint() -> Path:
+    def checkpoint(name: str | None = None) -> Path:
+        """Writes a numbered checkpoint (and last.pt), or the one called ``name`` (best.pt)."""
         state = {
             "config": OmegaConf.to_container(cfg, resolve=True),
             "overrides": [o for o in overrides if not o.startswith(("resume=", "mode=", "checkpoint="))],
@@ -114,6 +117,8 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
             "rng": capture_rng_state({"env": env.rng}),
             "wandb_run_id": logger.wandb_run_id,
         }
+        if name is not None:
+            return save_checkpoint(state, ckpt_dir / name)
         path = save_checkpoint(state, ckpt_dir / f"ckpt_{progress['env_steps']:012d}.pt")
         atomic_copy(path, ckpt_dir / "last.pt")
         numbered = sorted(ckpt_dir.glob("ckpt_*.pt"))
@@ -129,6 +134,16 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
         scores = evaluate(eval_env, learner.policy, eval_steps, cfg.eval.seed)
         last["eval/return"], progress["last_eval"] = scores["return"], progress["env_steps"]
         logger.log({f"eval/{k}": v for k, v in scores.items()}, progress["env_steps"])
+        best_after = cfg.train.get("save_best_after")
+        if best_after is not None and progress["env_steps"] >= best_after and \
+                scores["return"] > progress.get("best_eval_return", -math.inf):
+            progress["best_eval_return"] = scores["return"]  # set first: best.pt records itself as the best
+            checkpoint("best.pt")
+        win = cfg.train.get("score_to_win")
+        if win is not None and scores["return"] >= win and not progress.get("won"):
+            progress["won"] = True
+            log.info(f"evaluation return {scores['return']:.4g} >= train.score_to_win={win}: stopping at env step "
+                     f"{progress['env_steps']:,}")
 
     # ------------------------------------------------------------------ the loop
     bar = tqdm(total=total, initial=min(progress["env_steps"], total), unit="step", unit_scale=True,
@@ -144,7 +159,7 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
                 while progress["next_checkpoint"] <= progress["env_steps"]:
                     progress["next_checkpoint"] += int(cfg.train.checkpoint_interval)
                 checkpoint()
-            if progress["env_steps"] >= total:
+            if progress["env_steps"] >= total or progress.get("won"):
                 break
 
             tic = time.perf_counter()

@@ -4,6 +4,7 @@ import io
 
 import pytest
 import torch
+from tensordict import TensorDict
 
 from torchrl_diffenvs import make_env
 from torchrl_diffenvs.envs import PendulumEnv
@@ -190,3 +191,68 @@ def test_bptt_reference_knobs_reach_the_learner():
     learner.train_iteration()
     phases = learner.collector._carried.get("episode_step")
     assert len(set(phases.tolist())) > 4  # the envs no longer share one episode phase
+
+
+# ---------------------------------------------------------------------------- rl_games' PPO knobs
+def make_ppo(**settings):
+    from torchrl_diffenvs.learners import PPOConfig, PPOLearner
+
+    torch.manual_seed(0)
+    env = make_env("pendulum", num_envs=4, seed=0, max_episode_steps=10)
+    actor = make_actor(env, hidden=(8,), return_log_prob=True)
+    base = dict(rollout_len=4, epochs=2, minibatch_size=8)
+    return PPOLearner(env, actor, make_critic(env, hidden=(8,)), PPOConfig(**{**base, **settings}), 1000)
+
+
+def test_adaptive_lr_follows_the_kl_as_rl_games():
+    learner = make_ppo(lr_schedule="adaptive", lr=1e-3, kl_threshold=0.01, min_lr=5e-4, max_lr=2e-3)
+    lr = lambda: learner.optim.param_groups[0]["lr"]  # noqa: E731
+    learner._adapt_lr(0.05)  # > 2 x threshold
+    assert lr() == pytest.approx(1e-3 / 1.5)
+    learner._adapt_lr(0.05)
+    assert lr() == pytest.approx(5e-4)  # clamped at min_lr
+    learner._adapt_lr(0.01)  # within [threshold / 2, 2 x threshold]: unchanged
+    assert lr() == pytest.approx(5e-4)
+    for _ in range(4):  # 5e-4 x 1.5^4 = 2.5e-3
+        learner._adapt_lr(0.001)  # < threshold / 2
+    assert lr() == pytest.approx(2e-3)  # clamped at max_lr
+    learner.train_iteration()  # the schedule does not reset the adapted lr
+    assert lr() != pytest.approx(1e-3)
+    adapted = lr()
+    resumed = make_ppo(lr_schedule="adaptive", lr=1e-3, kl_threshold=0.01, min_lr=5e-4, max_lr=2e-3)
+    resumed.load_state_dict(learner.state_dict())
+    assert resumed.optim.param_groups[0]["lr"] == pytest.approx(adapted)
+    with pytest.raises(ValueError, match=r"lr=0.1 must lie in \[min_lr, max_lr\]"):
+        make_ppo(lr_schedule="adaptive", lr=0.1)
+
+
+def test_bounds_loss_hand_computed():
+    learner = make_ppo(bounds_loss_coef=1e-4)
+    loc = torch.tensor([[1.5], [-2.0], [0.5]])
+
+    class FixedLoc(torch.nn.Module):
+        in_keys = ["observation"]
+
+        def forward(self, td):
+            return td.set("loc", loc)
+
+    learner.actor.module[0] = FixedLoc()
+    batch = TensorDict({"observation": torch.zeros(3, 3)}, batch_size=[3])
+    assert learner.bounds_loss(batch).item() == pytest.approx((0.4**2 + 0.9**2 + 0.0) / 3)
+    regularised = make_ppo(bounds_loss_coef=1e-4, bound_loss_type="regularisation")
+    regularised.actor.module[0] = FixedLoc()
+    assert regularised.bounds_loss(batch).item() == pytest.approx((2.25 + 4.0 + 0.25) / 3)
+
+
+def test_bounds_loss_reaches_the_policy_and_value_clipping_reaches_torchrls_loss():
+    learner = make_ppo(bounds_loss_coef=1.0, clip_value=True)
+    assert learner.loss.clip_value  # TorchRL's ClipPPOLoss clips the value update to +-clip_epsilon
+    batch = next(learner._batches).reshape(-1)
+    with torch.no_grad():  # push the means out of the soft bounds so that the loss has a gradient
+        last = [m for m in learner.actor.modules() if isinstance(m, torch.nn.Linear)][-1]
+        last.bias.fill_(3.0)
+    learner.bounds_loss(batch).backward()
+    assert last.bias.grad is not None and last.bias.grad.abs().sum() > 0
+    assert any(p is last.bias for p in learner.params), "the optimiser steps the parameter the bounds loss moves"
+    metrics = learner.train_iteration()
+    assert metrics["loss_bounds"] > 0

@@ -496,3 +496,25 @@ def test_loss_files_list_every_setting_with_the_learners_defaults(loss):
     for key, value in settings.items():
         expected = list(defaults[key]) if isinstance(defaults[key], tuple) else defaults[key]
         assert value == expected, (key, value, expected)
+
+
+def test_score_to_win_stops_training_and_best_checkpoint_keeps_the_best_evaluation(tmp_path, caplog):
+    """rl_games' score_to_win and save_best_after: the run stops at the first evaluation that reaches
+    the score; checkpoints/best.pt holds the policy of the best evaluation so far."""
+    caplog.set_level("INFO", logger="train")
+    cfg = tiny_cfg("pendulum", "bptt", 8, "eval.interval=16", "train.save_best_after=0")
+    result = train_script.run(cfg, tmp_path / "full")
+    evals = [row["eval/return"] for row in read_jsonl(tmp_path / "full" / "metrics.jsonl") if "eval/return" in row]
+    best = load_checkpoint(tmp_path / "full" / "checkpoints" / "best.pt")
+    assert best["progress"]["best_eval_return"] == pytest.approx(max(evals))
+    assert best["progress"]["env_steps"] == 16 * evals.index(max(evals))  # saved at that evaluation
+    # a score reached at the second evaluation (env step 16) ends the run there
+    target = evals[1] if evals[1] >= evals[0] else evals[0]
+    stopped = train_script.run(tiny_cfg("pendulum", "bptt", 8, "eval.interval=16", f"train.score_to_win={target}"),
+                               tmp_path / "won")
+    assert stopped["env_steps"] == 16 * next(i for i, e in enumerate(evals) if e >= target) < result["env_steps"]
+    assert "train.score_to_win" in caplog.text
+    with pytest.raises(ConfigError, match="train.save_best_after=-1: expected an integer >= 0"):
+        train_script.validate_config(make_cfg("train.save_best_after=-1"))
+    with pytest.raises(ConfigError, match="train.score_to_win='high': expected a number"):
+        train_script.validate_config(make_cfg("train.score_to_win=high"))

@@ -6,8 +6,9 @@ One iteration, in the algorithm's order:
    no gradients);
 2. ``epochs`` passes, each recomputing GAE advantages with the current critic, then taking
    shuffled minibatch steps (without replacement) on ``loss_objective + loss_critic
-   (+ loss_entropy)``, each through a guard (clip to ``max_grad_norm``; skip NaN/inf);
-3. step the learning-rate schedule (linear to 0 over the budget with ``lr_anneal``);
+   (+ loss_entropy) (+ bounds loss)``, each through a guard (clip to ``max_grad_norm``; skip
+   NaN/inf); with ``lr_schedule=adaptive`` the learning rate follows each step's KL estimate;
+3. step the learning-rate schedule (linear to 0 over the budget, or constant);
 4. update the observation normaliser, so the data of an iteration is scored with the
    statistics it was collected with; hand the new weights to the collector.
 """
@@ -40,16 +41,33 @@ class PPOConfig(LearnerConfig):
     epochs: int = checked(5, checks.positive_int)  # passes over each batch
     minibatch_size: int = checked(512, checks.positive_int)  # transitions per gradient step
     lr: float = checked(1e-3, checks.learning_rate)
-    lr_anneal: bool = checked(True, checks.boolean)  # decay lr linearly to 0 over the budget
+    # linear (to 0 over the budget) | constant | adaptive (rl_games: after each minibatch step the lr is
+    # divided by 1.5 when the KL estimate exceeds 2 x kl_threshold, multiplied by 1.5 below half of it)
+    lr_schedule: str = checked("linear", checks.one_of(("linear", "constant", "adaptive")))
+    kl_threshold: float = checked(0.008, checks.positive)  # adaptive schedule's target KL
+    min_lr: float = checked(1e-6, checks.learning_rate)  # adaptive schedule's bounds
+    max_lr: float = checked(1e-2, checks.learning_rate)
     gamma: float = checked(0.99, checks.in_interval(0.0, 1.0))
     lmbda: float = checked(0.95, checks.in_interval(0.0, 1.0, low_inclusive=True))  # GAE lambda
     clip_epsilon: float = checked(0.2, checks.positive)
     entropy_coeff: float = checked(0.0, checks.nonnegative)
     critic_coeff: float = checked(0.5, checks.nonnegative)
+    clip_value: bool = checked(False, checks.boolean)  # clip the value update to +-clip_epsilon (rl_games)
+    # rl_games' bounds loss on the policy's pre-squash mean: bound: sum of max(|loc| - 1.1, 0)^2 per
+    # action (soft bounds); regularisation: sum of loc^2; weight bounds_loss_coef (0: off)
+    bounds_loss_coef: float = checked(0.0, checks.nonnegative)
+    bound_loss_type: str = checked("bound", checks.one_of(("bound", "regularisation")))
     loss_critic_type: str = checked("l2", checks.one_of(("l1", "l2", "smooth_l1")))
     normalize_advantage: bool = checked(True, checks.boolean)
     max_grad_norm: float | None = checked(1.0, checks.optional_positive)  # clip the global gradient norm
     obs_norm: bool = checked(False, checks.boolean)  # running observation normalisation (from_config)
+
+    @classmethod
+    def relation_problems(cls, values, where: str = "") -> list[str]:
+        if values["lr_schedule"] == "adaptive" and not values["min_lr"] <= values["lr"] <= values["max_lr"]:
+            return [f"{where}lr={values['lr']} must lie in [{where}min_lr, {where}max_lr] = "
+                    f"[{values['min_lr']}, {values['max_lr']}] for the adaptive schedule"]
+        return []
 
 
 class PPOLearner(Learner):
@@ -79,12 +97,13 @@ class PPOLearner(Learner):
         self.loss = ClipPPOLoss(
             actor, critic, clip_epsilon=c.clip_epsilon, entropy_bonus=c.entropy_coeff > 0,
             entropy_coeff=c.entropy_coeff, critic_coeff=c.critic_coeff, loss_critic_type=c.loss_critic_type,
-            normalize_advantage=c.normalize_advantage,
+            normalize_advantage=c.normalize_advantage, clip_value=c.clip_value or None,
         )
         self.loss.make_value_estimator(ValueEstimators.GAE, gamma=c.gamma, lmbda=c.lmbda)
         self.params = [p for p in self.loss.parameters() if p.requires_grad]
         self.optim = torch.optim.Adam(self.params, lr=c.lr)
-        self.schedule = lr_scheduler(self.optim, "linear" if c.lr_anneal else "constant",
+        # the adaptive schedule moves the lr itself (in _adapt_lr); the scheduler then keeps it constant
+        self.schedule = lr_scheduler(self.optim, "linear" if c.lr_schedule == "linear" else "constant",
                                      lambda: self.total_iterations)
         self.guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
         self.buffer = ReplayBuffer(
@@ -128,9 +147,15 @@ class PPOLearner(Learner):
                 total = out["loss_objective"] + out["loss_critic"]
                 if "loss_entropy" in out.keys():
                     total = total + out["loss_entropy"]
+                if self.config.bounds_loss_coef > 0:
+                    bounds = self.bounds_loss(batch)
+                    total = total + self.config.bounds_loss_coef * bounds
+                    sums["loss_bounds"] += bounds.item()
                 self.optim.zero_grad(set_to_none=True)
                 total.backward()
                 sums["grad_norm"] += self.guard.step(self.optim, self.params)["grad_norm"]
+                if self.config.lr_schedule == "adaptive":
+                    self._adapt_lr(out["kl_approx"].detach().float().mean().item())
                 for key in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "clip_fraction", "kl_approx"):
                     if key in out.keys():
                         sums[key] += out[key].detach().float().mean().item()
@@ -140,14 +165,32 @@ class PPOLearner(Learner):
                        lr=self.optim.param_groups[0]["lr"])
         if finished:
             metrics["return"] = sum(finished) / len(finished)
-        # 3. learning-rate schedule
-        self.schedule.step()
+        # 3. learning-rate schedule (the adaptive one moved the lr after each step already)
+        if self.config.lr_schedule != "adaptive":
+            self.schedule.step()
         # 4. normaliser statistics, then the collector gets the new weights
         if self.normalizer is not None:
             self.normalizer.update(data.get("observation"))
         self.collector.update_policy_weights_()
         self.iteration += 1
         return metrics
+
+    def bounds_loss(self, batch) -> torch.Tensor:
+        """rl_games' bounds loss on the pre-squash mean ``loc`` of the policy, averaged over the batch."""
+        loc = self.actor.module[0](batch.select(*self.actor.module[0].in_keys).clone()).get("loc")
+        if self.config.bound_loss_type == "regularisation":
+            return loc.pow(2).sum(-1).mean()
+        soft_bound = 1.1
+        return ((loc - soft_bound).clamp_min(0).pow(2) + (loc + soft_bound).clamp_max(0).pow(2)).sum(-1).mean()
+
+    def _adapt_lr(self, kl: float) -> None:
+        """rl_games' adaptive schedule: lr / 1.5 when KL > 2 x threshold, x 1.5 when KL < threshold / 2."""
+        c = self.config
+        for group in self.optim.param_groups:
+            if kl > 2.0 * c.kl_threshold:
+                group["lr"] = max(group["lr"] / 1.5, c.min_lr)
+            elif kl < 0.5 * c.kl_threshold:
+                group["lr"] = min(group["lr"] * 1.5, c.max_lr)
 
     def state_dict(self) -> dict:
         return {
@@ -171,7 +214,10 @@ class PPOLearner(Learner):
         self.critic.load_state_dict(state["critic"])
         self.loss.load_state_dict(state["loss"])
         self.optim.load_state_dict(state["optimizer"])
-        load_lr_scheduler(self.schedule, state["schedule"])
+        if self.config.lr_schedule == "adaptive":  # the optimiser's state holds the adapted lr
+            self.schedule.load_state_dict(state["schedule"])
+        else:
+            load_lr_scheduler(self.schedule, state["schedule"])
         self.guard.load_state_dict(state["guard"])
         self.tracker.load_state_dict(state["tracker"])
         self.collector.load_state_dict(state["collector"])

@@ -13,6 +13,7 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ..checks import is_int as _is_int
+from ..checks import is_number
 from ..envs import env_config, list_envs, make_env
 from ..learners import LEARNERS
 from ..modules import ACTIVATIONS, DISTRIBUTIONS, NETWORK_INITS
@@ -203,6 +204,12 @@ def validate_config(cfg: DictConfig) -> None:
         value = OmegaConf.select(cfg, key)
         if not _is_int(value) or value < minimum:
             problems.append(f"{key}={value!r}: expected an integer >= {minimum}")
+    score_to_win = OmegaConf.select(cfg, "train.score_to_win")
+    if score_to_win is not None and not is_number(score_to_win):
+        problems.append(f"train.score_to_win={score_to_win!r}: expected a number, or null to train the whole budget")
+    best_after = OmegaConf.select(cfg, "train.save_best_after")
+    if best_after is not None and (not _is_int(best_after) or best_after < 0):
+        problems.append(f"train.save_best_after={best_after!r}: expected an integer >= 0 (env steps), or null")
     for key in ("env.max_episode_steps", "eval.max_steps"):
         value = OmegaConf.select(cfg, key)
         if value is not None and (not _is_int(value) or value < 1):
