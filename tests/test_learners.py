@@ -256,3 +256,20 @@ def test_bounds_loss_reaches_the_policy_and_value_clipping_reaches_torchrls_loss
     assert any(p is last.bias for p in learner.params), "the optimiser steps the parameter the bounds loss moves"
     metrics = learner.train_iteration()
     assert metrics["loss_bounds"] > 0
+
+
+def test_value_normalization_standardises_the_critic_loss():
+    """With rl_games' normalize_value the critic loss is computed on standardised targets and
+    predictions: on the first batch (running stats = that batch's targets), the plain loss divided
+    by the targets' (population) variance."""
+    plain, normalised = make_ppo(), make_ppo(value_normalization=True)
+    normalised.loss.load_state_dict(plain.loss.state_dict(), strict=False)  # same networks
+    batch = next(plain._batches)
+    with torch.no_grad():
+        plain.loss.value_estimator(batch, params=plain.loss.critic_network_params,
+                                   target_params=plain.loss.target_critic_network_params)
+    flat = batch.reshape(-1)
+    expected = plain.loss(flat.clone())["loss_critic"].item() / flat["value_target"].var(unbiased=False).item()
+    assert normalised.loss(flat.clone())["loss_critic"].item() == pytest.approx(expected, rel=1e-4)
+    assert "value_norm.mean" in {k for k in normalised.loss.state_dict()}  # checkpointed with the loss
+    normalised.train_iteration()

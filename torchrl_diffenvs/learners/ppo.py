@@ -21,12 +21,14 @@ from collections.abc import Mapping
 import torch
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
+from torchrl.modules import RunningValueNorm
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
+from torchrl.objectives.multiagent import MAPPOLoss
 
 from .. import checks
 from .._compat import collector_carrier_state, load_collector_carrier
 from ..collectors import EpisodeReturnTracker
-from ..modules import ObservationNormalizer, actor_from_config, critic_from_config
+from ..modules import ObservationNormalizer, actor_from_config, critic_from_config, env_dims
 from ..objectives import GradientGuard
 from .base import Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
@@ -59,6 +61,9 @@ class PPOConfig(LearnerConfig):
     bound_loss_type: str = checked("bound", checks.one_of(("bound", "regularisation")))
     loss_critic_type: str = checked("l2", checks.one_of(("l1", "l2", "smooth_l1")))
     normalize_advantage: bool = checked(True, checks.boolean)
+    # rl_games' normalize_value: the critic's targets and predictions are standardised by the running
+    # mean / std of the targets before the critic loss (TorchRL's RunningValueNorm, as its MAPPO loss)
+    value_normalization: bool = checked(False, checks.boolean)
     max_grad_norm: float | None = checked(1.0, checks.optional_positive)  # clip the global gradient norm
     obs_norm: bool = checked(False, checks.boolean)  # running observation normalisation (from_config)
 
@@ -94,11 +99,18 @@ class PPOLearner(Learner):
         self.actor = self.policy = actor
         self.critic = critic
         self.normalizer = normalizer
-        self.loss = ClipPPOLoss(
-            actor, critic, clip_epsilon=c.clip_epsilon, entropy_bonus=c.entropy_coeff > 0,
-            entropy_coeff=c.entropy_coeff, critic_coeff=c.critic_coeff, loss_critic_type=c.loss_critic_type,
+        settings = dict(
+            clip_epsilon=c.clip_epsilon, entropy_bonus=c.entropy_coeff > 0, entropy_coeff=c.entropy_coeff,
+            critic_coeff=c.critic_coeff, loss_critic_type=c.loss_critic_type,
             normalize_advantage=c.normalize_advantage, clip_value=c.clip_value or None,
         )
+        if c.value_normalization:
+            # TorchRL's MAPPOLoss is ClipPPOLoss plus a value normaliser; with one agent (no agent dim
+            # to exclude) and plain GAE it is single-agent PPO with normalised critic targets
+            norm = RunningValueNorm(shape=1).to(device=env.device, dtype=env_dims(env)[2])
+            self.loss = MAPPOLoss(actor, critic, value_norm=norm, normalize_advantage_exclude_dims=(), **settings)
+        else:
+            self.loss = ClipPPOLoss(actor, critic, **settings)
         self.loss.make_value_estimator(ValueEstimators.GAE, gamma=c.gamma, lmbda=c.lmbda)
         self.params = [p for p in self.loss.parameters() if p.requires_grad]
         self.optim = torch.optim.Adam(self.params, lr=c.lr)
