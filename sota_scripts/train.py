@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
 from torchrl_diffenvs.training import (
@@ -41,7 +42,7 @@ from torchrl_diffenvs.training import (
     save_checkpoint,
     validate_config,
 )
-from torchrl_diffenvs.evaluation import evaluate, evaluate_random, record_gif
+from torchrl_diffenvs.evaluation import episode_returns, evaluate, evaluate_random, record_video
 from torchrl_diffenvs.learners import make_learner
 from torchrl_diffenvs.modules import actor_from_config
 from torchrl_diffenvs.training.checkpoint import atomic_copy
@@ -186,7 +187,7 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
         checkpoint()
         files = {}
         if cfg.eval.gif:
-            files["final_gif"] = write_gif(cfg, eval_env, learner.policy, eval_steps, run_dir / "final.gif")
+            files["final_gif"] = write_video(cfg, eval_env, learner.policy, eval_steps, run_dir / "final")
         curve = plot_learning_curve(logger.rows, run_dir / "learning_curve.png",
                                     title=f"{cfg.env.name} - {cfg.loss.name} - seed {cfg.seed}")
         logger.log_files(images={"learning_curve": curve} if curve else {},
@@ -220,14 +221,29 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
         learner.close()
 
 
-def write_gif(cfg: DictConfig, env, policy, steps: int, path: Path) -> Path | None:
-    """The policy's GIF; a failure to draw (e.g. Pillow missing) warns instead of losing the run."""
+def write_video(cfg: DictConfig, env, policy, steps: int, stem: Path) -> Path | None:
+    """The policy's video, ``<stem>.gif`` or ``<stem>.mp4`` (``eval.video_format``; MP4 falls back to
+    GIF with a warning when imageio-ffmpeg is missing); a failure to draw (e.g. Pillow missing)
+    warns instead of losing the run."""
+    from torchrl_diffenvs.rendering import mp4_available  # lazy: Pillow is an optional extra
+
+    video_format = cfg.eval.get("video_format", "gif")
+    if video_format == "mp4" and not mp4_available():
+        warnings.warn('eval.video_format=mp4 needs imageio-ffmpeg (pip install "torchrl_diffenvs[video]"); '
+                      "writing a GIF instead", stacklevel=2)
+        video_format = "gif"
     try:
-        return record_gif(env, policy, steps, cfg.eval.seed, path, env_index=cfg.eval.gif_env_index,
-                          fps=cfg.eval.gif_fps, size=cfg.eval.gif_size)
+        return record_video(env, policy, steps, cfg.eval.seed, stem.with_suffix(f".{video_format}"),
+                            env_index=cfg.eval.gif_env_index, fps=cfg.eval.gif_fps, size=cfg.eval.gif_size,
+                            exploration_type=exploration_of(cfg))
     except (ImportError, ValueError, KeyError) as err:
-        warnings.warn(f"no GIF written ({type(err).__name__}: {err})", stacklevel=2)
+        warnings.warn(f"no video written ({type(err).__name__}: {err})", stacklevel=2)
         return None
+
+
+def exploration_of(cfg: DictConfig) -> ExplorationType:
+    """``eval.deterministic``: the mean action (default) or sampled actions."""
+    return ExplorationType.DETERMINISTIC if cfg.eval.get("deterministic", True) else ExplorationType.RANDOM
 
 
 def evaluate_checkpoint(cfg: DictConfig, run_dir: Path) -> dict:
@@ -245,18 +261,30 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path) -> dict:
     steps = cfg.eval.max_steps or env.max_episode_steps
     policy, _ = actor_from_config(cfg.loss, env, return_log_prob=cfg.loss.name == "ppo")
     policy.load_state_dict(ckpt["policy"])
-    scores = evaluate(env, policy, steps, cfg.eval.seed)
+    # rl_games' player: eval.games_num episodes, played eval.num_envs at a time from successive seeds
+    games = int(cfg.eval.get("games_num") or cfg.eval.num_envs)
+    returns = []
+    for round_index in range(-(-games // cfg.eval.num_envs)):
+        env.set_seed(cfg.eval.seed + round_index)
+        with torch.no_grad(), set_exploration_type(exploration_of(cfg)):
+            rollout = env.rollout(steps, policy, break_when_any_done=False)
+        returns.extend(episode_returns(rollout).double().tolist())
+    returns = torch.tensor(returns[:games], dtype=torch.float64)
+    scores = {"return": returns.mean().item(), "return_std": returns.std(unbiased=False).item(),
+              "return_min": returns.min().item(), "return_max": returns.max().item()}
     result = {"env": cfg.env.name, "loss": cfg.loss.name, "checkpoint": str(cfg.checkpoint),
-              "trained_env_steps": ckpt["progress"]["env_steps"], "eval_steps": steps,
+              "trained_env_steps": ckpt["progress"]["env_steps"], "eval_steps": steps, "games": games,
+              "returns": returns.tolist(),
+              "deterministic": bool(cfg.eval.get("deterministic", True)),
               "eval/random_return": evaluate_random(env, steps, cfg.eval.seed),
               **{f"eval/{k}": v for k, v in scores.items()}}
     run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.eval.gif:
-        gif = write_gif(cfg, env, policy, steps, run_dir / "eval.gif")
-        result["gif"] = str(gif) if gif else None
+        video = write_video(cfg, env, policy, steps, run_dir / "eval")
+        result["video"] = str(video) if video else None
     (run_dir / "eval_metrics.json").write_text(json.dumps(result, indent=2) + "\n")
     log.info(f"{cfg.env.name} {cfg.loss.name} ({cfg.checkpoint}): eval return {scores['return']:.4g} "
-          f"+- {scores['return_std']:.3g} over {cfg.eval.num_envs} envs (random policy "
+          f"+- {scores['return_std']:.3g} over {games} games (random policy "
           f"{result['eval/random_return']:.4g}); outputs in {run_dir}")
     return result
 

@@ -518,3 +518,33 @@ def test_score_to_win_stops_training_and_best_checkpoint_keeps_the_best_evaluati
         train_script.validate_config(make_cfg("train.save_best_after=-1"))
     with pytest.raises(ConfigError, match="train.score_to_win='high': expected a number"):
         train_script.validate_config(make_cfg("train.score_to_win=high"))
+
+
+def test_player_mode_games_stochastic_actions_and_mp4(tmp_path, monkeypatch):
+    """rl_games' player: mode=eval plays eval.games_num episodes (eval.num_envs at a time), with the
+    mean action or sampled actions, and writes an MP4 (or a GIF when imageio-ffmpeg is missing)."""
+    pytest.importorskip("PIL")
+    from torchrl_diffenvs import rendering
+
+    train_script.run(tiny_cfg("pendulum", "shac", 2), tmp_path / "train")
+    ckpt = tmp_path / "train" / "checkpoints" / "last.pt"
+    play = ["mode=eval", f"checkpoint={ckpt}", "eval.num_envs=2", "eval.gif_size=32", "logger=none"]
+    five = train_script.run(make_cfg(*play, "eval.games_num=5", "eval.gif=false"), tmp_path / "five")
+    two = train_script.run(make_cfg(*play, "eval.gif=false"), tmp_path / "two")
+    assert five["games"] == 5 and two["games"] == 2
+    # the first two of the five games are the two of a default evaluation (same seed, same envs)
+    assert len(five["returns"]) == 5 and five["returns"][:2] == pytest.approx(two["returns"])
+    assert five["eval/return"] == pytest.approx(sum(five["returns"]) / 5)
+    sampled = train_script.run(make_cfg(*play, "eval.deterministic=false", "eval.gif=false"), tmp_path / "sampled")
+    assert sampled["deterministic"] is False and sampled["eval/return"] != pytest.approx(two["eval/return"], abs=1e-9)
+    if rendering.mp4_available():
+        video = train_script.run(make_cfg(*play, "eval.video_format=mp4"), tmp_path / "mp4")["video"]
+        assert video.endswith("eval.mp4") and b"ftyp" in Path(video).read_bytes()[:12]
+    monkeypatch.setattr(rendering, "mp4_available", lambda: False)
+    with pytest.warns(UserWarning, match="needs imageio-ffmpeg"):
+        fallback = train_script.run(make_cfg(*play, "eval.video_format=mp4"), tmp_path / "fallback")["video"]
+    assert fallback.endswith("eval.gif")
+    with pytest.raises(ConfigError, match="eval.video_format='avi': valid: gif, mp4"):
+        train_script.validate_config(make_cfg("eval.video_format=avi"))
+    with pytest.raises(ConfigError, match="eval.games_num=0: expected an integer >= 1"):
+        train_script.validate_config(make_cfg("eval.games_num=0"))

@@ -17,7 +17,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 __all__ = [
-    "episode_returns", "evaluate", "evaluate_random", "first_episode_mask", "record_gif", "uniform_random_policy",
+    "episode_returns", "evaluate", "evaluate_random", "first_episode_mask", "record_video", "uniform_random_policy",
 ]
 
 
@@ -87,14 +87,16 @@ def evaluate_random(env, steps: int | None = None, seed: int | None = None) -> f
     return episode_returns(rollout).double().mean().item()
 
 
-def record_gif(env, policy, steps: int, seed: int, path: str | Path, env_index: int = 0, fps: int = 30,
-               size: int = 256) -> Path:
-    """Writes a GIF of ``policy`` (deterministic) playing env ``env_index`` of ``env`` for ``steps`` steps.
+def record_video(env, policy, steps: int, seed: int, path: str | Path, env_index: int = 0, fps: int = 30,
+                 size: int = 256, exploration_type: ExplorationType = ExplorationType.DETERMINISTIC) -> Path:
+    """Writes a GIF or MP4 (by the suffix of ``path``) of ``policy`` playing env ``env_index`` of
+    ``env`` for ``steps`` steps.
 
-    Needs Pillow (``pip install "torchrl_diffenvs[render]"``).
+    Needs Pillow (``pip install "torchrl_diffenvs[render]"``), and for MP4 imageio-ffmpeg (the
+    ``video`` extra).
     """
-    from .rendering import rollout_frames, save_gif  # Pillow is an optional extra
+    from .rendering import rollout_frames, save_video  # Pillow is an optional extra
 
-    rollout = _rollout(env, policy, steps, seed, ExplorationType.DETERMINISTIC)
+    rollout = _rollout(env, policy, steps, seed, exploration_type)
     frames = rollout_frames(env, rollout, env_index=env_index, size=size)
-    return save_gif(frames, path, fps=fps)
+    return save_video(frames, path, fps=fps)

@@ -17,9 +17,10 @@ from .core import (
     tile_frames,
     transform,
 )
-from .video import save_gif
+from .video import VIDEO_FORMATS, mp4_available, save_gif, save_mp4, save_video
 
 __all__ = [
     "Canvas", "Drawer", "get_drawer", "list_drawers", "register_drawer", "render_frame", "reward_color",
-    "rollout_frames", "save_gif", "tile_frames", "transform",
+    "rollout_frames", "save_gif", "save_mp4", "save_video", "tile_frames", "transform", "VIDEO_FORMATS",
+    "mp4_available",
 ]

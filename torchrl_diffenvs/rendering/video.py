@@ -1,7 +1,5 @@
-"""Writing frames to an animated GIF with Pillow (no display, no ffmpeg).
-
-MP4 is not offered: every MP4 writer needs an encoder that is not among this project's
-dependencies (imageio-ffmpeg, PyAV or torchcodec).
+"""Writing frames to an animated GIF with Pillow (no display, no ffmpeg), or to an MP4 with
+imageio and imageio-ffmpeg (the ``video`` extra, which ships its own ffmpeg binary).
 """
 from __future__ import annotations
 
@@ -13,7 +11,9 @@ import numpy as np
 import torch
 from PIL import Image
 
-__all__ = ["save_gif"]
+__all__ = ["VIDEO_FORMATS", "mp4_available", "save_gif", "save_mp4", "save_video"]
+
+VIDEO_FORMATS = ("gif", "mp4")
 
 
 def _as_uint8_frame(frame, index: int) -> np.ndarray:
@@ -76,3 +76,45 @@ def save_gif(frames: Sequence, path: str | os.PathLike, fps: float = 25.0, loop:
     delay_ms = 10 * max(1, round(100 / fps))
     images[0].save(path, format="GIF", save_all=True, append_images=images[1:], duration=delay_ms, loop=loop)
     return path
+
+
+def mp4_available() -> bool:
+    """Whether MP4 can be written (imageio and imageio-ffmpeg are installed)."""
+    import importlib.util
+
+    return all(importlib.util.find_spec(name) is not None for name in ("imageio", "imageio_ffmpeg"))
+
+
+def save_mp4(frames: Sequence, path: str | os.PathLike, fps: float = 25.0) -> Path:
+    """Writes ``[H, W, 3]`` uint8 frames to an H.264 MP4 (imageio + imageio-ffmpeg: the ``video``
+    extra). Odd frame sizes are padded by one white pixel (H.264's 4:2:0 needs even sizes)."""
+    if not mp4_available():
+        raise ImportError('save_mp4 needs imageio and imageio-ffmpeg: pip install "torchrl_diffenvs[video]"')
+    import imageio
+
+    if len(frames) == 0:
+        raise ValueError("save_mp4: no frames to write")
+    if not fps > 0:
+        raise ValueError(f"save_mp4: fps must be positive, got {fps}")
+    arrays = [_as_uint8_frame(f, i) for i, f in enumerate(frames)]
+    height, width = arrays[0].shape[:2]
+    pad = ((0, height % 2), (0, width % 2), (0, 0))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with imageio.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", macro_block_size=1,
+                            pixelformat="yuv420p") as writer:
+        for i, array in enumerate(arrays):
+            if array.shape != arrays[0].shape:
+                raise ValueError(f"save_mp4: frame {i} has shape {array.shape}, frame 0 has {arrays[0].shape}")
+            writer.append_data(np.pad(array, pad, constant_values=255))
+    return path
+
+
+def save_video(frames: Sequence, path: str | os.PathLike, fps: float = 25.0) -> Path:
+    """:func:`save_gif` or :func:`save_mp4`, by the suffix of ``path`` (``.gif`` or ``.mp4``)."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".mp4":
+        return save_mp4(frames, path, fps)
+    if suffix == ".gif":
+        return save_gif(frames, path, fps)
+    raise ValueError(f"save_video: unknown video format {suffix!r} of {str(path)!r}; valid: .gif, .mp4")

@@ -204,6 +204,14 @@ def validate_config(cfg: DictConfig) -> None:
         value = OmegaConf.select(cfg, key)
         if not _is_int(value) or value < minimum:
             problems.append(f"{key}={value!r}: expected an integer >= {minimum}")
+    video_format = OmegaConf.select(cfg, "eval.video_format", default="gif")
+    if video_format not in ("gif", "mp4"):
+        problems.append(f"eval.video_format={video_format!r}: valid: gif, mp4")
+    if not isinstance(OmegaConf.select(cfg, "eval.deterministic", default=True), bool):
+        problems.append(f"eval.deterministic={OmegaConf.select(cfg, 'eval.deterministic')!r}: expected true or false")
+    games = OmegaConf.select(cfg, "eval.games_num")
+    if games is not None and (not _is_int(games) or games < 1):
+        problems.append(f"eval.games_num={games!r}: expected an integer >= 1, or null for eval.num_envs")
     score_to_win = OmegaConf.select(cfg, "train.score_to_win")
     if score_to_win is not None and not is_number(score_to_win):
         problems.append(f"train.score_to_win={score_to_win!r}: expected a number, or null to train the whole budget")

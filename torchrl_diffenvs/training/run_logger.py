@@ -108,14 +108,15 @@ class RunLogger:
             self.backend.log_metrics(dict(metrics), step=int(env_steps))
 
     def log_files(self, images: Mapping[str, Path] = (), gifs: Mapping[str, Path] = ()) -> None:
-        """Attaches image files (PNG) and animated GIFs to the W&B run (other backends: no-op,
+        """Attaches image files (PNG) and videos (GIF or MP4) to the W&B run (other backends: no-op,
         the files are already in the run directory)."""
         if self.backend_name != "wandb" or self.backend is None:
             return
         import wandb
 
         media = {name: wandb.Image(str(path)) for name, path in dict(images).items()}
-        media.update({name: wandb.Video(str(path), format="gif") for name, path in dict(gifs).items()})
+        media.update({name: wandb.Video(str(path), format=Path(path).suffix.lstrip(".") or "gif")
+                      for name, path in dict(gifs).items()})
         if media:
             self.backend.experiment.log(media)
 
