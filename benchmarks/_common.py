@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from torchrl_diffenvs import checks
-from torchrl_diffenvs.checks import Settings, checked, parse_cli
+from torchrl_diffenvs.checks import Settings, checked
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
@@ -37,11 +37,6 @@ class BenchmarkSettings(Settings):
     threads: int = checked(1, checks.one_of((1, 2)))  # torch intra-op threads
     repeats: int | None = None  # timed rounds per configuration (default: the script's)
     out: str | None = None  # JSON output path (default benchmarks/results/<name>.json)
-
-
-def parse(settings_class: type[BenchmarkSettings], argv=None, usage: str = "") -> BenchmarkSettings:
-    """The script's settings from ``key=value`` arguments (:func:`torchrl_diffenvs.checks.parse_cli`)."""
-    return parse_cli(settings_class, argv, usage)
 
 
 def setup_threads(threads: int) -> None:

@@ -38,6 +38,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
+from torchrl_diffenvs.checks import parse_cli  # noqa: E402
+
 GYM_IDS = ("CartPole-v1", "Pendulum-v1", "MountainCarContinuous-v0")
 
 
@@ -118,7 +120,7 @@ class EnvThroughputSettings(C.BenchmarkSettings):
 
 
 def main(argv=None) -> dict:
-    args = C.parse(EnvThroughputSettings, argv, __doc__)
+    args = parse_cli(EnvThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
 
     import gymnasium

@@ -42,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
 from torchrl_diffenvs import checks  # noqa: E402
-from torchrl_diffenvs.checks import checked  # noqa: E402
+from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 
 
 def make_policy(env, hidden: int = 64, seed: int = 0):
@@ -109,7 +109,7 @@ class GradientThroughputSettings(C.BenchmarkSettings):
 
 
 def main(argv=None) -> dict:
-    args = C.parse(GradientThroughputSettings, argv, __doc__)
+    args = parse_cli(GradientThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
 
     import torch

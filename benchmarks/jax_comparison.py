@@ -42,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
 from torchrl_diffenvs import checks  # noqa: E402
-from torchrl_diffenvs.checks import checked  # noqa: E402
+from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 
 SHARED = {  # ours -> gymnax
     "Pendulum-v1": "Pendulum-v1",
@@ -244,7 +244,7 @@ def jax_bptt(n: int, h: int, hidden):
 
 # ---------------------------------------------------------------------- the benchmark
 def main(argv=None) -> dict:
-    args = C.parse(JaxComparisonSettings, argv, __doc__)
+    args = parse_cli(JaxComparisonSettings, argv, __doc__)
     C.setup_threads(args.threads)
     quick = args.quick
     sizes = args.sizes or ([8] if quick else [1024])

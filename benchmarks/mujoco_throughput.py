@@ -31,6 +31,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
+from torchrl_diffenvs.checks import parse_cli  # noqa: E402
+
 TASKS = ("HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5")
 WINDOW = 8  # H of the forward+backward window
 
@@ -108,7 +110,7 @@ class MuJoCoThroughputSettings(C.BenchmarkSettings):
 
 
 def main(argv=None) -> dict:
-    args = C.parse(MuJoCoThroughputSettings, argv, __doc__)
+    args = parse_cli(MuJoCoThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
     warnings.filterwarnings("ignore")
     sizes = args.sizes or ([1, 4] if args.quick else [1, 64, 1024, 4096])

@@ -42,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
 from torchrl_diffenvs import checks  # noqa: E402
-from torchrl_diffenvs.checks import checked  # noqa: E402
+from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "sota_scripts" / "train.py"
@@ -230,7 +230,7 @@ class TimeToSolveSettings(C.BenchmarkSettings):
 
 
 def main(argv=None) -> dict:
-    args = C.parse(TimeToSolveSettings, argv, __doc__)
+    args = parse_cli(TimeToSolveSettings, argv, __doc__)
     if args.summarise is not None:
         payload = json.loads(Path(args.summarise).read_text())
         runs = payload["runs"]

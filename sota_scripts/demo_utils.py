@@ -9,15 +9,10 @@ import torch
 from torchrl_diffenvs.checks import Settings, parse_cli
 
 
-def parse_settings(settings_class: type[Settings], argv: list[str] | None = None, usage: str = "") -> Settings:
-    """``key=value`` arguments into typed settings (:func:`torchrl_diffenvs.checks.parse_cli`)."""
-    return parse_cli(settings_class, argv, usage)
-
-
 def start_demo(settings_class: type[Settings], argv: list[str] | None = None, usage: str = "") -> tuple[Settings, Path]:
-    """Parses the settings (:func:`parse_settings`), seeds torch and creates ``settings.out_dir``;
+    """Parses the ``key=value`` settings (:func:`torchrl_diffenvs.checks.parse_cli`), seeds torch and creates ``settings.out_dir``;
     returns the settings and ``out_dir``."""
-    settings = parse_settings(settings_class, argv, usage)
+    settings = parse_cli(settings_class, argv, usage)
     torch.manual_seed(settings.seed)
     out_dir = Path(settings.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

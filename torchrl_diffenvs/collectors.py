@@ -14,7 +14,28 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-__all__ = ["DiffWindowCollector", "EpisodeReturnTracker"]
+__all__ = ["DiffWindowCollector", "EpisodeReturnTracker", "batch_size_of"]
+
+
+def batch_size_of(env, reset_input=None, who: str = "") -> int:
+    """``N``: the env's batch size ``[N]``, or for a batch-unlocked env (``batch_size`` ``[]``, like
+    TorchRL's ``PendulumEnv``) the batch size of what ``reset_input()`` returns. Raises a
+    ``ValueError`` naming ``who`` and the fix for any other env."""
+    if reset_input is not None:
+        if len(env.batch_size) != 0:
+            raise ValueError(f"{who}: reset_input is for batch-unlocked envs (batch_size []); this env is "
+                             f"batched already, batch_size={tuple(env.batch_size)}")
+        batch = reset_input().batch_size
+        if len(batch) != 1:
+            raise ValueError(f"{who}: reset_input() must return a TensorDict of batch size [N], got {tuple(batch)}")
+        return batch[0]
+    if len(env.batch_size) == 1:
+        return env.batch_size[0]
+    hint = (" For a batch-unlocked env (batched through what reset receives, like TorchRL's PendulumEnv), "
+            "pass reset_input=lambda: env.gen_params(batch_size=[N]) (BPTT and SHAC)." if len(env.batch_size) == 0
+            else "")
+    raise ValueError(f"{who}: expected a batched env with batch size [N], got {tuple(env.batch_size)} "
+                     f"({type(env).__name__}).{hint}")
 
 
 class EpisodeReturnTracker:
@@ -128,22 +149,7 @@ class DiffWindowCollector:
         if total_windows is not None and (not isinstance(total_windows, int) or total_windows < 0):
             raise ValueError(f"DiffWindowCollector: total_windows must be None or an integer >= 0, got {total_windows!r}")
         self.reset_input = reset_input
-        if reset_input is not None:
-            if len(env.batch_size) != 0:
-                raise ValueError("DiffWindowCollector: reset_input is for batch-unlocked envs (batch_size []); "
-                                 f"this env is batched already, batch_size={tuple(env.batch_size)}")
-            batch = reset_input().batch_size
-            if len(batch) != 1:
-                raise ValueError(f"DiffWindowCollector: reset_input() must return a TensorDict of batch size [N], "
-                                 f"got {tuple(batch)}")
-            self._num_envs = batch[0]
-        elif len(env.batch_size) == 1:
-            self._num_envs = env.batch_size[0]
-        else:
-            hint = (" For a batch-unlocked env (batched through what reset receives, like TorchRL's PendulumEnv), "
-                    "pass reset_input=lambda: env.gen_params(batch_size=[N])." if len(env.batch_size) == 0 else "")
-            raise ValueError(f"DiffWindowCollector: expected a batched env with batch size [N], got "
-                             f"{tuple(env.batch_size)} ({type(env).__name__}).{hint}")
+        self._num_envs = batch_size_of(env, reset_input, "DiffWindowCollector")
         self.env = env
         self.policy = policy
         self.horizon = horizon

@@ -10,6 +10,7 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 
 from ..checks import Settings, checked
+from ..collectors import batch_size_of
 
 __all__ = ["LR_SCHEDULES", "Learner", "LearnerConfig", "checked", "load_lr_scheduler", "lr_scheduler"]  # checked: re-exported for the learner files
 
@@ -85,16 +86,7 @@ class Learner(ABC):
         if not isinstance(config, self.config_class):
             raise TypeError(f"{type(self).__name__}: config must be a {self.config_class.__name__}, "
                             f"got {type(config).__name__}")
-        if reset_input is not None:
-            self._num_envs = reset_input().batch_size[0]
-        elif len(env.batch_size) == 1:
-            self._num_envs = env.batch_size[0]
-        else:
-            hint = (" For a batch-unlocked env (batched through what reset receives, like TorchRL's PendulumEnv), "
-                    "pass reset_input=lambda: env.gen_params(batch_size=[N]) (BPTT and SHAC)."
-                    if len(env.batch_size) == 0 else "")
-            raise ValueError(f"{type(self).__name__}: expected a batched env with batch size [N], got "
-                             f"{tuple(env.batch_size)} ({type(env).__name__}).{hint}")
+        self._num_envs = batch_size_of(env, reset_input, type(self).__name__)
         self.env = env
         self.config = config
         self.total_env_steps = int(total_env_steps)

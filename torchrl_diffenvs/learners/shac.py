@@ -116,9 +116,10 @@ class SHACLearner(Learner):
         if out["loss_actor"].requires_grad:  # False when nothing depends on the actions
             out["loss_actor"].backward()
         actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"])
+        metrics = {key: out[key].item() for key in ("loss_actor", "reward_mean", "value_mean")}
         # 3. the critic fits the detached window and its TD(lambda) targets
         data = window.detach()
-        del window  # the graph is spent
+        del window, out  # the graph is spent
         flat = data.select(*self.loss.critic_network.in_keys, self.loss.tensor_keys.value_target).reshape(-1)
         # 4. critic passes over shuffled minibatches
         critic_losses = []
@@ -136,16 +137,15 @@ class SHACLearner(Learner):
         # 6. observation statistics, frozen during the window, move after it
         if self.normalizer is not None:
             self.normalizer.update(data.get("observation"))
-        metrics = {
-            "reward": out["reward_mean"].item(),
-            "loss_actor": out["loss_actor"].item(),
+        metrics.update({
+            "reward": metrics.pop("reward_mean"),
+            "value": metrics.pop("value_mean"),
             "loss_critic": sum(critic_losses) / len(critic_losses),
-            "value": out["value_mean"].item(),
             "grad_norm_actor": actor_info["grad_norm"],
             "skipped_actor": self.actor_guard.skipped,
             "skipped_critic": self.critic_guard.skipped,
             "lr_actor": self.actor_optim.param_groups[0]["lr"],
-        }
+        })
         if self.collector.finished_returns:
             metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
         # 7. learning-rate schedules
