@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from ..distributed import SINGLE_PROCESS, World
+
 from .base import LR_SCHEDULES, Learner, LearnerConfig, lr_scheduler
 from .bptt import BPTTConfig, BPTTLearner
 from .ppo import PPOConfig, PPOLearner
@@ -26,12 +28,13 @@ LEARNERS: dict[str, type[Learner]] = {
 }
 
 
-def make_learner(loss_cfg: Mapping, env, total_env_steps: int) -> Learner:
-    """Builds the learner named by ``loss_cfg.name`` (a ``configs/loss/*.yaml`` section) on ``env``."""
+def make_learner(loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> Learner:
+    """Builds the learner named by ``loss_cfg.name`` (a ``configs/loss/*.yaml`` section) on ``env``
+    (this rank's envs when ``world`` has several ranks)."""
     name = loss_cfg.get("name")
     if name not in LEARNERS:
         raise ValueError(f"unknown loss {name!r}; valid: {', '.join(LEARNERS)}")
-    return LEARNERS[name].from_config(loss_cfg, env, total_env_steps)
+    return LEARNERS[name].from_config(loss_cfg, env, total_env_steps, world)
 
 
 __all__ = [

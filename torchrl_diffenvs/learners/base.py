@@ -11,6 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from ..checks import Settings, checked
 from ..collectors import batch_size_of
+from ..distributed import SINGLE_PROCESS, World
 
 __all__ = ["LR_SCHEDULES", "Learner", "LearnerConfig", "checked", "load_lr_scheduler", "lr_scheduler"]  # checked: re-exported for the learner files
 
@@ -74,15 +75,19 @@ class Learner(ABC):
             SHAC also take a batch-unlocked one with ``reset_input``); BPTT and SHAC need its
             rewards or observations to carry gradients w.r.t. the actions.
         config: the learner's settings (its :class:`LearnerConfig` subclass).
-        total_env_steps: the training budget; the learning-rate schedules run over it, and it can
-            be changed later (a resumed run with a larger budget).
+        total_env_steps: the training budget (global: all ranks together); the learning-rate
+            schedules run over it, and it can be changed later (a resumed run with a larger budget).
+        world: the ranks training together (:class:`~torchrl_diffenvs.distributed.World`; default
+            one process). Every gradient is averaged over them before the optimiser step, and
+            :attr:`env_steps_per_iteration` counts the env steps of all of them.
     """
 
     name: str = ""
     config_class: type[LearnerConfig] = LearnerConfig
     policy: TensorDictModuleBase
 
-    def __init__(self, env, config: LearnerConfig, total_env_steps: int, *, reset_input=None):
+    def __init__(self, env, config: LearnerConfig, total_env_steps: int, *, reset_input=None,
+                 world: World = SINGLE_PROCESS):
         if not isinstance(config, self.config_class):
             raise TypeError(f"{type(self).__name__}: config must be a {self.config_class.__name__}, "
                             f"got {type(config).__name__}")
@@ -90,11 +95,12 @@ class Learner(ABC):
         self.env = env
         self.config = config
         self.total_env_steps = int(total_env_steps)
+        self.world = world
         self.iteration = 0
 
     @classmethod
     @abstractmethod
-    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int) -> Learner:
+    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> Learner:
         """Builds the learner and its networks from a ``loss`` section (``configs/loss/<name>.yaml``)."""
 
     @property
@@ -103,8 +109,13 @@ class Learner(ABC):
 
     @property
     @abstractmethod
+    def steps_per_env(self) -> int:
+        """Steps each env takes in one :meth:`train_iteration` (the window or rollout length)."""
+
+    @property
     def env_steps_per_iteration(self) -> int:
-        """Env steps collected by one :meth:`train_iteration`."""
+        """Env steps collected by one :meth:`train_iteration`, on all ranks together."""
+        return self.num_envs * self.steps_per_env * self.world.size
 
     @property
     def total_iterations(self) -> int:

@@ -5,9 +5,11 @@ One iteration, in the algorithm's order:
 1. collect a window ``[N, H]`` with the autograd graph on, the env state carried over from the
    previous window and detached at its start (:class:`~torchrl_diffenvs.collectors.DiffWindowCollector`);
 2. actor step: backpropagate the window's (discounted) negative return
-   (:class:`~torchrl_diffenvs.objectives.BPTTLoss`) and take one guarded Adam step (clip the
-   gradient norm; skip NaN/inf or absurd gradients);
-3. update the observation normaliser from the window's raw observations (frozen during the window);
+   (:class:`~torchrl_diffenvs.objectives.BPTTLoss`), average the gradient over the ranks (data
+   parallel; a no-op in one process) and take one guarded Adam step (clip the gradient norm;
+   skip NaN/inf or absurd gradients);
+3. update the observation normaliser from the window's raw observations, all ranks' (frozen
+   during the window);
 4. step the learning-rate schedule.
 """
 from __future__ import annotations
@@ -20,6 +22,7 @@ from tensordict import TensorDictBase
 
 from .. import checks
 from ..collectors import DiffWindowCollector
+from ..distributed import SINGLE_PROCESS, World
 from ..modules import ObservationNormalizer, actor_from_config
 from ..objectives import BPTTLoss, GradientGuard
 from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
@@ -59,6 +62,8 @@ class BPTTLearner(Learner):
             the env state on (trajectory optimisation from a fixed start).
         reset_input: for a batch-unlocked env (TorchRL's ``PendulumEnv``), what to reset it with:
             ``lambda: env.gen_params(batch_size=[N])`` (see :class:`DiffWindowCollector`).
+        world: the ranks training together (:mod:`torchrl_diffenvs.distributed`); ``env`` is this
+            rank's batch.
     """
 
     name = "bptt"
@@ -66,8 +71,8 @@ class BPTTLearner(Learner):
 
     def __init__(self, env, actor, config: BPTTConfig = BPTTConfig(), total_env_steps: int = 1_000_000, *,
                  normalizer: ObservationNormalizer | None = None, start_state: TensorDictBase | None = None,
-                 reset_input=None):
-        super().__init__(env, config, total_env_steps, reset_input=reset_input)
+                 reset_input=None, world: World = SINGLE_PROCESS):
+        super().__init__(env, config, total_env_steps, reset_input=reset_input, world=world)
         c = config
         self.actor = self.policy = actor
         self.normalizer = normalizer
@@ -82,14 +87,14 @@ class BPTTLearner(Learner):
                                            min_lr=c.min_lr, decay=c.lr_decay)
 
     @classmethod
-    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int) -> BPTTLearner:
+    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> BPTTLearner:
         actor, normalizer = actor_from_config(loss_cfg, env)
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor")}
-        return cls(env, actor, BPTTConfig.from_mapping(settings), total_env_steps, normalizer=normalizer)
+        return cls(env, actor, BPTTConfig.from_mapping(settings), total_env_steps, normalizer=normalizer, world=world)
 
     @property
-    def env_steps_per_iteration(self) -> int:
-        return self.num_envs * self.config.horizon
+    def steps_per_env(self) -> int:
+        return self.config.horizon
 
     def train_iteration(self) -> dict[str, float]:
         # 1. collect a window with the graph on
@@ -99,6 +104,7 @@ class BPTTLearner(Learner):
         self.actor_optim.zero_grad(set_to_none=True)
         if out["loss_actor"].requires_grad:  # False when no reward depends on the actions (CartPole-v1's +1)
             out["loss_actor"].backward()
+        self.world.average_gradients(self.actor_params)
         actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"])
         metrics = {
             "reward": out["reward_mean"].item(),
@@ -111,7 +117,7 @@ class BPTTLearner(Learner):
             metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
         # 3. observation statistics, frozen during the window, move after it
         if self.normalizer is not None:
-            self.normalizer.update(window.get("observation"))
+            self.normalizer.update(self.world.gather(window.get("observation")))
         # 4. learning-rate schedule
         self.actor_schedule.step()
         self.iteration += 1

@@ -6,11 +6,17 @@ One iteration, in the algorithm's order:
    no gradients);
 2. ``epochs`` passes, each recomputing GAE advantages with the current critic, then taking
    shuffled minibatch steps (without replacement) on ``loss_objective + loss_critic
-   (+ loss_entropy) (+ bounds loss)``, each through a guard (clip to ``max_grad_norm``; skip
-   NaN/inf); with ``lr_schedule=adaptive`` the learning rate follows each step's KL estimate;
+   (+ loss_entropy) (+ bounds loss)``, each on the gradient averaged over the ranks and through
+   a guard (clip to ``max_grad_norm``; skip NaN/inf); with ``lr_schedule=adaptive`` the learning
+   rate follows each step's KL estimate;
 3. step the learning-rate schedule (linear to 0 over the budget, or constant);
 4. update the observation normaliser, so the data of an iteration is scored with the
    statistics it was collected with; hand the new weights to the collector.
+
+Data parallel (``world`` with ``K`` ranks): each rank collects and samples its own minibatches of
+``minibatch_size``; a step sees the union of the ranks' minibatches (``K x minibatch_size``):
+gradients are averaged, advantages standardised and the value normaliser updated with the
+statistics of that union, and the adaptive schedule follows the mean KL.
 """
 from __future__ import annotations
 
@@ -28,6 +34,7 @@ from torchrl.objectives.multiagent import MAPPOLoss
 from .. import checks
 from .._compat import collector_carrier_state, load_collector_carrier
 from ..collectors import EpisodeReturnTracker
+from ..distributed import SINGLE_PROCESS, World
 from ..modules import ObservationNormalizer, actor_from_config, critic_from_config, env_dims
 from ..objectives import GradientGuard
 from .base import Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
@@ -87,14 +94,16 @@ class PPOLearner(Learner):
         total_env_steps: the budget the learning-rate schedule runs over.
         normalizer: the :class:`~torchrl_diffenvs.modules.ObservationNormalizer` inside actor
             and critic to update after every iteration, if any.
+        world: the ranks training together (:mod:`torchrl_diffenvs.distributed`); ``env`` is this
+            rank's batch.
     """
 
     name = "ppo"
     config_class = PPOConfig
 
     def __init__(self, env, actor, critic, config: PPOConfig = PPOConfig(), total_env_steps: int = 1_000_000, *,
-                 normalizer: ObservationNormalizer | None = None):
-        super().__init__(env, config, total_env_steps)
+                 normalizer: ObservationNormalizer | None = None, world: World = SINGLE_PROCESS):
+        super().__init__(env, config, total_env_steps, world=world)
         c = config
         self.actor = self.policy = actor
         self.critic = critic
@@ -102,12 +111,15 @@ class PPOLearner(Learner):
         settings = dict(
             clip_epsilon=c.clip_epsilon, entropy_bonus=c.entropy_coeff > 0, entropy_coeff=c.entropy_coeff,
             critic_coeff=c.critic_coeff, loss_critic_type=c.loss_critic_type,
-            normalize_advantage=c.normalize_advantage, clip_value=c.clip_value or None,
+            clip_value=c.clip_value or None,
+            # across ranks, a minibatch's advantages are standardised with the statistics of the
+            # union of the ranks' minibatches (standardize_advantage); ClipPPOLoss would use its own
+            normalize_advantage=c.normalize_advantage and world.size == 1,
         )
         if c.value_normalization:
             # TorchRL's MAPPOLoss is ClipPPOLoss plus a value normaliser; with one agent (no agent dim
             # to exclude) and plain GAE it is single-agent PPO with normalised critic targets
-            norm = RunningValueNorm(shape=1).to(device=env.device, dtype=env_dims(env)[2])
+            norm = AllRanksValueNorm(world, shape=1).to(device=env.device, dtype=env_dims(env)[2])
             self.loss = MAPPOLoss(actor, critic, value_norm=norm, normalize_advantage_exclude_dims=(), **settings)
         else:
             self.loss = ClipPPOLoss(actor, critic, **settings)
@@ -119,27 +131,28 @@ class PPOLearner(Learner):
                                      lambda: self.total_iterations)
         self.guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
         self.buffer = ReplayBuffer(
-            storage=LazyTensorStorage(self.env_steps_per_iteration, device=env.device),
+            storage=LazyTensorStorage(self.num_envs * c.rollout_len, device=env.device),
             sampler=SamplerWithoutReplacement(),
             batch_size=c.minibatch_size,
         )
         self.collector = Collector(
-            env, actor, frames_per_batch=self.env_steps_per_iteration, total_frames=-1,
+            env, actor, frames_per_batch=self.num_envs * c.rollout_len, total_frames=-1,
             auto_register_policy_transforms=False,  # the policy reads only "observation"
         )
         self._batches = iter(self.collector)
         self.tracker = EpisodeReturnTracker(self.num_envs, env.device)
 
     @classmethod
-    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int) -> PPOLearner:
+    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> PPOLearner:
         actor, normalizer = actor_from_config(loss_cfg, env, return_log_prob=True)
         critic = critic_from_config(loss_cfg.critic, env, normalizer)
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
-        return cls(env, actor, critic, PPOConfig.from_mapping(settings), total_env_steps, normalizer=normalizer)
+        return cls(env, actor, critic, PPOConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,
+                   world=world)
 
     @property
-    def env_steps_per_iteration(self) -> int:
-        return self.num_envs * self.config.rollout_len
+    def steps_per_env(self) -> int:
+        return self.config.rollout_len
 
     def train_iteration(self) -> dict[str, float]:
         # 1. collect (no gradients)
@@ -155,22 +168,8 @@ class PPOLearner(Learner):
                 )
             self.buffer.extend(data.reshape(-1))
             for batch in self.buffer:
-                out = self.loss(batch)
-                total = out["loss_objective"] + out["loss_critic"]
-                if "loss_entropy" in out.keys():
-                    total = total + out["loss_entropy"]
-                if self.config.bounds_loss_coef > 0:
-                    bounds = self.bounds_loss(batch)
-                    total = total + self.config.bounds_loss_coef * bounds
-                    sums["loss_bounds"] += bounds.item()
-                self.optim.zero_grad(set_to_none=True)
-                total.backward()
-                sums["grad_norm"] += self.guard.step(self.optim, self.params)["grad_norm"]
-                if self.config.lr_schedule == "adaptive":
-                    self._adapt_lr(out["kl_approx"].detach().float().mean().item())
-                for key in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "clip_fraction", "kl_approx"):
-                    if key in out.keys():
-                        sums[key] += out[key].detach().float().mean().item()
+                for key, value in self.gradient_step(batch).items():
+                    sums[key] += value
                 updates += 1
         metrics = {key: value / max(updates, 1) for key, value in sums.items()}
         metrics.update(reward=data.get(("next", "reward")).mean().item(), skipped=self.guard.skipped,
@@ -182,10 +181,37 @@ class PPOLearner(Learner):
             self.schedule.step()
         # 4. normaliser statistics, then the collector gets the new weights
         if self.normalizer is not None:
-            self.normalizer.update(data.get("observation"))
+            self.normalizer.update(self.world.gather(data.get("observation")))
         self.collector.update_policy_weights_()
         self.iteration += 1
         return metrics
+
+    def gradient_step(self, batch) -> dict[str, float]:
+        """One guarded optimiser step on a minibatch (with advantages and value targets), the
+        gradient averaged over the ranks; returns the step's losses and statistics."""
+        c = self.config
+        if c.normalize_advantage and self.world.size > 1:
+            key = self.loss.tensor_keys.advantage
+            batch.set(key, standardize_advantage(batch.get(key), self.world))
+        out = self.loss(batch)
+        total = out["loss_objective"] + out["loss_critic"]
+        if "loss_entropy" in out.keys():
+            total = total + out["loss_entropy"]
+        stats = {}
+        if c.bounds_loss_coef > 0:
+            bounds = self.bounds_loss(batch)
+            total = total + c.bounds_loss_coef * bounds
+            stats["loss_bounds"] = bounds.item()
+        self.optim.zero_grad(set_to_none=True)
+        total.backward()
+        self.world.average_gradients(self.params)
+        stats["grad_norm"] = self.guard.step(self.optim, self.params)["grad_norm"]
+        for key in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "clip_fraction", "kl_approx"):
+            if key in out.keys():
+                stats[key] = out[key].detach().float().mean().item()
+        if c.lr_schedule == "adaptive":
+            self._adapt_lr(self.world.mean(stats["kl_approx"]))
+        return stats
 
     def bounds_loss(self, batch) -> torch.Tensor:
         """rl_games' bounds loss on the pre-squash mean ``loc`` of the policy, averaged over the batch."""
@@ -238,3 +264,22 @@ class PPOLearner(Learner):
 
     def close(self) -> None:
         self.collector.shutdown(close_env=False)
+
+
+def standardize_advantage(advantage: torch.Tensor, world: World) -> torch.Tensor:
+    """``(a - mean) / std`` with the mean and (unbiased) std of all ranks' minibatches together:
+    TorchRL's ``ClipPPOLoss(normalize_advantage=True)`` formula, on the union of the ranks' data."""
+    union = world.gather(advantage)
+    return (advantage - union.mean()) / union.std().clamp_min(torch.finfo(torch.float).resolution)
+
+
+class AllRanksValueNorm(RunningValueNorm):
+    """TorchRL's ``RunningValueNorm`` whose statistics follow the value targets of every rank's
+    minibatch, so that the ranks' normalisers stay identical (one process: unchanged)."""
+
+    def __init__(self, world: World, **kwargs):
+        super().__init__(**kwargs)
+        self.world = world
+
+    def update(self, value_target: torch.Tensor) -> None:
+        super().update(self.world.gather(value_target))

@@ -9,6 +9,11 @@ One iteration, in the algorithm's order:
    optimisers; actor and Q-networks through a guard), each followed by a soft update of the
    target Q-networks;
 3. hand the new weights to the collector.
+
+Data parallel (``world`` with ``K`` ranks): each rank keeps its own replay buffer and samples its
+own minibatches of ``batch_size``; every gradient step averages the gradients (actor, Q-networks,
+temperature) over the ranks, so a step sees ``K x batch_size`` transitions. ``utd_ratio`` and
+``init_random_frames`` count the env steps of all ranks together.
 """
 from __future__ import annotations
 
@@ -23,6 +28,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 from .. import checks
 from .._compat import collector_carrier_state, load_collector_carrier
 from ..collectors import EpisodeReturnTracker
+from ..distributed import SINGLE_PROCESS, World
 from ..modules import actor_from_config, qvalue_from_config
 from ..objectives import GradientGuard
 from .base import Learner, LearnerConfig, checked
@@ -70,13 +76,16 @@ class SACLearner(Learner):
         qvalue: ``Q(observation, action)`` writing ``"state_action_value"`` (:func:`~torchrl_diffenvs.modules.make_qvalue`).
         config: :class:`SACConfig`.
         total_env_steps: the training budget (SAC's learning rates are constant).
+        world: the ranks training together (:mod:`torchrl_diffenvs.distributed`); ``env`` is this
+            rank's batch.
     """
 
     name = "sac"
     config_class = SACConfig
 
-    def __init__(self, env, actor, qvalue, config: SACConfig = SACConfig(), total_env_steps: int = 1_000_000):
-        super().__init__(env, config, total_env_steps)
+    def __init__(self, env, actor, qvalue, config: SACConfig = SACConfig(), total_env_steps: int = 1_000_000, *,
+                 world: World = SINGLE_PROCESS):
+        super().__init__(env, config, total_env_steps, world=world)
         c = config
         self.actor = self.policy = actor
         self.loss = SACLoss(
@@ -96,8 +105,8 @@ class SACLearner(Learner):
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(c.buffer_size, device=env.device), batch_size=c.batch_size)
         self.updates_per_iteration = max(1, round(c.utd_ratio * self.env_steps_per_iteration))
         self.collector = Collector(
-            env, actor, frames_per_batch=self.env_steps_per_iteration, total_frames=-1,
-            init_random_frames=c.init_random_frames,
+            env, actor, frames_per_batch=self.num_envs * c.rollout_len, total_frames=-1,
+            init_random_frames=-(-c.init_random_frames // world.size),  # this rank's share
             auto_register_policy_transforms=False,  # the policy reads only "observation"
         )
         self._batches = iter(self.collector)
@@ -105,17 +114,17 @@ class SACLearner(Learner):
         self.frames = 0
 
     @classmethod
-    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int) -> SACLearner:
+    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> SACLearner:
         if loss_cfg.get("obs_norm"):
             raise ValueError("loss=sac does not support obs_norm (the replay buffer would mix statistics)")
         actor, _ = actor_from_config(loss_cfg, env)
         qvalue = qvalue_from_config(loss_cfg.qvalue, env)
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "qvalue", "obs_norm")}
-        return cls(env, actor, qvalue, SACConfig.from_mapping(settings), total_env_steps)
+        return cls(env, actor, qvalue, SACConfig.from_mapping(settings), total_env_steps, world=world)
 
     @property
-    def env_steps_per_iteration(self) -> int:
-        return self.num_envs * self.config.rollout_len
+    def steps_per_env(self) -> int:
+        return self.config.rollout_len
 
     def train_iteration(self) -> dict[str, float]:
         c = self.config
@@ -123,7 +132,7 @@ class SACLearner(Learner):
         data = next(self._batches)  # [num_envs, rollout_len]
         finished, _ = self.tracker.update(data)
         self.buffer.extend(data.reshape(-1).select(*_BUFFER_KEYS))
-        self.frames += data.numel()
+        self.frames += data.numel() * self.world.size  # all ranks' env steps
         metrics = {"reward": data.get(("next", "reward")).mean().item()}
         if finished:
             metrics["return"] = sum(finished) / len(finished)
@@ -132,17 +141,8 @@ class SACLearner(Learner):
             sums = dict.fromkeys(("loss_actor", "loss_qvalue", "loss_alpha", "grad_norm_actor", "grad_norm_qvalue",
                                   "entropy"), 0.0)
             for _ in range(self.updates_per_iteration):
-                out = self.loss(self.buffer.sample())
-                total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
-                for optim in (self.actor_optim, self.qvalue_optim, self.alpha_optim):
-                    optim.zero_grad(set_to_none=True)
-                total.backward()
-                sums["grad_norm_actor"] += self.actor_guard.step(self.actor_optim, self.actor_params)["grad_norm"]
-                sums["grad_norm_qvalue"] += self.qvalue_guard.step(self.qvalue_optim, self.qvalue_params)["grad_norm"]
-                self.alpha_optim.step()
-                self.target_updater.step()
-                for key in ("loss_actor", "loss_qvalue", "loss_alpha", "entropy"):
-                    sums[key] += out[key].detach().float().mean().item()
+                for key, value in self.gradient_step(self.buffer.sample()).items():
+                    sums[key] += value
             metrics.update({key: value / self.updates_per_iteration for key, value in sums.items()})
             metrics["alpha"] = self.loss.log_alpha.exp().item()
         metrics["skipped_actor"] = self.actor_guard.skipped
@@ -151,6 +151,25 @@ class SACLearner(Learner):
         self.collector.update_policy_weights_()
         self.iteration += 1
         return metrics
+
+    def gradient_step(self, batch) -> dict[str, float]:
+        """One step of the actor, the Q-networks and the temperature on a minibatch, the gradients
+        averaged over the ranks, then the soft update of the target Q-networks."""
+        out = self.loss(batch)
+        total = out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]
+        for optim in (self.actor_optim, self.qvalue_optim, self.alpha_optim):
+            optim.zero_grad(set_to_none=True)
+        total.backward()
+        self.world.average_gradients(self.actor_params + self.qvalue_params + [self.loss.log_alpha])
+        stats = {
+            "grad_norm_actor": self.actor_guard.step(self.actor_optim, self.actor_params)["grad_norm"],
+            "grad_norm_qvalue": self.qvalue_guard.step(self.qvalue_optim, self.qvalue_params)["grad_norm"],
+        }
+        self.alpha_optim.step()
+        self.target_updater.step()
+        stats.update({key: out[key].detach().float().mean().item()
+                      for key in ("loss_actor", "loss_qvalue", "loss_alpha", "entropy")})
+        return stats
 
     def state_dict(self) -> dict:
         return {

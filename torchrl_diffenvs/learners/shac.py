@@ -6,13 +6,13 @@ One iteration, in the order of the reference implementation (DiffRL's ``shac.py`
    detached at the window start);
 2. actor step: backpropagate the window's return bootstrapped by the *target* critic at
    episode ends and at the window end (:class:`~torchrl_diffenvs.objectives.SHACLoss`), one
-   guarded Adam step;
+   guarded Adam step on the gradient averaged over the ranks (a no-op in one process);
 3. critic targets: TD(lambda) returns of the detached window, from the target values the actor
    loss already computed (written under ``"value_target"``);
 4. critic passes: ``critic_passes`` x ``critic_minibatches`` guarded MSE steps on shuffled
-   minibatches of the window;
+   minibatches of the window (each rank shuffles its own; gradients averaged over the ranks);
 5. target update: ``target <- (1 - target_tau) target + target_tau critic``;
-6. update the observation normaliser (shared by actor and critic) from the window;
+6. update the observation normaliser (shared by actor and critic) from the window, all ranks';
 7. step the learning-rate schedules.
 """
 from __future__ import annotations
@@ -24,6 +24,7 @@ import torch
 
 from .. import checks
 from ..collectors import DiffWindowCollector
+from ..distributed import SINGLE_PROCESS, World
 from ..modules import ObservationNormalizer, actor_from_config, critic_from_config
 from ..objectives import GradientGuard, SHACLoss
 from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
@@ -69,14 +70,16 @@ class SHACLearner(Learner):
             and the critic to update after every window, if any.
         reset_input: for a batch-unlocked env (TorchRL's ``PendulumEnv``), what to reset it with:
             ``lambda: env.gen_params(batch_size=[N])`` (see :class:`DiffWindowCollector`).
+        world: the ranks training together (:mod:`torchrl_diffenvs.distributed`); ``env`` is this
+            rank's batch.
     """
 
     name = "shac"
     config_class = SHACConfig
 
     def __init__(self, env, actor, critic, config: SHACConfig = SHACConfig(), total_env_steps: int = 1_000_000, *,
-                 normalizer: ObservationNormalizer | None = None, reset_input=None):
-        super().__init__(env, config, total_env_steps, reset_input=reset_input)
+                 normalizer: ObservationNormalizer | None = None, reset_input=None, world: World = SINGLE_PROCESS):
+        super().__init__(env, config, total_env_steps, reset_input=reset_input, world=world)
         c = config
         self.actor = self.policy = actor
         self.normalizer = normalizer
@@ -96,15 +99,16 @@ class SHACLearner(Learner):
         ]
 
     @classmethod
-    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int) -> SHACLearner:
+    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> SHACLearner:
         actor, normalizer = actor_from_config(loss_cfg, env)
         critic = critic_from_config(loss_cfg.critic, env, normalizer)
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
-        return cls(env, actor, critic, SHACConfig.from_mapping(settings), total_env_steps, normalizer=normalizer)
+        return cls(env, actor, critic, SHACConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,
+                   world=world)
 
     @property
-    def env_steps_per_iteration(self) -> int:
-        return self.num_envs * self.config.horizon
+    def steps_per_env(self) -> int:
+        return self.config.horizon
 
     def train_iteration(self) -> dict[str, float]:
         c = self.config
@@ -115,6 +119,7 @@ class SHACLearner(Learner):
         self.actor_optim.zero_grad(set_to_none=True)
         if out["loss_actor"].requires_grad:  # False when nothing depends on the actions
             out["loss_actor"].backward()
+        self.world.average_gradients(self.actor_params)
         actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"])
         metrics = {key: out[key].item() for key in ("loss_actor", "reward_mean", "value_mean")}
         # 3. the critic fits the detached window and its TD(lambda) targets
@@ -130,13 +135,14 @@ class SHACLearner(Learner):
                 critic_loss = self.loss.critic_loss(flat[batch])["loss_critic"]
                 self.critic_optim.zero_grad(set_to_none=True)
                 critic_loss.backward()
+                self.world.average_gradients(self.critic_params)
                 self.critic_guard.step(self.critic_optim, self.critic_params, loss=critic_loss)
                 critic_losses.append(critic_loss.item())
         # 5. the target critic follows the critic
         self.target_updater.step()
         # 6. observation statistics, frozen during the window, move after it
         if self.normalizer is not None:
-            self.normalizer.update(data.get("observation"))
+            self.normalizer.update(self.world.gather(data.get("observation")))
         metrics.update({
             "reward": metrics.pop("reward_mean"),
             "value": metrics.pop("value_mean"),
