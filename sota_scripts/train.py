@@ -5,19 +5,26 @@
     python sota_scripts/train.py -m env=pendulum,cartpole loss=shac,ppo seed=0,1,2
     python sota_scripts/train.py resume=outputs/<run>/checkpoints/last.pt
     python sota_scripts/train.py mode=eval checkpoint=outputs/<run>/checkpoints/last.pt
+    torchrun --nproc_per_node=2 sota_scripts/train.py env=pendulum loss=shac   # data parallel
 
 Configuration: configs/ (Hydra; config groups loss/, logger/, per-pair tuning in tuned/; env=<name> from
 the task registrations).
 Everything a run writes goes to its Hydra run directory: metrics.jsonl / metrics.csv,
 final_metrics.json, checkpoints/ (last.pt and numbered ones), learning_curve.png, final.gif and,
 with the default logger, the offline W&B run in wandb/.
+
+Under torchrun every rank runs this script: each simulates env.num_envs envs of its own, the
+gradients are averaged over the ranks (torchrl_diffenvs.distributed), and rank 0 alone evaluates,
+logs and writes the run directory and its checkpoints.
 """
 from __future__ import annotations
 
 import json
 import logging
 import math
+import os
 import random
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -26,6 +33,7 @@ import hydra
 import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
@@ -38,10 +46,12 @@ from torchrl_diffenvs.training import (
     load_checkpoint,
     make_env_from_config,
     plot_learning_curve,
+    resolve_device,
     restore_rng_state,
     save_checkpoint,
     validate_config,
 )
+from torchrl_diffenvs.distributed import SINGLE_PROCESS, DistributedError, World, parameters_checksum, rank_seed
 from torchrl_diffenvs.evaluation import episode_returns, evaluate, evaluate_random, record_video
 from torchrl_diffenvs.learners import make_learner
 from torchrl_diffenvs.modules import actor_from_config
@@ -61,17 +71,32 @@ def main(cfg: DictConfig) -> float:
             overrides = merge_overrides(load_checkpoint(cfg.resume).get("overrides", []), overrides)
             cfg = hydra.compose(config_name="config", overrides=overrides)
         result = run(cfg, Path(HydraConfig.get().runtime.output_dir), overrides)
-    except (ConfigError, CheckpointError) as err:  # a clear message instead of a traceback
+    except (ConfigError, CheckpointError, DistributedError) as err:  # a clear message instead of a traceback
         raise SystemExit(f"error: {err}") from None
     return result["eval/return"]  # a sweeper can maximise it
 
 
 def run(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
-    """Checks ``cfg`` and trains, or evaluates a checkpoint (``mode=eval``). Returns the final metrics."""
+    """Checks ``cfg`` and trains, or evaluates a checkpoint (``mode=eval``, on rank 0 only), in
+    the ranks torchrun started (one process without torchrun). Returns the final metrics (rank
+    0's, on every rank)."""
     validate_config(cfg)
-    if cfg.mode == "eval":
-        return evaluate_checkpoint(cfg, Path(run_dir))
-    return train(cfg, Path(run_dir), list(overrides))
+    world = join_world(cfg)
+    try:
+        if cfg.mode == "eval":
+            return world.broadcast_object(evaluate_checkpoint(cfg, Path(run_dir)) if world.is_main else None)
+        return train(cfg, Path(run_dir), list(overrides), world)
+    finally:
+        world.close()
+
+
+def join_world(cfg: DictConfig) -> World:
+    """The ranks torchrun started (``WORLD_SIZE`` etc.), or one process."""
+    in_multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and in_multirun:
+        raise ConfigError("a multirun (-m) cannot run under torchrun: launch one torchrun per configuration, or "
+                          "sweep single-process runs with a launcher (hydra/launcher=joblib or submitit_local)")
+    return World.from_environment(resolve_device(cfg.device), timeout_s=float(cfg.distributed.timeout_s))
 
 
 def seed_everything(seed: int) -> None:
@@ -80,14 +105,25 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
+def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = (), world: World = SINGLE_PROCESS) -> dict:
     # ------------------------------------------------------------------ build everything
-    seed_everything(cfg.seed)
-    env = make_env_from_config(cfg, cfg.env.num_envs, seed=cfg.seed)
-    eval_env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed)
-    eval_steps = cfg.eval.max_steps or eval_env.max_episode_steps
-    learner = make_learner(cfg.loss, env, cfg.train.total_env_steps)
+    world.check_same(OmegaConf.to_yaml(cfg, resolve=True), "configuration")
+    cfg = cfg.copy()
+    with open_dict(cfg):  # recorded in the checkpoints' config and the logger's hyperparameters
+        cfg.distributed.world_size, cfg.distributed.backend = world.size, world.backend
+        cfg.device = str(world.device(resolve_device(cfg.device)))  # cuda -> cuda:<local rank>
+    seed_everything(cfg.seed)  # the same networks on every rank
+    env = make_env_from_config(cfg, cfg.env.num_envs, seed=rank_seed(cfg.seed, world.rank))
+    learner = make_learner(cfg.loss, env, cfg.train.total_env_steps, world)
+    world.check_same(parameters_checksum(learner.policy.state_dict().values()), "initial policy")
+    if not world.is_main:  # its own exploration noise and minibatch order (rank 0 goes on as one process would)
+        seed_everything(rank_seed(cfg.seed, world.rank))
+    eval_env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed) if world.is_main else None
+    eval_steps = cfg.eval.max_steps or (eval_env or env).max_episode_steps
     total = int(cfg.train.total_env_steps)
+    if world.size > 1:
+        log.info(f"data parallel: {world.size} ranks ({world.backend}), env.num_envs={cfg.env.num_envs} per rank "
+                 f"({cfg.env.num_envs * world.size} in all), {learner.env_steps_per_iteration:,} env steps per iteration")
     # the counters a checkpoint carries, so that a resumed run continues its schedules
     progress = {"iteration": 0, "env_steps": 0, "wall_time_s": 0.0, "next_eval": 0,
                 "next_checkpoint": int(cfg.train.checkpoint_interval)}
@@ -95,27 +131,39 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
     if cfg.get("resume"):
         ckpt = load_checkpoint(cfg.resume, map_location=env.device)
         check_resume_compatible(OmegaConf.create(ckpt["config"]), cfg)
-        learner.load_state_dict(ckpt["learner"])
+        if ckpt.get("world_size", 1) != world.size:
+            raise CheckpointError(
+                f"resume={cfg.resume!r} was written by {ckpt.get('world_size', 1)} rank(s) and holds each rank's env "
+                f"state, replay buffer and random streams; resume it with as many ranks "
+                f"(torchrun --nproc_per_node={ckpt.get('world_size', 1)}), not {world.size}")
+        mine = ckpt if world.is_main else ckpt["other_ranks"][world.rank - 1]
+        learner.load_state_dict(mine["learner"])
         progress, history, wandb_run_id = ckpt["progress"], ckpt["history"], ckpt.get("wandb_run_id")
         progress.pop("won", None)  # a resumed run trains on, even past an earlier score_to_win
-        restore_rng_state(ckpt["rng"], {"env": env.rng})  # last: building the learner drew numbers
+        restore_rng_state(mine["rng"], {"env": env.rng})  # last: building the learner drew numbers
         log.info(f"resumed {cfg.resume} at env step {progress['env_steps']:,}")
-    logger = RunLogger(cfg, run_dir, history, wandb_run_id)
+    # rank 0 alone writes the run directory
+    logger = RunLogger(cfg, run_dir, history, wandb_run_id) if world.is_main else None
     ckpt_dir = run_dir / "checkpoints"
     last = {"eval/return": float("nan"), "train/return": float("nan")}
     for row in history:  # what the progress bar and the final metrics show after a resume
         last.update({k: v for k, v in row.items() if k in last or k == "eval/random_return"})
 
-    def checkpoint(name: str | None = None) -> Path:
-        """Writes a numbered checkpoint (and last.pt), or the one called ``name`` (best.pt)."""
+    def checkpoint(name: str | None = None) -> Path | None:
+        """Writes a numbered checkpoint (and last.pt), or the one called ``name`` (best.pt), with
+        every rank's state; every rank calls it, rank 0 writes."""
+        ranks = world.gather_object({"learner": learner.state_dict(), "rng": capture_rng_state({"env": env.rng})})
+        if not world.is_main:
+            return None
         state = {
             "config": OmegaConf.to_container(cfg, resolve=True),
             "overrides": [o for o in overrides if not o.startswith(("resume=", "mode=", "checkpoint="))],
-            "learner": learner.state_dict(),
+            **ranks[0],  # rank 0's learner and random streams
+            "other_ranks": ranks[1:],
+            "world_size": world.size,
             "policy": learner.policy.state_dict(),
             "progress": dict(progress),
             "history": logger.rows,
-            "rng": capture_rng_state({"env": env.rng}),
             "wandb_run_id": logger.wandb_run_id,
         }
         if name is not None:
@@ -129,26 +177,32 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
         return path
 
     def evaluation() -> None:
-        if "eval/random_return" not in last:
-            last["eval/random_return"] = evaluate_random(eval_env, eval_steps, cfg.eval.seed)
-            logger.log({"eval/random_return": last["eval/random_return"]}, progress["env_steps"])
-        scores = evaluate(eval_env, learner.policy, eval_steps, cfg.eval.seed)
-        last["eval/return"], progress["last_eval"] = scores["return"], progress["env_steps"]
-        logger.log({f"eval/{k}": v for k, v in scores.items()}, progress["env_steps"])
+        """Rank 0 evaluates; every rank learns its verdicts (best so far? won?) and acts on them."""
+        score = None
+        if world.is_main:
+            if "eval/random_return" not in last:
+                last["eval/random_return"] = evaluate_random(eval_env, eval_steps, cfg.eval.seed)
+                logger.log({"eval/random_return": last["eval/random_return"]}, progress["env_steps"])
+            scores = evaluate(eval_env, learner.policy, eval_steps, cfg.eval.seed)
+            score = last["eval/return"] = scores["return"]
+            logger.log({f"eval/{k}": v for k, v in scores.items()}, progress["env_steps"])
+        score = world.broadcast_object(score)
+        progress["last_eval"] = progress["env_steps"]
         best_after = cfg.train.get("save_best_after")
         if best_after is not None and progress["env_steps"] >= best_after and \
-                scores["return"] > progress.get("best_eval_return", -math.inf):
-            progress["best_eval_return"] = scores["return"]  # set first: best.pt records itself as the best
+                score > progress.get("best_eval_return", -math.inf):
+            progress["best_eval_return"] = score  # set first: best.pt records itself as the best
             checkpoint("best.pt")
         win = cfg.train.get("score_to_win")
-        if win is not None and scores["return"] >= win and not progress.get("won"):
+        if win is not None and score >= win and not progress.get("won"):
             progress["won"] = True
-            log.info(f"evaluation return {scores['return']:.4g} >= train.score_to_win={win}: stopping at env step "
+            log.info(f"evaluation return {score:.4g} >= train.score_to_win={win}: stopping at env step "
                      f"{progress['env_steps']:,}")
 
     # ------------------------------------------------------------------ the loop
     bar = tqdm(total=total, initial=min(progress["env_steps"], total), unit="step", unit_scale=True,
-               dynamic_ncols=True, disable=not cfg.train.progress_bar, desc=f"{cfg.env.name} {cfg.loss.name}")
+               dynamic_ncols=True, disable=not (cfg.train.progress_bar and world.is_main),
+               desc=f"{cfg.env.name} {cfg.loss.name}")
     start = time.perf_counter() - progress["wall_time_s"]
     try:
         while True:
@@ -164,14 +218,14 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
                 break
 
             tic = time.perf_counter()
-            metrics = learner.train_iteration()
-            steps = learner.env_steps_per_iteration
+            metrics = world.mean_metrics(learner.train_iteration())
+            steps = learner.env_steps_per_iteration  # all ranks' 
             progress["iteration"] += 1
             progress["env_steps"] += steps
             progress["wall_time_s"] = time.perf_counter() - start
             if "return" in metrics:
                 last["train/return"] = metrics["return"]
-            if progress["iteration"] % cfg.train.log_interval == 0:
+            if world.is_main and progress["iteration"] % cfg.train.log_interval == 0:
                 row = {f"train/{k}": v for k, v in metrics.items()}
                 row.update({"time/iteration": progress["iteration"], "time/wall_s": progress["wall_time_s"],
                             "time/steps_per_s": steps / (time.perf_counter() - tic)})
@@ -185,6 +239,8 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
         if progress.get("last_eval") != progress["env_steps"]:
             evaluation()
         checkpoint()
+        if not world.is_main:
+            return world.broadcast_object(None)
         files = {}
         if cfg.eval.gif:
             files["final_gif"] = write_video(cfg, eval_env, learner.policy, eval_steps, run_dir / "final")
@@ -193,7 +249,7 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
         logger.log_files(images={"learning_curve": curve} if curve else {},
                          gifs={"final_gif": files["final_gif"]} if files.get("final_gif") else {})
         result = {
-            "env": cfg.env.name, "loss": cfg.loss.name, "seed": cfg.seed,
+            "env": cfg.env.name, "loss": cfg.loss.name, "seed": cfg.seed, "world_size": world.size,
             "env_steps": progress["env_steps"], "iterations": progress["iteration"],
             "wall_time_s": progress["wall_time_s"],
             "steps_per_s": progress["env_steps"] / max(progress["wall_time_s"], 1e-9),
@@ -205,10 +261,12 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
         log.info(f"{cfg.env.name} {cfg.loss.name}: eval return {result['eval/return']:.4g} "
               f"(random policy {result['eval/random_return']:.4g}) after {progress['env_steps']:,} env steps "
               f"in {progress['wall_time_s']:.0f} s; outputs in {run_dir}")
-        return result
+        return world.broadcast_object(result)
     except KeyboardInterrupt:
         bar.close()
         saved = ckpt_dir / "last.pt"
+        if not world.is_main:
+            raise
         if saved.exists():
             at = load_checkpoint(saved)["progress"]["env_steps"]
             log.warning(f"interrupted at env step {progress['env_steps']:,}; continue from env step {at:,} with "
@@ -217,7 +275,8 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = ()) -> dict:
             log.warning(f"interrupted at env step {progress['env_steps']:,}, before the first checkpoint")
         raise
     finally:
-        logger.close()
+        if logger is not None:
+            logger.close()
         learner.close()
 
 
@@ -290,4 +349,8 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path) -> dict:
 
 
 if __name__ == "__main__":
+    if int(os.environ.get("RANK", "0")) > 0:
+        # under torchrun only rank 0 has a run directory: the other ranks keep Hydra from creating
+        # theirs (no .hydra/ copy, no log file; their warnings and errors still reach stderr)
+        sys.argv += ["hydra.output_subdir=null", "hydra.run.dir=.", "hydra/job_logging=none", "hydra/hydra_logging=none"]
     main()

@@ -32,6 +32,7 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import torch
 import torch.distributed as dist
+from tensordict import TensorDictBase
 
 __all__ = ["SINGLE_PROCESS", "DistributedError", "World", "parameters_checksum", "rank_seed"]
 
@@ -104,24 +105,27 @@ class World:
     # ------------------------------------------------------------------ gradients
     @torch.no_grad()
     def average_gradients(self, params: Sequence[torch.Tensor]) -> None:
-        """Replaces every ``p.grad`` by its mean over the ranks (one flat all-reduce).
+        """Replaces every ``p.grad`` by its mean over the ranks (one flat all-reduce per dtype and
+        device).
 
         A gradient missing (``None``) on a rank counts as zero there; it stays ``None`` only
         where every rank lacks it (then the optimiser skips it, as a single process would).
         """
-        if self.size == 1 or not params:
+        if self.size == 1:
             return
-        ref = params[0]
-        present = torch.tensor([p.grad is not None for p in params], dtype=ref.dtype, device=ref.device)
-        flat = torch.cat([present] + [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1)
-                                      for p in params])
-        self._all_reduce(flat, "gradients")
-        present, offset = flat[: len(params)], len(params)
-        for p, seen in zip(params, present.tolist()):
-            n = p.numel()
-            if seen:
-                p.grad = flat[offset: offset + n].view_as(p) / self.size
-            offset += n
+        groups: dict[tuple, list[torch.Tensor]] = {}
+        for p in params:
+            groups.setdefault((p.dtype, p.device), []).append(p)
+        for group in groups.values():
+            present = torch.tensor([p.grad is not None for p in group], dtype=group[0].dtype, device=group[0].device)
+            flat = torch.cat([present] + [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1)
+                                          for p in group])
+            self._all_reduce(flat, "gradients")
+            offset = len(group)
+            for p, seen in zip(group, flat[: len(group)].tolist()):
+                if seen:
+                    p.grad = flat[offset: offset + p.numel()].view_as(p) / self.size
+                offset += p.numel()
 
     # ------------------------------------------------------------------ data and metrics
     def gather(self, tensor: torch.Tensor) -> torch.Tensor:
@@ -157,6 +161,16 @@ class World:
             return [obj]
         out = [None] * self.size
         self._call(dist.all_gather_object, out, obj, what="objects")
+        return out
+
+    def gather_object(self, obj) -> list | None:
+        """Every rank's picklable ``obj`` in rank order, on rank 0; ``None`` on the others.
+        Tensors travel through the CPU (a rank's CUDA tensors would not unpickle on rank 0's GPU)."""
+        if self.size == 1:
+            return [obj]
+        obj = _to_cpu(obj)
+        out = [None] * self.size if self.is_main else None
+        self._call(dist.gather_object, obj, out, 0, what="state for the checkpoint")
         return out
 
     def broadcast_object(self, obj):
@@ -196,9 +210,20 @@ class World:
 SINGLE_PROCESS = World()
 
 
+def _to_cpu(obj):
+    """``obj`` with its tensors (also inside dicts, lists, tuples and TensorDicts) on the CPU."""
+    if isinstance(obj, (torch.Tensor, TensorDictBase)):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return type(obj)((key, _to_cpu(value)) for key, value in obj.items())
+    if isinstance(obj, (list, tuple)) and type(obj) in (list, tuple):
+        return type(obj)(_to_cpu(value) for value in obj)
+    return obj
+
+
 def parameters_checksum(tensors: Iterable[torch.Tensor]) -> str:
     """A string that differs when any of ``tensors`` differs (to compare ranks' initial networks)."""
     digest = hashlib.sha256()
     for t in tensors:
-        digest.update(t.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
+        digest.update(t.detach().cpu().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())
     return digest.hexdigest()

@@ -204,6 +204,9 @@ def validate_config(cfg: DictConfig) -> None:
         value = OmegaConf.select(cfg, key)
         if not _is_int(value) or value < minimum:
             problems.append(f"{key}={value!r}: expected an integer >= {minimum}")
+    timeout = OmegaConf.select(cfg, "distributed.timeout_s", default=300)
+    if not is_number(timeout) or timeout <= 0:
+        problems.append(f"distributed.timeout_s={timeout!r}: expected a number of seconds > 0")
     video_format = OmegaConf.select(cfg, "eval.video_format", default="gif")
     if video_format not in ("gif", "mp4"):
         problems.append(f"eval.video_format={video_format!r}: valid: gif, mp4")
