@@ -1,9 +1,11 @@
 """Data-parallel scaling: the same training run with 1 and 2 ranks under torchrun.
 
 Each configuration is ``torchrun --standalone --nproc_per_node=K sota_scripts/train.py ...`` with
-one torch thread per rank and the same *global* batch (strong scaling): ``env.num_envs`` and PPO's
-``loss.minibatch_size`` are divided by ``K``, so that ``K`` ranks run the algorithm of the 1-rank
-run (tests/test_distributed.py checks that equivalence) and only the wall time may change.
+one torch thread per rank. ``scaling=strong`` (default) keeps the *global* batch: ``env.num_envs``
+and PPO's ``loss.minibatch_size`` (SAC's ``loss.batch_size``) are divided by ``K``, so that ``K``
+ranks run the algorithm of the 1-rank run (tests/test_distributed.py checks that equivalence) and
+only the wall time may change. ``scaling=weak`` keeps the per-rank batch (``num_envs`` envs on
+every rank): ``K`` times the env steps per iteration, a larger batch for the learner.
 
 Reported per loss and rank count, over seeds (median, min-max): training env-steps/s (median of
 the logged per-iteration rates: collection and updates, evaluations excluded), the whole run's
@@ -13,6 +15,8 @@ Scaling efficiency: ``rate(K) / (K x rate(1))``.
 
     python benchmarks/scaling.py                                  # shac and ppo, 1 and 2 ranks, seeds 0 1 2
     python benchmarks/scaling.py losses=[shac] seeds=[0] ranks=[1,2]
+    python benchmarks/scaling.py scaling=weak env=HalfCheetah-v5 losses=[shac] seeds=[0] eval_interval=1000000 \
+        override=[train.total_env_steps=32768]
     python benchmarks/scaling.py quick=true                       # tiny runs: a smoke test
 """
 from __future__ import annotations
@@ -49,7 +53,8 @@ class ScalingSettings(C.BenchmarkSettings):
     losses: list[str] = checked(["shac", "ppo"], checks.each(checks.one_of(LOSSES)))
     ranks: list[int] = checked([1, 2], checks.each(checks.positive_int))
     seeds: list[int] | None = None  # default 0 1 2 (quick: 0)
-    num_envs: int = checked(64, checks.positive_int)  # global: each of K ranks simulates num_envs / K
+    num_envs: int = checked(64, checks.positive_int)  # strong: global, each of K ranks num_envs / K; weak: per rank
+    scaling: str = checked("strong", checks.one_of(("strong", "weak")))
     level: float = 74.2  # the return whose time to reach is reported
     eval_interval: int = checked(20_000, checks.positive_int)
     override: list[str] = checked([], checks.each(lambda v: None if "=" in str(v) else "expected KEY=VALUE"))
@@ -73,26 +78,27 @@ def launch(run_dir: Path, ranks: int, overrides: list[str]) -> dict:
 
 def main(argv=None) -> dict:
     args = parse_cli(ScalingSettings, argv, __doc__)
-    bad = [k for k in args.ranks if args.num_envs % k]
+    bad = [k for k in args.ranks if args.num_envs % k and args.scaling == "strong"]
     if bad:
         raise SystemExit(f"scaling: num_envs={args.num_envs} must split evenly over ranks={bad}")
     seeds = args.seeds if args.seeds is not None else ([0] if args.quick else [0, 1, 2])
     info = C.versions() | {"cpus": os.cpu_count()}
-    C.print_header("data-parallel scaling (torchrun, one thread per rank, same global batch)", info)
+    C.print_header(f"data-parallel {args.scaling} scaling (torchrun, one thread per rank)", info)
     runs_root = Path(args.keep_runs) if args.keep_runs else Path(tempfile.mkdtemp(prefix="scaling_"))
 
     runs = []
     for seed in seeds:
         for loss in args.losses:
             for k in args.ranks:  # interleaved, so that load from other processes spreads over all
-                overrides = [f"env={args.env}", f"loss={loss}", f"seed={seed}", f"env.num_envs={args.num_envs // k}",
+                split = k if args.scaling == "strong" else 1
+                overrides = [f"env={args.env}", f"loss={loss}", f"seed={seed}", f"env.num_envs={args.num_envs // split}",
                              "logger=none", "train.progress_bar=false", "eval.gif=false",
                              f"eval.interval={args.eval_interval}"]
                 if loss in PER_RANK_BATCH:
                     key, default = PER_RANK_BATCH[loss]
-                    overrides.append(f"{key}={max(1, default // k)}")
-                overrides += (QUICK if args.quick else []) + args.override
-                result = launch(runs_root / f"{loss}_ranks{k}_seed{seed}", k, overrides)
+                    overrides.append(f"{key}={max(1, default // split)}")
+                overrides += QUICK if args.quick else []
+                result = launch(runs_root / f"{loss}_ranks{k}_seed{seed}", k, overrides + args.override)
                 result.update({"ranks": k, "overrides": overrides,
                                "time_to_level_s": first_time_at(result["curve"], args.level)})
                 runs.append(result)
@@ -126,14 +132,15 @@ def main(argv=None) -> dict:
                 ("never" if not math.isfinite(to_level) else f"{to_level:.1f} s") + f" ({reached}/{len(times)})",
                 C.fmt_ratio(speedup),
             ])
-    print(f"\n## {args.env}: global batch {args.num_envs} envs, one thread per rank (median over seeds {seeds})")
+    batch = f"global batch {args.num_envs} envs" if args.scaling == "strong" else f"{args.num_envs} envs per rank"
+    print(f"\n## {args.env}, {args.scaling} scaling: {batch}, one thread per rank (median over seeds {seeds})")
     table = C.print_table(["loss", "ranks", "training env-steps/s", "run env-steps/s", "scaling efficiency",
                            "final eval return", f"time to {args.level}", "speed-up"], rows)
     for r in runs:
         r["curve"] = [list(p) for p in r["curve"]]
     payload = {"benchmark": "scaling", "info": info, "settings": vars(args) if hasattr(args, "__dict__") else {},
                "summary": summary, "runs": runs, "table": table}
-    C.write_json("scaling" + ("_quick" if args.quick else ""), payload, args.out)
+    C.write_json(f"scaling_{args.scaling}" + ("_quick" if args.quick else ""), payload, args.out)
     if args.keep_runs is None:
         shutil.rmtree(runs_root, ignore_errors=True)
     return payload

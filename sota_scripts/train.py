@@ -218,14 +218,17 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = (), world: Worl
                 break
 
             tic = time.perf_counter()
-            metrics = world.mean_metrics(learner.train_iteration())
-            steps = learner.env_steps_per_iteration  # all ranks' 
+            metrics = learner.train_iteration()
+            steps = learner.env_steps_per_iteration  # all ranks'
             progress["iteration"] += 1
+            logging_now = progress["iteration"] % cfg.train.log_interval == 0
+            if logging_now:  # means over the ranks (a collective: only when a row is logged)
+                metrics = world.mean_metrics(metrics)
             progress["env_steps"] += steps
             progress["wall_time_s"] = time.perf_counter() - start
             if "return" in metrics:
                 last["train/return"] = metrics["return"]
-            if world.is_main and progress["iteration"] % cfg.train.log_interval == 0:
+            if world.is_main and logging_now:
                 row = {f"train/{k}": v for k, v in metrics.items()}
                 row.update({"time/iteration": progress["iteration"], "time/wall_s": progress["wall_time_s"],
                             "time/steps_per_s": steps / (time.perf_counter() - tic)})

@@ -142,7 +142,9 @@ class World:
         """The mean of a scalar over the ranks."""
         if self.size == 1:
             return value
-        total = torch.tensor([float(value)], dtype=torch.float64)
+        # NCCL reduces only CUDA tensors
+        device = torch.device("cuda", self.local_rank) if self.backend == "nccl" else torch.device("cpu")
+        total = torch.tensor([float(value)], dtype=torch.float64, device=device)
         self._all_reduce(total, "a scalar")
         return total.item() / self.size
 
