@@ -37,6 +37,8 @@ __all__ = [
     "TanhNormalActor",
     "actor_from_config",
     "env_dims",
+    "CRITIC_INPUTS",
+    "privileged_inputs",
     "critic_from_config",
     "make_actor",
     "make_critic",
@@ -341,6 +343,57 @@ def make_actor(
     return TanhNormalActor(module, low, high, spec=env.action_spec_unbatched, return_log_prob=return_log_prob)
 
 
+CRITIC_INPUTS = ("observation", "state")
+
+
+def privileged_inputs(env) -> list[tuple[tuple[str, str], int]]:
+    """``[(key, size), ...]``: every ``("state", ...)`` and ``("params", ...)`` entry of ``env``'s
+    observation spec with its size per env (what ``critic_input="state"`` adds to the critic's input)."""
+    batch_dims = len(env.batch_size)
+    found = [(key, math.prod(env.observation_spec[key].shape[batch_dims:]))
+             for key in env.observation_spec.keys(True, True)
+             if isinstance(key, tuple) and key[0] in ("state", "params")]
+    if not any(key[0] == "state" for key, _ in found):
+        raise ValueError(f"critic_input='state': {type(env).__name__} has no ('state', ...) entries in its observation "
+                         "spec to give the critic; use critic_input='observation'")
+    return found
+
+
+class _ConcatInputs(nn.Module):
+    """Feeds ``cat(inputs)`` to ``net`` (a ``ValueOperator`` or ``LeanModule`` passes them one by
+    one): each input is flattened per env (its trailing ``event_dims``, 0 for a scalar), the first
+    one (the observation) goes through ``normalizer`` when given."""
+
+    def __init__(self, net: nn.Module, event_dims: Sequence[int] | None = None,
+                 normalizer: ObservationNormalizer | None = None):
+        super().__init__()
+        self.net = net
+        self.event_dims = None if event_dims is None else tuple(event_dims)
+        self.normalizer = normalizer
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        if self.normalizer is not None:
+            inputs = (self.normalizer(inputs[0]), *inputs[1:])
+        if self.event_dims is not None:
+            dtype = inputs[0].dtype
+            inputs = [(x.unsqueeze(-1) if k == 0 else x.flatten(-k)).to(dtype) for x, k in zip(inputs, self.event_dims)]
+        return self.net(torch.cat(inputs, dim=-1))
+
+
+def _critic_inputs(env, in_key: str, critic_input: str) -> tuple[list, list[int], int]:
+    """The critic's input keys, their event dims and total size for ``critic_input``."""
+    if critic_input not in CRITIC_INPUTS:
+        raise ValueError(f"critic_input must be one of {CRITIC_INPUTS}, got {critic_input!r}")
+    observation_dim = env_dims(env, in_key)[0]
+    if critic_input == "observation":
+        return [in_key], [1], observation_dim
+    batch_dims = len(env.batch_size)
+    privileged = privileged_inputs(env)
+    keys = [in_key] + [key for key, _ in privileged]
+    event_dims = [1] + [len(env.observation_spec[key].shape) - batch_dims for key, _ in privileged]
+    return keys, event_dims, observation_dim + sum(size for _, size in privileged)
+
+
 def make_critic(
     env,
     hidden: Sequence[int] = (64, 64),
@@ -350,32 +403,37 @@ def make_critic(
     init: str = "default",
     normalizer: ObservationNormalizer | None = None,
     in_key: str = "observation",
+    critic_input: str = "observation",
 ) -> LeanModule:
-    """A state-value network ``V(observation)`` writing ``"state_value"`` (``[..., 1]``)."""
-    observation_dim, _, dtype = env_dims(env, in_key)
-    net = make_mlp(observation_dim, 1, hidden, activation, layer_norm, dtype, norm_after_activation, init)
-    if normalizer is not None:
-        net = nn.Sequential(normalizer, net)
-    return LeanModule(net, in_keys=[in_key], out_keys=["state_value"])
+    """A state-value network writing ``"state_value"`` (``[..., 1]``).
 
-
-class _ConcatInputs(nn.Module):
-    """Feeds ``cat(observation, action)`` to an MLP (``ValueOperator`` passes them separately)."""
-
-    def __init__(self, net: nn.Module):
-        super().__init__()
-        self.net = net
-
-    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        return self.net(torch.cat(inputs, dim=-1))
+    ``critic_input="observation"`` (default): ``V(observation)``. ``"state"``: an asymmetric
+    (privileged) critic ``V(observation, state, params)`` that also reads every ``("state", ...)``
+    and ``("params", ...)`` entry of the env's TensorDicts (the physical state and parameters,
+    flattened per env), while the actor keeps seeing the observation only. ``normalizer``
+    applies to the observation part; the state and parameters enter raw (the network's
+    LayerNorm takes their scale).
+    """
+    keys, event_dims, input_dim = _critic_inputs(env, in_key, critic_input)
+    dtype = env_dims(env, in_key)[2]
+    net = make_mlp(input_dim, 1, hidden, activation, layer_norm, dtype, norm_after_activation, init)
+    if critic_input == "observation":
+        return LeanModule(nn.Sequential(normalizer, net) if normalizer is not None else net, in_keys=keys,
+                          out_keys=["state_value"])
+    return LeanModule(_ConcatInputs(net, event_dims, normalizer), in_keys=keys, out_keys=["state_value"])
 
 
 def make_qvalue(env, hidden: Sequence[int] = (256, 256), activation: type[nn.Module] = nn.ReLU,
-                layer_norm: bool = False, norm_after_activation: bool = False, init: str = "default") -> ValueOperator:
-    """``Q(observation, action)`` writing ``"state_action_value"`` (what TorchRL's ``SACLoss`` expects)."""
-    observation_dim, action_dim, dtype = env_dims(env)
-    net = make_mlp(observation_dim + action_dim, 1, hidden, activation, layer_norm, dtype, norm_after_activation, init)
-    return ValueOperator(_ConcatInputs(net), in_keys=["observation", "action"], out_keys=["state_action_value"])
+                layer_norm: bool = False, norm_after_activation: bool = False, init: str = "default",
+                critic_input: str = "observation") -> ValueOperator:
+    """``Q(observation, action)`` writing ``"state_action_value"`` (what TorchRL's ``SACLoss``
+    expects); with ``critic_input="state"``, ``Q(observation, state, params, action)`` (see
+    :func:`make_critic`)."""
+    keys, event_dims, input_dim = _critic_inputs(env, "observation", critic_input)
+    _, action_dim, dtype = env_dims(env)
+    net = make_mlp(input_dim + action_dim, 1, hidden, activation, layer_norm, dtype, norm_after_activation, init)
+    inputs = _ConcatInputs(net) if critic_input == "observation" else _ConcatInputs(net, [*event_dims, 1])
+    return ValueOperator(inputs, in_keys=[*keys, "action"], out_keys=["state_action_value"])
 
 
 # ---------------------------------------------------------------------- from a loss config section
@@ -415,14 +473,16 @@ def actor_from_config(loss_cfg: Mapping, env, return_log_prob: bool = False):
     return actor.to(env.device), normalizer
 
 
-def critic_from_config(section: Mapping, env, normalizer: ObservationNormalizer | None = None) -> LeanModule:
+def critic_from_config(section: Mapping, env, normalizer: ObservationNormalizer | None = None,
+                       critic_input: str = "observation") -> LeanModule:
     """:func:`make_critic` from a ``loss.critic`` section, sharing the actor's normaliser."""
-    return make_critic(env, **network_kwargs(section), normalizer=normalizer).to(env.device)
+    return make_critic(env, **network_kwargs(section), normalizer=normalizer,
+                       critic_input=critic_input).to(env.device)
 
 
-def qvalue_from_config(section: Mapping, env) -> ValueOperator:
+def qvalue_from_config(section: Mapping, env, critic_input: str = "observation") -> ValueOperator:
     """:func:`make_qvalue` from a ``loss.qvalue`` section."""
-    return make_qvalue(env, **network_kwargs(section)).to(env.device)
+    return make_qvalue(env, **network_kwargs(section), critic_input=critic_input).to(env.device)
 
 
 class OpenLoopActor(TensorDictModuleBase):

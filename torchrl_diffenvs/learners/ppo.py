@@ -35,7 +35,7 @@ from .. import checks
 from .._compat import collector_carrier_state, load_collector_carrier
 from ..collectors import EpisodeReturnTracker
 from ..distributed import SINGLE_PROCESS, World
-from ..modules import ObservationNormalizer, actor_from_config, critic_from_config, env_dims
+from ..modules import CRITIC_INPUTS, ObservationNormalizer, actor_from_config, critic_from_config, env_dims
 from ..objectives import GradientGuard
 from .base import Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
@@ -73,6 +73,8 @@ class PPOConfig(LearnerConfig):
     value_normalization: bool = checked(False, checks.boolean)
     max_grad_norm: float | None = checked(1.0, checks.optional_positive)  # clip the global gradient norm
     obs_norm: bool = checked(False, checks.boolean)  # running observation normalisation (from_config)
+    # observation | state: an asymmetric critic that also reads the physical state and parameters (from_config)
+    critic_input: str = checked("observation", checks.one_of(CRITIC_INPUTS))
 
     @classmethod
     def relation_problems(cls, values, where: str = "") -> list[str]:
@@ -145,7 +147,7 @@ class PPOLearner(Learner):
     @classmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> PPOLearner:
         actor, normalizer = actor_from_config(loss_cfg, env, return_log_prob=True)
-        critic = critic_from_config(loss_cfg.critic, env, normalizer)
+        critic = critic_from_config(loss_cfg.critic, env, normalizer, loss_cfg.get("critic_input", "observation"))
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
         return cls(env, actor, critic, PPOConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,
                    world=world)

@@ -29,16 +29,12 @@ from .. import checks
 from .._compat import collector_carrier_state, load_collector_carrier
 from ..collectors import EpisodeReturnTracker
 from ..distributed import SINGLE_PROCESS, World
-from ..modules import actor_from_config, qvalue_from_config
+from ..modules import CRITIC_INPUTS, actor_from_config, qvalue_from_config
 from ..objectives import GradientGuard
 from .base import Learner, LearnerConfig, checked
 
 __all__ = ["SACConfig", "SACLearner"]
 
-# what SACLoss reads; the rest of a transition (physical state, params) stays out of the buffer
-_BUFFER_KEYS = (
-    "observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "terminated"),
-)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,6 +54,8 @@ class SACConfig(LearnerConfig):
     loss_function: str = checked("l2", checks.one_of(("l1", "l2", "smooth_l1")))
     max_grad_norm: float | None = checked(None, checks.optional_positive)  # clip each network's gradient norm
     save_replay_buffer: bool = checked(True, checks.boolean)  # checkpoints hold the buffer (exact resume)
+    # observation | state: Q-networks that also read the physical state and parameters (from_config)
+    critic_input: str = checked("observation", checks.one_of(CRITIC_INPUTS))
 
     @classmethod
     def relation_problems(cls, values, where: str = "") -> list[str]:
@@ -102,6 +100,10 @@ class SACLearner(Learner):
         self.alpha_optim = torch.optim.Adam([self.loss.log_alpha], lr=c.alpha_lr)
         self.actor_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
         self.qvalue_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
+        # what SACLoss reads (the Q-networks' inputs, now and next); the rest of a transition stays out
+        observed = [key for key in qvalue.in_keys if key != "action"]
+        self.buffer_keys = [*observed, "action", *(("next", *(k if isinstance(k, tuple) else (k,))) for k in observed),
+                            ("next", "reward"), ("next", "done"), ("next", "terminated")]
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(c.buffer_size, device=env.device), batch_size=c.batch_size)
         self.updates_per_iteration = max(1, round(c.utd_ratio * self.env_steps_per_iteration))
         self.collector = Collector(
@@ -118,7 +120,7 @@ class SACLearner(Learner):
         if loss_cfg.get("obs_norm"):
             raise ValueError("loss=sac does not support obs_norm (the replay buffer would mix statistics)")
         actor, _ = actor_from_config(loss_cfg, env)
-        qvalue = qvalue_from_config(loss_cfg.qvalue, env)
+        qvalue = qvalue_from_config(loss_cfg.qvalue, env, loss_cfg.get("critic_input", "observation"))
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "qvalue", "obs_norm")}
         return cls(env, actor, qvalue, SACConfig.from_mapping(settings), total_env_steps, world=world)
 
@@ -131,7 +133,7 @@ class SACLearner(Learner):
         # 1. collect into the replay buffer
         data = next(self._batches)  # [num_envs, rollout_len]
         finished, _ = self.tracker.update(data)
-        self.buffer.extend(data.reshape(-1).select(*_BUFFER_KEYS))
+        self.buffer.extend(data.reshape(-1).select(*self.buffer_keys))
         self.frames += data.numel() * self.world.size  # all ranks' env steps
         metrics = {"reward": data.get(("next", "reward")).mean().item()}
         if finished:

@@ -25,7 +25,7 @@ import torch
 from .. import checks
 from ..collectors import DiffWindowCollector
 from ..distributed import SINGLE_PROCESS, World
-from ..modules import ObservationNormalizer, actor_from_config, critic_from_config
+from ..modules import CRITIC_INPUTS, ObservationNormalizer, actor_from_config, critic_from_config
 from ..objectives import GradientGuard, SHACLoss
 from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
@@ -54,6 +54,8 @@ class SHACConfig(LearnerConfig):
     max_grad_norm: float | None = checked(1.0, checks.optional_positive)  # clip both gradient norms
     skip_above: float | None = checked(1e6, checks.optional_positive)  # skip steps with a larger norm
     obs_norm: bool = checked(True, checks.boolean)  # running observation normalisation (from_config)
+    # observation | state: an asymmetric critic that also reads the physical state and parameters (from_config)
+    critic_input: str = checked("observation", checks.one_of(CRITIC_INPUTS))
 
 
 class SHACLearner(Learner):
@@ -101,7 +103,7 @@ class SHACLearner(Learner):
     @classmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> SHACLearner:
         actor, normalizer = actor_from_config(loss_cfg, env)
-        critic = critic_from_config(loss_cfg.critic, env, normalizer)
+        critic = critic_from_config(loss_cfg.critic, env, normalizer, loss_cfg.get("critic_input", "observation"))
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
         return cls(env, actor, critic, SHACConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,
                    world=world)

@@ -16,7 +16,7 @@ from ..checks import is_int as _is_int
 from ..checks import is_number
 from ..envs import env_config, list_envs, make_env
 from ..learners import LEARNERS
-from ..modules import ACTIVATIONS, DISTRIBUTIONS, NETWORK_INITS
+from ..modules import ACTIVATIONS, DISTRIBUTIONS, NETWORK_INITS, privileged_inputs
 
 __all__ = [
     "ConfigError",
@@ -258,6 +258,11 @@ def validate_config(cfg: DictConfig) -> None:
         else:
             if env.max_episode_steps is None and cfg.eval.get("max_steps") is None:
                 problems.append(f"env {env_name!r} never truncates episodes: set eval.max_steps")
+            if OmegaConf.select(cfg, "loss.critic_input", default="observation") == "state":
+                try:
+                    privileged_inputs(env)
+                except ValueError as err:
+                    problems.append(f"loss.critic_input=state: {err}")
 
     if problems:
         lines = "\n".join(f"  - {p}" for p in problems)

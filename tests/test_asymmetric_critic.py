@@ -1,0 +1,130 @@
+"""Asymmetric (privileged) critics: ``loss.critic_input=state`` for shac, ppo and sac, and the
+partially observed pendulum (``observe_velocity=False``) that shows what they are for."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from torchrl.envs import PendulumEnv as TorchRLPendulumEnv
+
+from torchrl_diffenvs import make_env
+from torchrl_diffenvs.learners import make_learner
+from torchrl_diffenvs.modules import make_critic, make_qvalue, privileged_inputs
+from torchrl_diffenvs.training import ConfigError, validate_config
+
+from test_train import CONFIGS, make_cfg
+
+
+# ---------------------------------------------------------------------- the partially observed pendulum
+def test_pendulum_without_velocity_observes_the_angle_only():
+    full = make_env("pendulum", num_envs=5, seed=3, dtype=torch.float64)
+    partial = make_env("pendulum", num_envs=5, seed=3, dtype=torch.float64, observe_velocity=False)
+    assert (full.observation_dim, partial.observation_dim) == (3, 2)
+    action = torch.full((5, 4, 1), 0.3, dtype=torch.float64)
+    a, b = full.reset(), partial.reset()
+    for t in range(4):
+        a = full.step(a.set("action", action[:, t]))["next"]
+        b = partial.step(b.set("action", action[:, t]))["next"]
+        torch.testing.assert_close(b["observation"], a["observation"][:, :2], rtol=0, atol=0)
+        torch.testing.assert_close(b["state", "thd"], a["state", "thd"], rtol=0, atol=0)
+    th = b["state", "th"]
+    torch.testing.assert_close(b["observation"], torch.stack([th.cos(), th.sin()], -1))
+    with pytest.raises(ValueError, match="observe_velocity must be true or false"):
+        make_env("pendulum", num_envs=2, observe_velocity="no")
+
+
+def test_partial_pendulum_step_gradcheck():
+    env = make_env("pendulum", num_envs=3, seed=0, dtype=torch.float64, observe_velocity=False)
+    start = env.reset()
+
+    def step(action, thd):
+        td = start.clone()
+        td.set(("state", "thd"), thd)
+        td.set("action", action)
+        out = env.step(td)["next"]
+        return out["observation"], out["reward"]
+
+    action = torch.tensor([[0.2], [-0.5], [0.9]], dtype=torch.float64, requires_grad=True)
+    thd = start["state", "thd"].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(step, (action, thd))
+
+
+# ---------------------------------------------------------------------- the networks
+def test_privileged_critic_reads_observation_state_and_params_in_spec_order():
+    env = make_env("pendulum", num_envs=4, seed=1, dtype=torch.float64, observe_velocity=False)
+    keys = [key for key, _ in privileged_inputs(env)]
+    assert keys == [("state", "th"), ("state", "thd"), ("params", "g"), ("params", "mass"), ("params", "length"),
+                    ("params", "max_torque"), ("params", "dt")]
+    torch.manual_seed(0)
+    critic = make_critic(env, hidden=(8,), critic_input="state")
+    assert critic.in_keys == ["observation", *keys]
+    td = env.reset()
+    by_hand = torch.cat([td["observation"]] + [td[key].unsqueeze(-1) for key in keys], -1)  # 2 + 7 inputs
+    assert by_hand.shape == (4, 9)
+    torch.testing.assert_close(critic(td.clone())["state_value"], critic.module.net(by_hand))
+    # the value sees the velocity the observation hides
+    faster = td.clone()
+    faster.set(("state", "thd"), td["state", "thd"] + 1.0)
+    assert not torch.allclose(critic(faster)["state_value"], critic(td.clone())["state_value"])
+
+
+def test_privileged_inputs_flatten_multi_dimensional_entries():
+    env = make_env("HalfCheetah-v5", num_envs=2, seed=0)
+    sizes = dict(privileged_inputs(env))
+    assert sizes[("state", "qpos")] == 9 and sizes[("state", "qvel")] == 9
+    inertia_shape = env.observation_spec["params", "body_inertia"].shape[1:]  # per body, a 3 x 3 matrix
+    assert len(inertia_shape) == 3 and sizes[("params", "body_inertia")] == math.prod(inertia_shape)
+    qvalue = make_qvalue(env, hidden=(8,), critic_input="state")
+    td = env.reset()
+    td.set("action", torch.zeros(2, env.action_dim))
+    assert qvalue(td)["state_action_value"].shape == (2, 1)
+    assert qvalue.module.net[0].in_features == env.observation_dim + sum(sizes.values()) + env.action_dim
+
+
+def test_an_env_without_state_entries_is_refused_with_the_fix():
+    with pytest.raises(ValueError, match=r"no \('state', \.\.\.\) entries.*critic_input='observation'"):
+        privileged_inputs(TorchRLPendulumEnv())
+
+
+# ---------------------------------------------------------------------- the learners
+def loss_section(name: str, **settings):
+    cfg = OmegaConf.load(CONFIGS / "loss" / f"{name}.yaml").loss
+    for network in ("actor", "critic", "qvalue"):
+        if network in cfg:
+            cfg[network].hidden = [16]
+    return OmegaConf.merge(cfg, settings)
+
+
+SMALL = {
+    "shac": {"horizon": 4},
+    "ppo": {"rollout_len": 4, "minibatch_size": 16, "epochs": 1},
+    "sac": {"rollout_len": 2, "init_random_frames": 0, "batch_size": 8, "buffer_size": 64},
+}
+
+
+@pytest.mark.parametrize("loss", sorted(SMALL))
+def test_learners_train_a_privileged_critic_on_the_partial_pendulum(loss):
+    env = make_env("pendulum", num_envs=8, seed=0, observe_velocity=False)
+    learner = make_learner(loss_section(loss, critic_input="state", **SMALL[loss]), env, 10_000)
+    critic = learner.loss.qvalue_network if loss == "sac" else learner.loss.critic_network
+    assert ("state", "thd") in critic.in_keys and ("params", "g") in critic.in_keys
+    assert "observation" in learner.actor.in_keys and ("state", "thd") not in learner.actor.in_keys
+    # SACLoss trains its own (functional) copies of the Q-networks' parameters
+    params = learner.qvalue_params if loss == "sac" else list(critic.parameters())
+    before = [p.detach().clone() for p in params]
+    for _ in range(2):
+        metrics = learner.train_iteration()
+    assert all(torch.isfinite(torch.tensor(v)) for v in metrics.values())
+    assert any(not torch.equal(a, b) for a, b in zip(before, params))  # the critic learned
+    if loss == "sac":
+        assert ("next", "state", "thd") in learner.buffer.sample(4).keys(True, True)
+
+
+def test_config_checks_critic_input():
+    cfg = make_cfg("env=pendulum", "loss=ppo", "loss.critic_input=privileged")
+    with pytest.raises(ConfigError, match=r"loss.critic_input='privileged'.*observation.*state"):
+        validate_config(cfg)
+    validate_config(make_cfg("env=pendulum", "loss=sac", "loss.critic_input=state",
+                             "env.options.observe_velocity=false"))
