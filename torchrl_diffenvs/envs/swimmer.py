@@ -5,7 +5,8 @@ from .base import DiffEnv
 from .registry import register_env
 
 
-@register_env(drawer="torchrl_diffenvs.rendering.tasks:SWIMMER", options={"num_urchins": 5, "urchin_clearance": 0.25})
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:SWIMMER", options={"num_urchins": 5, "urchin_clearance": 0.25,
+                                                                             "observe_urchins": True})
 class SwimmerEnv(DiffEnv):
     """Steer a point mass to the goal around ``num_urchins`` urchins.
 
@@ -15,7 +16,9 @@ class SwimmerEnv(DiffEnv):
     zero on an urchin, there is no separate collision penalty and no termination.
     Start: ``p, goal, u_k ~ U[-1, 1]^2``, ``v = 0``. Urchins closer than ``urchin_clearance`` to
     the start or the goal are resampled (default 0.25; ``0`` gives Ivy Gym's original sampling,
-    where about 14% of episodes start or end on an urchin).
+    where about 14% of episodes start or end on an urchin). ``observe_urchins=False`` hides the
+    urchins from the observation (``[p, v, goal]``, a partial observation; they stay in the state,
+    which a privileged critic, ``loss.critic_input=state``, can read).
     """
 
     name = "swimmer"
@@ -23,11 +26,15 @@ class SwimmerEnv(DiffEnv):
     default_params = {"max_accel": 1.0, "urchin_sharpness": 30.0, "dt": 0.05}
     MAX_RESAMPLES = 1000
 
-    def __init__(self, num_envs=1, *, num_urchins: int = 5, urchin_clearance: float = 0.25, **kwargs):
+    def __init__(self, num_envs=1, *, num_urchins: int = 5, urchin_clearance: float = 0.25,
+                 observe_urchins: bool = True, **kwargs):
         if isinstance(num_urchins, bool) or not isinstance(num_urchins, int) or num_urchins < 0:
             raise ValueError(f"swimmer: num_urchins must be an integer >= 0, got {num_urchins!r}")
         if not 0.0 <= urchin_clearance < 1.0:
             raise ValueError(f"swimmer: urchin_clearance must lie in [0, 1), got {urchin_clearance!r}")
+        if not isinstance(observe_urchins, bool):
+            raise ValueError(f"swimmer: observe_urchins must be true or false, got {observe_urchins!r}")
+        self.observe_urchins = observe_urchins
         self.num_urchins = num_urchins
         self.urchin_clearance = urchin_clearance
         super().__init__(num_envs, **kwargs)
@@ -56,4 +63,5 @@ class SwimmerEnv(DiffEnv):
         return {"pos": pos, "vel": vel, "goal": goal, "urchins": urchins}, reward, None
 
     def observation(self, state, params):
-        return torch.cat([state["urchins"].flatten(-2), state["pos"], state["vel"], state["goal"]], dim=-1)
+        seen = [state["urchins"].flatten(-2)] if self.observe_urchins else []
+        return torch.cat([*seen, state["pos"], state["vel"], state["goal"]], dim=-1)
