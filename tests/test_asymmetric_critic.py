@@ -35,6 +35,20 @@ def test_pendulum_without_velocity_observes_the_angle_only():
         make_env("pendulum", num_envs=2, observe_velocity="no")
 
 
+def test_swimmer_without_urchins_observes_position_velocity_and_goal():
+    full = make_env("swimmer", num_envs=4, seed=2, dtype=torch.float64)
+    partial = make_env("swimmer", num_envs=4, seed=2, dtype=torch.float64, observe_urchins=False)
+    assert (full.observation_dim, partial.observation_dim) == (16, 6)
+    a, b = full.reset(), partial.reset()
+    for _ in range(3):
+        a = full.step(a.set("action", torch.full((4, 2), 0.5, dtype=torch.float64)))["next"]
+        b = partial.step(b.set("action", torch.full((4, 2), 0.5, dtype=torch.float64)))["next"]
+        torch.testing.assert_close(b["observation"], a["observation"][:, 10:], rtol=0, atol=0)
+        torch.testing.assert_close(b["reward"], a["reward"], rtol=0, atol=0)  # the urchins still sting
+    with pytest.raises(ValueError, match="observe_urchins must be true or false"):
+        make_env("swimmer", num_envs=2, observe_urchins=1)
+
+
 def test_partial_pendulum_step_gradcheck():
     env = make_env("pendulum", num_envs=3, seed=0, dtype=torch.float64, observe_velocity=False)
     start = env.reset()
