@@ -71,7 +71,9 @@ class SACLearner(Learner):
     Args:
         env: the batched training env (gradients through it are not used).
         actor: a stochastic policy writing ``"action"`` (``make_actor(env)``).
-        qvalue: ``Q(observation, action)`` writing ``"state_action_value"`` (:func:`~torchrl_diffenvs.modules.make_qvalue`).
+        qvalue: ``Q(observation, action)`` writing ``"state_action_value"``, or with
+            ``critic_input="state"`` also reading the state and parameters
+            (:func:`~torchrl_diffenvs.modules.make_qvalue`); the replay buffer keeps what it reads.
         config: :class:`SACConfig`.
         total_env_steps: the training budget (SAC's learning rates are constant).
         world: the ranks training together (:mod:`torchrl_diffenvs.distributed`); ``env`` is this
