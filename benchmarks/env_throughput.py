@@ -15,7 +15,13 @@ For every registered task and N in {1, 64, 1024, 4096, 16384}, timed interleaved
 * for the Gymnasium ids: gymnasium's ``SyncVectorEnv`` of the same task and, for CartPole-v1,
   gymnasium's own numpy-vectorised CartPole (``make_vec(vectorization_mode=
   "vector_entry_point")``), stepping with ``action_space.sample()``;
-* per N, TorchRL's own ``PendulumEnv`` (batch ``[N]``) rollout, for reference.
+* per N, TorchRL's own ``PendulumEnv`` (batch ``[N]``) rollout, for reference;
+* with a policy (``policy=true``): ``ours + policy`` is ``env.rollout(T, actor)`` with
+  :func:`~torchrl_diffenvs.modules.make_actor`'s default actor (64-64 MLP, sampled tanh-normal
+  actions) and ``raw + policy`` a plain torch loop calling the same network on tensors, sampling
+  the same way, stepping the same physics and stacking the observations and rewards: what the
+  policy-call overhead and the output writing of a rollout cost (the speed issue's target is
+  ``ours + policy`` >= 0.5x ``raw + policy`` at N = 4096).
 
 Unit: env-steps/s = batched steps/s x N, from CPU time (see benchmarks/_common.py); wall-clock
 rates are in the JSON. ``T`` is the same for ours / EnvBase / raw (1000 steps, fewer at large N
@@ -25,6 +31,7 @@ PendulumEnv run as many steps as fit in about a quarter of a second.
     python benchmarks/env_throughput.py            # full run, several minutes
     python benchmarks/env_throughput.py quick=true    # smoke run, seconds
     python benchmarks/env_throughput.py tasks=[pendulum,CartPole-v1] sizes=[64,1024] compile=true gym=false
+    python benchmarks/env_throughput.py sizes=[4096] policy=true gym=false
 """
 from __future__ import annotations
 
@@ -56,6 +63,27 @@ def raw_loop(env, steps: int):
         state, reward, terminated = env.transition(state, action, params)
         observation = env.observation(state, params)
     return observation, reward
+
+
+def raw_policy_loop(env, actor, steps: int):
+    """``raw_loop`` with the actor's network on plain tensors choosing the actions (sampled as
+    ``TanhNormal`` does), observations and rewards stacked along time."""
+    import torch
+
+    network = actor.module[0].module  # observation -> (loc, scale)
+    low, high = env.action_low, env.action_high
+    params = dict(env.params.items())
+    state = env.initial_state(env.params, env.num_envs)
+    observation = env.observation(state, params)
+    observations, rewards = [], []
+    for _ in range(steps):
+        loc, scale = network(observation)
+        action = torch.tanh(loc + torch.randn_like(loc) * scale) * (high - low) / 2 + (high + low) / 2
+        state, reward, terminated = env.transition(state, action, params)
+        observation = env.observation(state, params)
+        observations.append(observation)
+        rewards.append(reward)
+    return torch.stack(observations, 1), torch.stack(rewards, 1)
 
 
 def raw_loop_with_resets(env, steps: int):
@@ -117,6 +145,7 @@ class EnvThroughputSettings(C.BenchmarkSettings):
     sizes: list[int] | None = None  # batch sizes N (default 1 64 1024 4096 16384)
     compile: bool = False  # also time compile_physics (compiles per task and N)
     gym: bool = True  # false: skip gymnasium and TorchRL's PendulumEnv
+    policy: bool = False  # also time rollouts with make_actor's actor against a raw loop with the same network
 
 
 def main(argv=None) -> dict:
@@ -128,8 +157,11 @@ def main(argv=None) -> dict:
     from torchrl.envs import EnvBase
     from torchrl.envs import PendulumEnv as TorchRLPendulum
 
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
     from torchrl_diffenvs import list_envs, make_env
     from torchrl_diffenvs.envs.fast_rollout import compile_physics
+    from torchrl_diffenvs.modules import make_actor
 
     quick = args.quick
     tasks = args.tasks or (["pendulum", "Pendulum-v1", "CartPole-v1"] if quick else list_envs())
@@ -162,6 +194,12 @@ def main(argv=None) -> dict:
             }
             if task == "pendulum":
                 candidates["raw by hand"] = (lambda: raw_pendulum_by_hand(n, steps), steps)
+            if args.policy:
+                torch.manual_seed(0)
+                actor = make_actor(env)
+                candidates["ours + policy"] = (
+                    lambda env=env, actor=actor: env.rollout(steps, actor, break_when_any_done=False), steps)
+                candidates["raw + policy"] = (lambda env=env, actor=actor: raw_policy_loop(env, actor, steps), steps)
             compile_seconds = None
             if args.compile:
                 cenv = compile_physics(make_env(task, num_envs=n, seed=0), steps_per_chunk=8)
@@ -186,7 +224,7 @@ def main(argv=None) -> dict:
                     candidates[label] = (lambda vec=vec, k=k: gym_loop(vec, k), k)
             if task in ("pendulum", "Pendulum-v1"):
                 candidates.update(reference)
-            with torch.no_grad():
+            with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
                 timings = C.interleaved({name: fn for name, (fn, _) in candidates.items()}, rounds)
             for vec in gym_envs:
                 vec.close()
@@ -208,6 +246,9 @@ def main(argv=None) -> dict:
                 f"ours / {other}": C.median_ratio(wall_rates["ours"], wall_rates[other])
                 for other in wall_rates if other != "ours"
             }
+            if args.policy:
+                row["ratios_cpu"]["ours + policy / raw + policy"] = C.median_ratio(rates["ours + policy"],
+                                                                                   rates["raw + policy"])
             results.append(row)
             print(f"# {task:>26s} N={n:<6d} " + "  ".join(
                 f"{name}={C.fmt_rate(c['env_steps_per_s_cpu']['median'])}" for name, c in row["candidates"].items()))
@@ -234,6 +275,12 @@ def main(argv=None) -> dict:
         C.print_table(["task", "N", "compile s", "ours compiled / ours"],
                       [[r["task"], r["N"], f"{r['compile_seconds']:.1f}",
                         C.fmt_ratio(1 / r["ratios_cpu"]["ours / ours compiled"])] for r in results])
+    if args.policy:
+        print("\n## with a policy: ours + policy / raw + policy (CPU time)")
+        C.print_table(["task", "N", "ours + policy", "raw + policy", "ratio"],
+                      [[r["task"], r["N"], C.fmt_rate(r["candidates"]["ours + policy"]["env_steps_per_s_cpu"]["median"]),
+                        C.fmt_rate(r["candidates"]["raw + policy"]["env_steps_per_s_cpu"]["median"]),
+                        C.fmt_ratio(r["ratios_cpu"]["ours + policy / raw + policy"])] for r in results])
     for row in results:
         for c in row["candidates"].values():
             c.pop("cpu_rates")

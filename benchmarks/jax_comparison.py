@@ -15,6 +15,8 @@ BPTT (Pendulum-v1): a window of ``H`` steps from fixed states with a 64-64 tanh 
 ``-mean(reward)``, gradient w.r.t. the policy's parameters:
 
 * ``ours fwd+bwd``: ``env.rollout(H, policy)`` then ``backward`` (our BPTT window);
+* ``ours compiled`` (``compile=true``): the same after ``compile_physics(env)`` (8-step chunks of
+  policy + physics, forward and backward compiled);
 * ``JAX value_and_grad``: ``jit(value_and_grad(loss))`` with the loss a ``scan`` over gymnax's
   Pendulum-v1 ``step_env`` and the same MLP in ``jnp``.
 
@@ -105,13 +107,15 @@ def torch_mlp(in_dim: int, out_dim: int, hidden, dtype):
     return nn.Sequential(*layers)
 
 
-def ours_bptt(n: int, h: int, hidden):
+def ours_bptt(n: int, h: int, hidden, compiled: bool = False):
     """Our BPTT window on Pendulum-v1: rollout with the policy, then backward."""
     from tensordict.nn import TensorDictModule
 
-    from torchrl_diffenvs import make_env
+    from torchrl_diffenvs import compile_physics, make_env
 
     env = make_env("Pendulum-v1", num_envs=n, seed=0)
+    if compiled:
+        compile_physics(env)
     net = torch_mlp(env.observation_dim, env.action_dim, hidden, env.float_dtype)
     scale = float(env.action_spec.space.high.flatten()[0])
     policy = TensorDictModule(lambda obs: net(obs) * scale, in_keys=["observation"], out_keys=["action"])
@@ -279,12 +283,14 @@ def main(argv=None) -> dict:
             results.append(summarise("forward", task, n, t, fns, rounds))
             rows.append(row(results[-1]))
         bptt = {"ours fwd+bwd": ours_bptt(n, h, args.hidden)}
+        if args.compile:
+            bptt["ours compiled"] = ours_bptt(n, h, args.hidden, compiled=True)
         if missing is None:
             bptt["JAX value_and_grad"] = jax_bptt(n, h, args.hidden)
         results.append(summarise("BPTT", "Pendulum-v1", n, h, bptt, rounds))
         rows.append(row(results[-1]))
     headers = ["kind", "task", "N", "T", "ours", "ours compiled", "gymnax / JAX", "raw torch", "raw JAX",
-               "ours / gymnax or JAX"]
+               "ours / gymnax or JAX", "compiled / gymnax or JAX", "compiled / ours"]
     table = C.print_table(headers, rows)
     payload = {"benchmark": "jax_comparison", "info": info, "results": results, "table": table,
                "jax_skipped": missing}
@@ -302,6 +308,10 @@ def summarise(kind: str, task: str, n: int, t: int, fns: dict, rounds: int) -> d
     ours = "ours" if "ours" in times else "ours fwd+bwd"
     ratio = None if reference is None else C.median_ratio(times[reference]["cpu"], times[ours]["cpu"])
     result = {"kind": kind, "task": task, "N": n, "T": t, "candidates": candidates, f"{ours} / {reference}": ratio}
+    if "ours compiled" in times:
+        result["ours compiled / ours"] = C.median_ratio(times[ours]["cpu"], times["ours compiled"]["cpu"])
+        result["ours compiled / reference"] = (None if reference is None else
+                                               C.median_ratio(times[reference]["cpu"], times["ours compiled"]["cpu"]))
     print(f"# {kind} {task} N={n}: " + ", ".join(
         f"{k} {C.fmt_rate(v['env_steps_per_s_cpu']['median'])}" for k, v in candidates.items()), flush=True)
     return result
@@ -316,10 +326,11 @@ def row(result: dict) -> list:
                 return C.fmt_rate(c[name]["env_steps_per_s_cpu"]["median"])
         return "-"
 
-    ratio = next((v for k, v in result.items() if " / " in k), None)
+    ratio = next((v for k, v in result.items() if " / " in k and not k.startswith("ours compiled")), None)
     return [result["kind"], result["task"], result["N"], result["T"], rate("ours", "ours fwd+bwd"),
             rate("ours compiled"), rate("gymnax", "JAX value_and_grad"), rate("raw torch"), rate("raw JAX"),
-            C.fmt_ratio(ratio)]
+            C.fmt_ratio(ratio), C.fmt_ratio(result.get("ours compiled / reference")),
+            C.fmt_ratio(result.get("ours compiled / ours"))]
 
 
 if __name__ == "__main__":

@@ -88,3 +88,9 @@ def test_collector_carrier_holds_the_env_state_to_resume_from():
     _compat.load_collector_carrier(collector, state)
     assert torch.equal(collector._carrier["state", "th"], torch.tensor([0.25, -0.5]))
     collector.shutdown(close_env=False)
+
+
+def test_compile_errors_cover_backend_failures():
+    """The compiled rollout chunks fall back to eager on these (tests/test_compiled_rollout.py)."""
+    assert issubclass(torch._dynamo.exc.BackendCompilerFailed, _compat.COMPILE_ERRORS)
+    assert issubclass(torch._dynamo.exc.Unsupported, _compat.COMPILE_ERRORS)

@@ -8,6 +8,7 @@ after upgrading TorchRL or tensordict).
 from __future__ import annotations
 
 import torch
+import torch._dynamo.exc
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn.probabilistic import interaction_type as _interaction_type
 from torch.distributions.utils import _standard_normal
@@ -97,3 +98,8 @@ def load_collector_carrier(collector, state: dict | None) -> None:
     carrier = getattr(collector, "_carrier", None)
     if state is not None and isinstance(carrier, TensorDictBase):
         carrier.update(TensorDict(state["data"], batch_size=state["batch_size"], device=carrier.device))
+
+
+# torch.compile's failures (no C++ compiler for inductor, an operation dynamo cannot trace, a
+# backend error): the compiled rollout chunks fall back to eager on these, and only these.
+COMPILE_ERRORS: tuple[type[BaseException], ...] = (torch._dynamo.exc.TorchDynamoException,)

@@ -30,16 +30,20 @@ What the lean loop reproduces, step by step (``EnvBase._rollout_nonstop`` /
 """
 from __future__ import annotations
 
+import logging
 import operator
+import time
 import weakref
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import torch
 from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from .._compat import (
+    COMPILE_ERRORS,
     ENVBASE_STEP_METHODS,
     has_dynamic_specs,
     make_compatible_policy,
@@ -48,7 +52,12 @@ from .._compat import (
 )
 
 
-__all__ = ["fast_rollout", "fast_rollout_unsupported", "compile_physics", "eager_physics", "FAST_ROLLOUT_KWARGS"]
+__all__ = [
+    "fast_rollout", "fast_rollout_unsupported", "compile_physics", "eager_physics", "compile_report",
+    "FAST_ROLLOUT_KWARGS",
+]
+
+_logger = logging.getLogger(__name__)
 
 # Entries that the env owns at the root of a step TensorDict (everything else at the root, such as
 # "action" or a policy's "loc"/"scale", belongs to the policy or to the user).
@@ -212,6 +221,64 @@ def _physics_steps(env: EnvBase, plain_truncation: bool, state: dict, params: di
     return out
 
 
+def _policy_chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_params: bool, root: dict,
+                        extras: dict, fresh: dict | None, all_false: torch.Tensor) -> list[tuple]:
+    """``K`` steps of policy + physics + auto-reset on plain tensors (``torch.compile`` traces it).
+
+    What the lean loop does step by step, with the resets inside: where some env is done after
+    step ``j < K - 1``, its entries are replaced by the ``c``-th of the ``K - 1`` full-batch start
+    states drawn ahead in ``fresh`` (``c`` counts the steps with a reset so far, so the draws are
+    used in the order the eager loop would draw them), the other envs keep theirs (the graph is
+    cut for the reset envs only), and the entries that are not the env's are zeroed for them.
+
+    Args:
+        root: the env entries at the chunk's first step but the done flags (all False there).
+        extras: the other root entries (the previous step's policy outputs).
+        fresh: ``{"observation": [K-1, N, ...], "state": {...}}`` (plus ``"params"``, env.params,
+            when ``merge_params``), or ``None`` for ``K = 1``.
+
+    Returns ``(policy outputs, "next" entries, merged root or None)`` per step; the merged root
+    (observation, state, episode step, and parameters when ``merge_params``) is that of the next
+    step when some env was done, computed at every step but the last (the loop uses it only then).
+    """
+    steps = []
+    chunk = 1 if fresh is None else fresh["observation"].shape[0] + 1
+    resets = torch.zeros(1, dtype=torch.int64, device=all_false.device)  # resets so far in this chunk
+    zero = torch.zeros((), dtype=root["episode_step"].dtype, device=all_false.device)
+    flags = {key: all_false.unsqueeze(-1) for key in _FLAG_KEYS}  # the TorchRL layout: [N, 1]
+    for j in range(chunk):
+        source = {**root, **flags, **extras}
+        td = policy(TensorDict(source, batch_size=all_false.shape, device=all_false.device))
+        out = {key: td.get(key) for key in td.keys() if key not in _ENV_KEYS}
+        nxt = _physics_steps(env, plain_truncation, root["state"], root["params"], root["episode_step"],
+                             [out["action"]])[0]
+        merged = None
+        if j < chunk - 1:
+            done = nxt["done"] if nxt["done"] is not None else nxt["truncated"]
+            done = all_false if done is None else done
+            keep = ~done
+
+            def merge(old, new, keep=keep):
+                return torch.where(keep.reshape(keep.shape + (1,) * (old.ndim - 1)), old, new)
+
+            def drawn(stacked):  # the start states of draw number `resets` (index_select: no .item())
+                return stacked.index_select(0, resets).squeeze(0)
+
+            merged = {"observation": merge(nxt["observation"], drawn(fresh["observation"])),
+                      "state": {key: merge(value, drawn(fresh["state"][key])) for key, value in nxt["state"].items()},
+                      "episode_step": merge(nxt["episode_step"], zero)}
+            if merge_params:
+                merged["params"] = {key: merge(value, fresh["params"][key]) for key, value in root["params"].items()}
+            # a reset of every env leaves the other entries as they are (TorchRL replaces the env's only)
+            keep_extras = keep | done.all()
+            extras = {key: merge(value, torch.zeros((), dtype=value.dtype, device=value.device), keep=keep_extras)
+                      for key, value in out.items()}
+            resets = resets + done.any().to(resets.dtype)
+            root = {**merged, "params": merged.get("params", root["params"])}
+        steps.append((out, nxt, merged))
+    return steps
+
+
 class _Physics:
     """Runs :func:`_physics_steps` eagerly, or through the functions of :func:`compile_physics`."""
 
@@ -222,23 +289,25 @@ class _Physics:
         self.compiled = env.__dict__.get("_compiled_physics")
         self.chunk = 1 if self.compiled is None else self.compiled.steps_per_chunk
 
-    def steps(self, state: dict, params: dict, episode_step: torch.Tensor, actions: list[torch.Tensor],
-              policy_step: bool = False) -> list[dict]:
+    def steps(self, state: dict, params: dict, episode_step: torch.Tensor, actions: list[torch.Tensor]) -> list[dict]:
         for action in actions:
             self.env._check_action(action)
-        if self.compiled is not None and (len(actions) == self.chunk or policy_step):
+        if self.compiled is not None and len(actions) == self.chunk:
             out = self.compiled(self.plain_truncation, state, params, episode_step, actions)
-        else:  # eager; with compiled chunks, only the last few steps of a rollout come here
+        else:  # eager: single policy steps, and the last few steps of a rollout beyond whole chunks
             out = _physics_steps(self.env, self.plain_truncation, state, params, episode_step, actions)
-        for nxt in out:
-            nxt["params"] = params
-            if nxt["terminated"] is None:
-                nxt["terminated"] = self.all_false
-            if nxt["truncated"] is None:
-                nxt["truncated"] = self.all_false
-            if nxt["done"] is None:
-                nxt["done"] = nxt["truncated"]
-        return out
+        return [self.complete(nxt, params) for nxt in out]
+
+    def complete(self, nxt: dict, params: dict) -> dict:
+        """Fills in the flags that came back as ``None`` and the ``"params"`` entry."""
+        nxt["params"] = params
+        if nxt["terminated"] is None:
+            nxt["terminated"] = self.all_false
+        if nxt["truncated"] is None:
+            nxt["truncated"] = self.all_false
+        if nxt["done"] is None:
+            nxt["done"] = nxt["truncated"]
+        return nxt
 
 
 class _CompiledPhysics:
@@ -249,9 +318,20 @@ class _CompiledPhysics:
         self.compile_kwargs = {"dynamic": False, **compile_kwargs}
         self.env_ref = weakref.ref(env)  # the env holds this object: no reference cycle
         self.functions: dict[tuple[int, bool], Callable] = {}  # (steps, plain_truncation) -> compiled
+        # policy -> {(plain_truncation, merge_params): compiled chunk of policy + physics}
+        self.policy_functions: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+        self.fallback_reason: str | None = None  # why compiled policy chunks stopped (then eager)
+        self.first_call_seconds: dict[str, float] = {}  # first call (tracing + compiling + running)
+        self.cannot_terminate = False  # learned from the first chunk: the task returns no "terminated"
+        self.fresh_cache: dict | None = None  # start states of the last draw, reused when no env can reset
+
+    def note_first_call(self, what: str, seconds: float) -> None:
+        """Records the duration of the first call of each compiled function (mostly compiling)."""
+        what = f"{what}, {'with' if torch.is_grad_enabled() else 'without'} grad"
+        self.first_call_seconds.setdefault(what, seconds)
 
     def __call__(self, plain_truncation, state, params, episode_step, actions) -> list[dict]:
-        """A full chunk, or one step (with a policy); called with ``len(actions)`` = one of them."""
+        """A full chunk of ``steps_per_chunk`` steps of random or given actions."""
         key = (len(actions), plain_truncation)
         fn = self.functions.get(key)
         if fn is None:
@@ -261,31 +341,79 @@ class _CompiledPhysics:
                 return _physics_steps(env_ref(), plain_truncation, state, params, episode_step, actions)
 
             fn = self.functions[key] = torch.compile(physics, **self.compile_kwargs)
+            started = time.perf_counter()
+            out = fn(state, params, episode_step, actions)
+            self.note_first_call(f"physics, {len(actions)} steps", time.perf_counter() - started)
+            return out
         return fn(state, params, episode_step, actions)
+
+    def policy_chunk(self, policy, plain_truncation: bool, merge_params: bool) -> Callable:
+        """The compiled :func:`_policy_chunk_steps` for ``policy`` (one per policy object)."""
+        functions = self.policy_functions.setdefault(policy, {})
+        key = (plain_truncation, merge_params)
+        fn = functions.get(key)
+        if fn is None:
+            env_ref, policy_ref = self.env_ref, weakref.ref(policy)
+
+            def chunk(root, extras, fresh, all_false):
+                return _policy_chunk_steps(env_ref(), policy_ref(), plain_truncation, merge_params, root, extras,
+                                           fresh, all_false)
+
+            fn = functions[key] = torch.compile(chunk, **self.compile_kwargs)
+        return fn
 
 
 def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) -> EnvBase:
-    """Opt-in: ``env.rollout`` runs its physics through ``torch.compile``; returns ``env``.
+    """Opt-in: ``env.rollout`` runs through ``torch.compile`` in chunks of ``K`` steps; returns ``env``.
 
-    Without a policy (random actions, or ``actions=``) the lean rollout path steps
-    ``steps_per_chunk`` steps per compiled call (the physics of ``K`` steps fused into a few
-    kernels: no per-operation overhead); with a policy, one compiled step per policy call.
-    Resets stay eager: a chunk is cut at the first step where an env is done, the reset runs
-    eagerly, and the next ``K`` steps run eagerly too before chunks resume (a task whose envs
-    reset every few steps, e.g. CartPole-v1 with many envs, thus stays eager instead of
-    computing chunks it throws away). The result is that of the eager path up to floating-point
-    rounding (fused kernels may round differently), gradients included.
+    * With a policy (a TensorDict module such as :func:`~torchrl_diffenvs.modules.make_actor`'s,
+      as BPTT, SHAC and evaluation call it): one compiled function per ``K``-step chunk covers
+      the policy forward, the physics, the reward, the done flags and the auto-resets of envs
+      whose episode ends inside the chunk; its backward is compiled too (AOTAutograd), so
+      ``DiffWindowCollector`` windows and their gradients run compiled. Resets do not cut chunks:
+      the ``K - 1`` full-batch start states that a chunk's resets may need are drawn ahead from
+      ``env.rng`` and the generator is then set as if only the resets that happened had drawn,
+      so the start states are those of the eager path.
+    * Without a policy (random actions, or ``actions=``): the physics of ``K`` steps per
+      compiled call. Resets stay eager here: a chunk is cut at the first step where an env is
+      done, the reset runs eagerly, and the next ``K`` steps run eagerly too before chunks resume.
+    * Steps beyond whole chunks (``max_steps`` not a multiple of ``K``) run eagerly: choose
+      ``K`` dividing the window length.
 
-    Compilation happens on first use and takes seconds to tens of seconds per function (one for
-    chunks, one for single steps, and again for the backward pass); it pays off for long or
-    repeated rollouts, mostly at small and medium batch sizes (see docs, Performance).
-    ``compile_kwargs`` go to ``torch.compile`` (default ``dynamic=False``). Undo with
-    :func:`eager_physics`. ``EnvBase.rollout`` and ``env.step`` are not affected.
+    The result is that of the eager path up to floating-point rounding (fused kernels may round
+    differently), gradients included, with one exception: random numbers drawn inside compiled
+    code (a stochastic policy's noise) come from inductor's own generator, seeded from torch's
+    global one, so sampled actions differ from the eager path's draws (same distribution);
+    ``torch._inductor.config.fallback_random = True`` makes them equal (tests use it).
+
+    Compiling happens at first use and takes seconds to a minute per function on a CPU (one per
+    policy object, grad mode and exploration mode, and again for the backward pass); it pays off
+    for repeated rollouts, mostly at small and medium batch sizes (README, Performance).
+    :func:`compile_report` says how long the first calls took. If ``torch.compile`` fails (no
+    C++ compiler for inductor, an operation it cannot trace), the rollout logs the reason and
+    runs eagerly from there on. ``compile_kwargs`` go to ``torch.compile`` (default
+    ``dynamic=False``). Undo with :func:`eager_physics`. ``EnvBase.rollout`` and ``env.step``
+    are not affected.
     """
     if isinstance(steps_per_chunk, bool) or not isinstance(steps_per_chunk, int) or steps_per_chunk < 1:
         raise ValueError(f"compile_physics: steps_per_chunk must be a positive integer, got {steps_per_chunk!r}")
     env.__dict__["_compiled_physics"] = _CompiledPhysics(env, steps_per_chunk, compile_kwargs)
     return env
+
+
+def compile_report(env: EnvBase) -> dict | None:
+    """What :func:`compile_physics` did on ``env`` so far; ``None`` if it is not compiled.
+
+    ``{"steps_per_chunk": K, "first_call_seconds": {function: seconds}, "fallback_reason": str
+    or None}``: the first call of each compiled function (tracing and compiling included; the
+    backward's compilation happens in the first ``backward()`` instead), and why compiled policy
+    chunks were given up, if they were.
+    """
+    compiled = env.__dict__.get("_compiled_physics")
+    if compiled is None:
+        return None
+    return {"steps_per_chunk": compiled.steps_per_chunk, "first_call_seconds": dict(compiled.first_call_seconds),
+            "fallback_reason": compiled.fallback_reason}
 
 
 def eager_physics(env: EnvBase) -> EnvBase:
@@ -387,7 +515,14 @@ class _Loop:
         nexts: list[dict] = []
         queued: list[torch.Tensor] = []  # drawn actions that a reset inside a chunk left unused
         t, finished, eager_until = 0, False, 0
+        chunked = self.policy_chunks_unsupported(extras) is None
         while not finished:
+            if chunked and max_steps - t >= self.physics.chunk:
+                result = self.policy_chunk(td0, root, extras, t, max_steps, break_when_any_done, roots, nexts)
+                if result is not None:
+                    t, finished, root, extras = result
+                    continue
+                chunked = False  # compiling failed (logged): eager from here on
             if self.policy is not None:
                 # step 0 runs on the input TensorDict itself, as in EnvBase
                 views: dict = {}
@@ -406,8 +541,7 @@ class _Loop:
                     first = actions[0]
                     td0.set("action", first.clone() if isinstance(self.action_source, _RandomActions) else first)
                 start = root
-            nxts = self.physics.steps(start["state"], start["params"], start["episode_step"], actions,
-                                      policy_step=self.policy is not None)
+            nxts = self.physics.steps(start["state"], start["params"], start["episode_step"], actions)
             for j, nxt in enumerate(nxts):
                 if self.policy is None:
                     root_t = {**root, **extras, "action": actions[j]}
@@ -450,6 +584,113 @@ class _Loop:
         if "action" not in entries:
             raise KeyError(f"{self.env.name}: the policy wrote no 'action' entry (keys: {sorted(entries)})")
         return entries
+
+    # ------------------------------------------------------------------ compiled policy chunks
+    def policy_chunks_unsupported(self, extras: dict) -> str | None:
+        """Why the policy steps cannot run in compiled chunks (:func:`compile_physics`), or ``None``."""
+        compiled = self.physics.compiled
+        if compiled is None or self.policy is None:
+            return "no compile_physics, or no policy"
+        if compiled.fallback_reason is not None:
+            return compiled.fallback_reason
+        out_keys = getattr(self.policy, "out_keys", None)
+        if not isinstance(self.policy, TensorDictModuleBase) or out_keys is None:
+            return "the policy is not a TensorDict module"
+        if any(not isinstance(key, str) or key in _ENV_KEYS for key in out_keys):
+            return f"the policy writes nested keys or the env's own entries ({out_keys})"
+        if any(not isinstance(value, torch.Tensor) for value in extras.values()):
+            return "the input tensordict holds nested entries besides the env's"
+        return None
+
+    def policy_chunk(self, td0: TensorDictBase, root: dict, extras: dict, t: int, max_steps: int,
+                     break_when_any_done: bool, roots: list, nexts: list) -> tuple | None:
+        """Runs ``K`` policy + physics steps in one compiled call and books them as the eager loop
+        would (same entries, same tensors reused between steps, same draws from ``env.rng``).
+
+        Returns ``(t, finished, root, extras)`` after the chunk, or ``None`` when compiling
+        failed: the reason is logged and kept (``compile_report(env)``), nothing was consumed and
+        the rollout goes on eagerly.
+        """
+        env, compiled = self.env, self.physics.compiled
+        merge_params = not self.params_are_env_params
+        fresh, rng_states = self.fresh_starts(root, merge_params)
+        function = compiled.policy_chunk(self.policy, self.physics.plain_truncation, merge_params)
+        # The previous step's outputs (the only extras, usually) are overwritten by the policy and
+        # not read by it: leave them out, so that every chunk has the first chunk's inputs (one compile).
+        policy_keys = set(self.policy.out_keys) - set(self.policy.in_keys)
+        extras_in = {} if set(extras) <= policy_keys else extras
+        started = time.perf_counter()
+        try:
+            steps = function(_chunk_inputs(root), extras_in, fresh, self.all_false)
+        except COMPILE_ERRORS as err:
+            if rng_states is not None:
+                env.rng.set_state(rng_states[0])
+            message = " ".join(line.strip() for line in str(err).splitlines()[:3] if line.strip())
+            compiled.fallback_reason = f"torch.compile failed ({type(err).__name__}: {message})"
+            _logger.warning("%s: compiled rollout chunks disabled, running eagerly: %s", env.name,
+                            compiled.fallback_reason)
+            return None
+        compiled.note_first_call(f"policy + physics, {len(steps)} steps", time.perf_counter() - started)
+        compiled.cannot_terminate = all(nxt["terminated"] is None for _, nxt, _ in steps)
+        env._check_action(steps[0][0]["action"])
+        if t == 0:  # EnvBase runs step 0's policy on the input tensordict itself
+            for key, value in steps[0][0].items():
+                td0.set(key, value)
+        finished, resets, nxt = False, 0, None
+        for j, (out, nxt, merged) in enumerate(steps):
+            nxt = self.physics.complete(nxt, root["params"])
+            roots.append({**root, **out})
+            nexts.append(nxt)
+            t += 1
+            any_done = bool(nxt["done"].any())
+            if t == max_steps or (break_when_any_done and any_done):
+                finished = True
+                break
+            if j < len(steps) - 1 and any_done:  # reset inside the chunk
+                resets += 1
+                root = {**merged, "params": merged.get("params", root["params"]),
+                        **{key: self.all_false for key in _FLAG_KEYS}}
+            else:
+                root = {key: nxt[key] for key in _ENV_KEYS}
+                extras = out
+        if rng_states is not None:  # as if only the resets that happened had drawn
+            env.rng.set_state(rng_states[resets])
+        if not finished and bool(nxt["done"].any()):  # done at the chunk's last step
+            root, extras = self.reset_done(nxt["done"], root, extras)
+        return t, finished, root, extras
+
+    def fresh_starts(self, root: dict, merge_params: bool) -> tuple[dict | None, list | None]:
+        """The ``K - 1`` full-batch start states a chunk may reset to, drawn ahead from ``env.rng``.
+
+        Returns them with the generator's state before each draw and after the last, so that the
+        loop can leave ``env.rng`` as if only the resets that happened had drawn; ``None`` for the
+        states when no env can reset in this chunk (a task without termination, far from its time
+        limit): the last draw is then reused without drawing.
+        """
+        env, compiled, size = self.env, self.physics.compiled, self.physics.chunk
+        if size == 1:
+            return None, None
+        limit = env.max_episode_steps
+        cannot_reset = compiled.cannot_terminate and self.physics.plain_truncation and (
+            limit is None or int(root["episode_step"].max()) + size - 1 < limit)
+        cached = compiled.fresh_cache
+        if cannot_reset and cached is not None and ("params" in cached) == merge_params:
+            return cached, None
+        states, observations, starts = [env.rng.get_state()], [], []
+        for _ in range(size - 1):
+            start = env.initial_state(env.params, self.n)
+            observations.append(env.observation(start, env.params))
+            starts.append(start)
+            states.append(env.rng.get_state())
+        fresh = {"observation": torch.stack(observations),
+                 "state": {key: torch.stack([start[key] for start in starts]) for key in starts[0]}}
+        if merge_params:
+            fresh["params"] = dict(env.params.items())
+        compiled.fresh_cache = fresh
+        if cannot_reset:
+            env.rng.set_state(states[0])
+            return fresh, None
+        return fresh, states
 
     def reset_done(self, done: torch.Tensor, root: dict, extras: dict) -> tuple[dict, dict]:
         """``maybe_reset``: fresh start states for the done envs, the graph cut there only.
@@ -625,6 +866,30 @@ def _stack_root(root_values: list[torch.Tensor], next_values: list[torch.Tensor]
     if start is not None:
         pieces.append(next_stack[:, start - 1:len(root_values) - 1])
     return torch.cat(pieces, dim=1)
+
+
+def _chunk_inputs(root: dict) -> dict:
+    """The root entries a compiled chunk takes: no done flags, and with grad on, the
+    floating-point state and observation as tensors that require grad.
+
+    A window starts from detached tensors and continues from differentiable ones; compiled code is
+    specialised on ``requires_grad``, so without this the first chunk of every window would need
+    its own compiled function. A detached input becomes a fresh leaf with the same values (its
+    gradient is computed and dropped: an ``[N, d]`` tensor per chunk).
+    """
+    # The done flags at a chunk's start are always all False (a done env has been reset), and
+    # passing them would specialise the compiled code on which of them are the same tensor.
+    root = {key: value for key, value in root.items() if key not in _FLAG_KEYS}
+    if not torch.is_grad_enabled():
+        return root
+
+    def leaf(value):
+        if value.requires_grad or not value.is_floating_point():
+            return value
+        return value.detach().requires_grad_(True)
+
+    return {**root, "observation": leaf(root["observation"]),
+            "state": {key: leaf(value) for key, value in root["state"].items()}}
 
 
 def _zero_where(reset: torch.Tensor, value):

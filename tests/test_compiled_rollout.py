@@ -1,0 +1,193 @@
+"""``compile_physics`` with a policy: compiled chunks of policy + physics + resets (and their
+backward) give the eager path's rollout, gradients and generator state.
+
+The reference is the eager lean path on the same env from the same generator states (itself
+checked bit for bit against TorchRL's ``EnvBase.rollout`` in tests/test_fast_rollout.py), in
+float64. Inductor draws random numbers with its own generator; ``fallback_random`` makes it
+draw torch's, so that a stochastic policy samples the same actions on both paths.
+"""
+import logging
+
+import pytest
+import torch
+import torch._inductor.config as inductor_config  # fallback_random: see the module docstring
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_diffenvs import compile_physics, eager_physics, make_env
+from torchrl_diffenvs.collectors import DiffWindowCollector
+from torchrl_diffenvs.envs.fast_rollout import compile_report
+from torchrl_diffenvs.modules import make_actor
+
+from test_fast_rollout import assert_same_tensordict
+
+
+@pytest.fixture(autouse=True)
+def fresh_compiler():
+    """Each test compiles from scratch (dynamo's per-function recompile limit is shared)."""
+    torch.compiler.reset()
+    with inductor_config.patch(fallback_random=True):
+        yield
+    torch.compiler.reset()
+
+
+def staggered_start(env, limit):
+    """A start whose envs reach the time limit at different steps of the first chunks."""
+    td = env.reset()
+    td.set("episode_step", (limit - 1 - torch.arange(env.num_envs) % limit).to(td["episode_step"].dtype))
+    return td
+
+
+def rollout_and_grads(env, actor, steps, start, exploration=ExplorationType.RANDOM, params_grad=False, **kwargs):
+    """One rollout from ``start`` (cloned) with torch's generator seeded; its gradients w.r.t. the
+    actor's parameters (and the start's physical parameters), and both generators' states after."""
+    torch.manual_seed(0)
+    env.set_seed(1)
+    td0 = start.clone()
+    inputs = list(actor.parameters())
+    if params_grad:
+        for key, value in td0["params"].items():
+            td0["params"].set(key, value.clone().requires_grad_(True))
+        inputs += list(td0["params"].values())
+    with set_exploration_type(exploration):
+        out = env.rollout(steps, actor, auto_reset=False, tensordict=td0, **kwargs)
+    loss = (out["next", "reward"] ** 2).sum() + out["next", "observation"].sum() + out["action"].sum()
+    grads = torch.autograd.grad(loss, inputs, allow_unused=True)
+    return out.detach(), grads, td0.exclude("next").detach(), (torch.get_rng_state(), env.rng.get_state())
+
+
+def parameters_of(actor, start):
+    return [*actor.parameters(), *start["params"].values()]
+
+
+def compare_paths(env, actor, steps, start, chunk=4, **kwargs):
+    eager = rollout_and_grads(env, actor, steps, start, **kwargs)
+    compile_physics(env, steps_per_chunk=chunk)
+    try:
+        compiled = rollout_and_grads(env, actor, steps, start, **kwargs)
+        report = compile_report(env)
+    finally:
+        eager_physics(env)
+    assert_same_tensordict(compiled[0], eager[0], exact=False)
+    for got, want, value in zip(compiled[1], eager[1], parameters_of(actor, start)):
+        # a physical parameter unused between resets has no gradient eagerly and a zero one
+        # compiled (the chunk's reset merge reads it at every step)
+        zeros = torch.zeros_like(value)
+        torch.testing.assert_close(zeros if got is None else got, zeros if want is None else want,
+                                   rtol=1e-10, atol=1e-12)
+    assert_same_tensordict(compiled[2], eager[2], exact=False)  # the input tensordict's side effects
+    assert torch.equal(compiled[3][1], eager[3][1]), "env.rng must end where the eager path leaves it"
+    assert report["fallback_reason"] is None
+    assert any(name.startswith("policy + physics") for name in report["first_call_seconds"]), report
+    return eager[0]
+
+
+def test_policy_chunks_match_eager_with_resets_inside_chunks():
+    """Truncations at different steps inside 4-step chunks (several resets per chunk), the last
+    two steps of 14 eager; values, gradients w.r.t. the policy and env.rng as eagerly."""
+    env = make_env("pendulum", num_envs=6, seed=0, max_episode_steps=5, dtype=torch.float64)
+    actor = make_actor(env, hidden=(16, 16)).double()
+    out = compare_paths(env, actor, 14, staggered_start(env, 5), break_when_any_done=False)
+    done_steps = out["next", "done"][..., 0].any(0).nonzero().flatten().tolist()
+    assert len([t for t in done_steps if t < 3]) >= 2, f"want several resets inside the first chunk: {done_steps}"
+
+
+def test_policy_chunks_match_eager_with_termination_and_parameter_gradients():
+    """A task that terminates (CartPole-v1), physical parameters with gradient (merged at resets
+    inside the chunk rather than kept), deterministic actions."""
+    env = make_env("CartPole-v1", num_envs=8, seed=0, max_episode_steps=6, dtype=torch.float64)
+    actor = make_actor(env, hidden=(16, 16)).double()
+    start = staggered_start(env, 6)
+    start["state"].apply_(lambda x: x * 8)  # far off balance: terminations within a few steps
+    out = compare_paths(env, actor, 12, start, chunk=4, params_grad=True, break_when_any_done=False,
+                        exploration=ExplorationType.DETERMINISTIC)
+    assert out["next", "terminated"].any() and out["next", "truncated"].any()
+
+
+def test_policy_chunks_match_eager_when_breaking_at_the_first_done():
+    env = make_env("pendulum", num_envs=4, seed=0, max_episode_steps=7, dtype=torch.float64)
+    actor = make_actor(env, hidden=(16, 16)).double()
+    out = compare_paths(env, actor, 12, staggered_start(env, 7), chunk=4, break_when_any_done=True)
+    assert out.shape == (4, 1)  # env 0 starts one step before its time limit
+
+
+def test_collector_windows_and_no_grad_evaluation_match_eager():
+    """Three DiffWindowCollector windows (state carried between them) and a no-grad rollout."""
+    results = []
+    for compiled in (False, True):
+        env = make_env("pendulum", num_envs=5, seed=3, max_episode_steps=6, dtype=torch.float64)
+        actor = make_actor(env, hidden=(16, 16)).double()
+        torch.manual_seed(0)
+        actor.load_state_dict(make_actor(env, hidden=(16, 16)).double().state_dict())
+        if compiled:
+            compile_physics(env, steps_per_chunk=4)
+        torch.manual_seed(0)
+        collector = DiffWindowCollector(env, actor, horizon=4, total_windows=3)
+        windows, grads = [], []
+        for window in collector:
+            grads.append(torch.autograd.grad(window["next", "reward"].sum(), list(actor.parameters())))
+            windows.append(window.detach())
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            evaluation = env.rollout(8, actor, break_when_any_done=False)
+        results.append((windows, grads, evaluation))
+        if compiled:
+            assert len(compile_report(env)["first_call_seconds"]) == 2  # with grad, and without
+    (windows_e, grads_e, eval_e), (windows_c, grads_c, eval_c) = results
+    assert any(w["next", "done"].any() for w in windows_e)
+    for got, want in zip(windows_c, windows_e):
+        assert_same_tensordict(got, want, exact=False)
+    for got, want in zip(grads_c, grads_e):
+        for g, w in zip(got, want):
+            torch.testing.assert_close(g, w, rtol=1e-10, atol=1e-12)
+    assert_same_tensordict(eval_c, eval_e, exact=False)
+
+
+def test_policy_chunk_is_one_graph():
+    """The whole chunk (policy, physics, resets) is one graph: no graph break per step."""
+    graphs = []
+
+    def counting_backend(graph_module, example_inputs):
+        graphs.append(graph_module)
+        return graph_module.forward
+
+    env = make_env("pendulum", num_envs=3, seed=0, max_episode_steps=5)
+    actor = make_actor(env, hidden=(8,))
+    compile_physics(env, steps_per_chunk=4, backend=counting_backend)
+    with set_exploration_type(ExplorationType.RANDOM):
+        env.rollout(8, actor, break_when_any_done=False)
+    assert len(graphs) == 1
+    assert compile_report(env)["fallback_reason"] is None
+
+
+def test_compile_failure_falls_back_to_eager_with_the_reason(caplog):
+    def broken_backend(graph_module, example_inputs):
+        raise RuntimeError("no compiler here")
+
+    env = make_env("pendulum", num_envs=3, seed=0, max_episode_steps=5, dtype=torch.float64)
+    actor = make_actor(env, hidden=(8,)).double()
+    start = staggered_start(env, 5)
+    eager = rollout_and_grads(env, actor, 8, start, break_when_any_done=False)
+    compile_physics(env, steps_per_chunk=4, backend=broken_backend)
+    with caplog.at_level(logging.WARNING):
+        fallback = rollout_and_grads(env, actor, 8, start, break_when_any_done=False)
+    reason = compile_report(env)["fallback_reason"]
+    assert "torch.compile failed" in reason and "no compiler here" in reason
+    assert "running eagerly" in caplog.text and "no compiler here" in caplog.text
+    assert_same_tensordict(fallback[0], eager[0])  # the eager path, bit for bit
+    assert torch.equal(fallback[3][1], eager[3][1])
+    # later rollouts go straight to eager, without trying again
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        rollout_and_grads(env, actor, 8, start, break_when_any_done=False)
+    assert caplog.text == ""
+
+
+def test_plain_callable_policies_run_eagerly_with_compile_physics():
+    env = make_env("pendulum", num_envs=3, seed=0)
+    compile_physics(env, steps_per_chunk=4)
+
+    def policy(td):
+        return td.set("action", torch.zeros(3, 1))
+
+    out = env.rollout(8, policy)
+    assert out.shape == (3, 8)
+    assert compile_report(env)["first_call_seconds"] == {}  # nothing compiled
