@@ -51,7 +51,9 @@ from torchrl_diffenvs.training import (
     save_checkpoint,
     validate_config,
 )
+from torchrl_diffenvs import compile_physics
 from torchrl_diffenvs.distributed import SINGLE_PROCESS, DistributedError, World, parameters_checksum, rank_seed
+from torchrl_diffenvs.envs.fast_rollout import compile_report
 from torchrl_diffenvs.evaluation import episode_returns, evaluate, evaluate_random, record_video
 from torchrl_diffenvs.learners import make_learner
 from torchrl_diffenvs.modules import actor_from_config
@@ -99,6 +101,32 @@ def join_world(cfg: DictConfig) -> World:
     return World.from_environment(resolve_device(cfg.device), timeout_s=float(cfg.distributed.timeout_s))
 
 
+def chunk_length(steps: int, longest: int = 8) -> int:
+    """The longest chunk of at most ``longest`` steps that divides ``steps`` (no eager remainder)."""
+    return max(k for k in range(1, longest + 1) if steps % k == 0)
+
+
+def compile_envs(learner, env, eval_env, eval_steps: int) -> None:
+    """``compile=true``: BPTT/SHAC windows and evaluation rollouts in compiled chunks."""
+    horizon = getattr(learner.config, "horizon", None)  # PPO and SAC collect through TorchRL's Collector
+    if horizon is not None:
+        compile_physics(env, steps_per_chunk=chunk_length(horizon))
+    if eval_env is not None:
+        compile_physics(eval_env, steps_per_chunk=chunk_length(eval_steps))
+    log.info("compile=true: rollouts run in compiled chunks of policy + physics "
+             f"({'training windows, ' if horizon is not None else ''}evaluations); the first of each kind compiles")
+
+
+def report_compile(env, first_iteration_s: float) -> None:
+    report = compile_report(env)
+    if report is None:
+        return
+    calls = ", ".join(f"{what} {seconds:.1f} s" for what, seconds in report["first_call_seconds"].items())
+    log.info(f"compile: first iteration {first_iteration_s:.1f} s (compiling forward and backward included); "
+             f"first calls: {calls or 'none'}" + (f"; fell back to eager: {report['fallback_reason']}"
+                                                  if report["fallback_reason"] else ""))
+
+
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -120,6 +148,8 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = (), world: Worl
         seed_everything(rank_seed(cfg.seed, world.rank))
     eval_env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed) if world.is_main else None
     eval_steps = cfg.eval.max_steps or (eval_env or env).max_episode_steps
+    if cfg.get("compile"):
+        compile_envs(learner, env, eval_env, eval_steps)
     total = int(cfg.train.total_env_steps)
     if world.size > 1:
         log.info(f"data parallel: {world.size} ranks ({world.backend}), env.num_envs={cfg.env.num_envs} per rank "
@@ -228,6 +258,8 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = (), world: Worl
             progress["wall_time_s"] = time.perf_counter() - start
             if "return" in metrics:
                 last["train/return"] = metrics["return"]
+            if progress["iteration"] == 1 and cfg.get("compile"):
+                report_compile(env, time.perf_counter() - tic)
             if world.is_main and logging_now:
                 row = {f"train/{k}": v for k, v in metrics.items()}
                 row.update({"time/iteration": progress["iteration"], "time/wall_s": progress["wall_time_s"],
@@ -323,6 +355,8 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path) -> dict:
     steps = cfg.eval.max_steps or env.max_episode_steps
     policy, _ = actor_from_config(cfg.loss, env, return_log_prob=cfg.loss.name == "ppo")
     policy.load_state_dict(ckpt["policy"])
+    if cfg.get("compile"):
+        compile_physics(env, steps_per_chunk=chunk_length(steps))
     # rl_games' player: eval.games_num episodes, played eval.num_envs at a time from successive seeds
     games = int(cfg.eval.get("games_num") or cfg.eval.num_envs)
     returns = []

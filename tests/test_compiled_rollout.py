@@ -191,3 +191,30 @@ def test_plain_callable_policies_run_eagerly_with_compile_physics():
     out = env.rollout(8, policy)
     assert out.shape == (3, 8)
     assert compile_report(env)["first_call_seconds"] == {}  # nothing compiled
+
+
+def test_train_with_compile_true_is_the_eager_run(tmp_path, caplog):
+    """``compile=true`` in train.py: SHAC windows and evaluations compiled, the same run as eagerly
+    (float64; fallback_random makes the sampled actions equal), compile time logged."""
+    from test_train import tiny_cfg, train_script
+
+    results = {}
+    for compiled in (False, True):
+        cfg = tiny_cfg("pendulum", "shac", 2, "dtype=float64", "eval.max_steps=8", f"compile={str(compiled).lower()}")
+        with caplog.at_level(logging.INFO):
+            results[compiled] = train_script.run(cfg, tmp_path / str(compiled))
+    assert "compile: first iteration" in caplog.text and "fell back" not in caplog.text
+    assert "policy + physics, 4 steps, with grad" in caplog.text  # the windows ran compiled
+    eager, compiled = (torch.load(results[c]["checkpoint"], weights_only=False) for c in (False, True))
+    for key, value in eager["policy"].items():
+        torch.testing.assert_close(compiled["policy"][key], value, rtol=1e-9, atol=1e-11)
+    assert results[True]["eval/return"] == pytest.approx(results[False]["eval/return"], rel=1e-9)
+
+
+def test_train_rejects_a_non_boolean_compile():
+    from test_train import tiny_cfg
+
+    from torchrl_diffenvs.training import ConfigError, validate_config
+
+    with pytest.raises(ConfigError, match="compile='yes': expected true or false"):
+        validate_config(tiny_cfg("pendulum", "shac", 2, "compile=yes"))

@@ -207,6 +207,8 @@ def validate_config(cfg: DictConfig) -> None:
     timeout = OmegaConf.select(cfg, "distributed.timeout_s", default=300)
     if not is_number(timeout) or timeout <= 0:
         problems.append(f"distributed.timeout_s={timeout!r}: expected a number of seconds > 0")
+    if not isinstance(OmegaConf.select(cfg, "compile", default=False), bool):
+        problems.append(f"compile={OmegaConf.select(cfg, 'compile')!r}: expected true or false")
     video_format = OmegaConf.select(cfg, "eval.video_format", default="gif")
     if video_format not in ("gif", "mp4"):
         problems.append(f"eval.video_format={video_format!r}: valid: gif, mp4")
