@@ -141,6 +141,30 @@ def test_collector_windows_and_no_grad_evaluation_match_eager():
     assert_same_tensordict(eval_c, eval_e, exact=False)
 
 
+@pytest.mark.parametrize("break_when_any_done", [False, True])
+def test_random_action_chunks_match_eager_with_resets_inside_chunks(break_when_any_done):
+    """Without a policy (random actions from torch's generator, drawn eagerly): CartPole-v1
+    terminating and truncating inside 4-step chunks; both generators end where eagerly."""
+    env = make_env("CartPole-v1", num_envs=8, seed=0, max_episode_steps=5, dtype=torch.float64)
+    results = []
+    for compiled in (False, True):
+        compile_physics(env, steps_per_chunk=4) if compiled else eager_physics(env)
+        torch.manual_seed(0)
+        env.set_seed(1)
+        start = staggered_start(env, 5)
+        out = env.rollout(14, auto_reset=False, tensordict=start, break_when_any_done=break_when_any_done)
+        results.append((out, start.exclude("next"), torch.get_rng_state(), env.rng.get_state()))
+    report = compile_report(env)
+    eager_physics(env)
+    (out_e, start_e, global_e, env_e), (out_c, start_c, global_c, env_c) = results
+    assert_same_tensordict(out_c, out_e, exact=False)
+    assert_same_tensordict(start_c, start_e, exact=False)
+    assert torch.equal(global_c, global_e) and torch.equal(env_c, env_e)
+    assert list(report["first_call_seconds"]) == ["physics, 4 steps, with grad"]
+    if not break_when_any_done:
+        assert out_e["next", "done"][:, :3].any(0).sum() >= 2  # several resets inside the first chunk
+
+
 def test_policy_chunk_is_one_graph():
     """The whole chunk (policy, physics, resets) is one graph: no graph break per step."""
     graphs = []

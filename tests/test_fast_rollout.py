@@ -15,7 +15,13 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from torchrl_diffenvs import list_envs, make_env
-from torchrl_diffenvs.envs.fast_rollout import compile_physics, eager_physics, fast_rollout, fast_rollout_unsupported
+from torchrl_diffenvs.envs.fast_rollout import (
+    compile_physics,
+    compile_report,
+    eager_physics,
+    fast_rollout,
+    fast_rollout_unsupported,
+)
 
 N = 5
 STEPS = 11
@@ -328,7 +334,7 @@ def test_transformed_env_steps_the_base_env_itself():
 
 # ---------------------------------------------------------------------------- torch.compile
 def test_compiled_physics_matches_eager_values_and_gradients():
-    """Compiled 2-step chunks, cut by auto-resets, against the eager path (float64)."""
+    """Compiled 2-step chunks with auto-resets inside them, against the eager path (float64)."""
     env = make_env("pendulum", num_envs=3, seed=0, max_episode_steps=3, dtype=torch.float64)
     base_actions = torch.randn(8, 3, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     results = []
@@ -339,10 +345,10 @@ def test_compiled_physics_matches_eager_values_and_gradients():
         td = env.rollout(8, actions=actions, break_when_any_done=False)
         (td["next", "reward"].sum() + td["next", "observation"].sum()).backward()
         results.append((td.detach(), [a.grad for a in actions]))
-    assert list(env.__dict__["_compiled_physics"].functions) == [(2, True)]  # 2-step chunks ran compiled
+    assert list(compile_report(env)["first_call_seconds"]) == ["physics, 2 steps, with grad"]  # chunks ran compiled
     eager_physics(env)
     (td_eager, grads_eager), (td_compiled, grads_compiled) = results
-    assert td_eager["next", "done"][:, :-1].any(), "the rollout should cut chunks at auto-resets"
+    assert td_eager["next", "done"][:, :-1].any(), "the rollout should reset envs inside chunks"
     assert_same_tensordict(td_compiled, td_eager, exact=False)
     for g_compiled, g_eager in zip(grads_compiled, grads_eager):
         torch.testing.assert_close(g_compiled, g_eager, rtol=1e-10, atol=1e-12)

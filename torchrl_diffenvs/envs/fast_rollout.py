@@ -221,9 +221,12 @@ def _physics_steps(env: EnvBase, plain_truncation: bool, state: dict, params: di
     return out
 
 
-def _policy_chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_params: bool, root: dict,
-                        extras: dict, fresh: dict | None, all_false: torch.Tensor) -> list[tuple]:
+def _chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_params: bool, root: dict, extras: dict,
+                 actions: list | None, fresh: dict | None, all_false: torch.Tensor) -> list[tuple]:
     """``K`` steps of policy + physics + auto-reset on plain tensors (``torch.compile`` traces it).
+
+    The actions come from ``policy`` (a TensorDict module called on each step's entries) or,
+    without one, from ``actions`` (random or given; then ``extras`` is empty).
 
     What the lean loop does step by step, with the resets inside: where some env is done after
     step ``j < K - 1``, its entries are replaced by the ``c``-th of the ``K - 1`` full-batch start
@@ -234,6 +237,7 @@ def _policy_chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_para
     Args:
         root: the env entries at the chunk's first step but the done flags (all False there).
         extras: the other root entries (the previous step's policy outputs).
+        actions: the ``K`` actions without a policy, else ``None``.
         fresh: ``{"observation": [K-1, N, ...], "state": {...}}`` (plus ``"params"``, env.params,
             when ``merge_params``), or ``None`` for ``K = 1``.
 
@@ -242,14 +246,16 @@ def _policy_chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_para
     step when some env was done, computed at every step but the last (the loop uses it only then).
     """
     steps = []
-    chunk = 1 if fresh is None else fresh["observation"].shape[0] + 1
+    chunk = len(actions) if policy is None else 1 if fresh is None else fresh["observation"].shape[0] + 1
     resets = torch.zeros(1, dtype=torch.int64, device=all_false.device)  # resets so far in this chunk
     zero = torch.zeros((), dtype=root["episode_step"].dtype, device=all_false.device)
     flags = {key: all_false.unsqueeze(-1) for key in _FLAG_KEYS}  # the TorchRL layout: [N, 1]
     for j in range(chunk):
-        source = {**root, **flags, **extras}
-        td = policy(TensorDict(source, batch_size=all_false.shape, device=all_false.device))
-        out = {key: td.get(key) for key in td.keys() if key not in _ENV_KEYS}
+        if policy is None:
+            out = {"action": actions[j]}
+        else:
+            td = policy(TensorDict({**root, **flags, **extras}, batch_size=all_false.shape, device=all_false.device))
+            out = {key: td.get(key) for key in td.keys() if key not in _ENV_KEYS}
         nxt = _physics_steps(env, plain_truncation, root["state"], root["params"], root["episode_step"],
                              [out["action"]])[0]
         merged = None
@@ -280,7 +286,7 @@ def _policy_chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_para
 
 
 class _Physics:
-    """Runs :func:`_physics_steps` eagerly, or through the functions of :func:`compile_physics`."""
+    """Runs :func:`_physics_steps` eagerly; knows whether :func:`compile_physics` applies."""
 
     def __init__(self, env: EnvBase, all_false: torch.Tensor):
         self.env = env
@@ -290,12 +296,10 @@ class _Physics:
         self.chunk = 1 if self.compiled is None else self.compiled.steps_per_chunk
 
     def steps(self, state: dict, params: dict, episode_step: torch.Tensor, actions: list[torch.Tensor]) -> list[dict]:
+        """Eager steps (compiled chunks go through :meth:`_Loop.run_chunk`)."""
         for action in actions:
             self.env._check_action(action)
-        if self.compiled is not None and len(actions) == self.chunk:
-            out = self.compiled(self.plain_truncation, state, params, episode_step, actions)
-        else:  # eager: single policy steps, and the last few steps of a rollout beyond whole chunks
-            out = _physics_steps(self.env, self.plain_truncation, state, params, episode_step, actions)
+        out = _physics_steps(self.env, self.plain_truncation, state, params, episode_step, actions)
         return [self.complete(nxt, params) for nxt in out]
 
     def complete(self, nxt: dict, params: dict) -> dict:
@@ -311,16 +315,17 @@ class _Physics:
 
 
 class _CompiledPhysics:
-    """``torch.compile``'d :func:`_physics_steps` for one env: chunks of ``K`` steps and single steps."""
+    """The ``torch.compile``'d chunk functions of one env (:func:`_chunk_steps`) and what the
+    rollouts learned about them."""
 
     def __init__(self, env: EnvBase, steps_per_chunk: int, compile_kwargs: dict):
         self.steps_per_chunk = steps_per_chunk
         self.compile_kwargs = {"dynamic": False, **compile_kwargs}
         self.env_ref = weakref.ref(env)  # the env holds this object: no reference cycle
-        self.functions: dict[tuple[int, bool], Callable] = {}  # (steps, plain_truncation) -> compiled
-        # policy -> {(plain_truncation, merge_params): compiled chunk of policy + physics}
+        # policy -> {(plain_truncation, merge_params): compiled chunk}; without a policy: self.functions
         self.policy_functions: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-        self.fallback_reason: str | None = None  # why compiled policy chunks stopped (then eager)
+        self.functions: dict[tuple[bool, bool], Callable] = {}
+        self.fallback_reason: str | None = None  # why compiled chunks were given up (then eager)
         self.first_call_seconds: dict[str, float] = {}  # first call (tracing + compiling + running)
         self.cannot_terminate = False  # learned from the first chunk: the task returns no "terminated"
         self.fresh_cache: dict | None = None  # start states of the last draw, reused when no env can reset
@@ -330,34 +335,18 @@ class _CompiledPhysics:
         what = f"{what}, {'with' if torch.is_grad_enabled() else 'without'} grad"
         self.first_call_seconds.setdefault(what, seconds)
 
-    def __call__(self, plain_truncation, state, params, episode_step, actions) -> list[dict]:
-        """A full chunk of ``steps_per_chunk`` steps of random or given actions."""
-        key = (len(actions), plain_truncation)
-        fn = self.functions.get(key)
-        if fn is None:
-            env_ref = self.env_ref
-
-            def physics(state, params, episode_step, actions):
-                return _physics_steps(env_ref(), plain_truncation, state, params, episode_step, actions)
-
-            fn = self.functions[key] = torch.compile(physics, **self.compile_kwargs)
-            started = time.perf_counter()
-            out = fn(state, params, episode_step, actions)
-            self.note_first_call(f"physics, {len(actions)} steps", time.perf_counter() - started)
-            return out
-        return fn(state, params, episode_step, actions)
-
-    def policy_chunk(self, policy, plain_truncation: bool, merge_params: bool) -> Callable:
-        """The compiled :func:`_policy_chunk_steps` for ``policy`` (one per policy object)."""
-        functions = self.policy_functions.setdefault(policy, {})
+    def chunk_function(self, policy, plain_truncation: bool, merge_params: bool) -> Callable:
+        """The compiled :func:`_chunk_steps` for ``policy`` (one per policy object, or ``None``)."""
+        functions = self.functions if policy is None else self.policy_functions.setdefault(policy, {})
         key = (plain_truncation, merge_params)
         fn = functions.get(key)
         if fn is None:
-            env_ref, policy_ref = self.env_ref, weakref.ref(policy)
+            env_ref = self.env_ref
+            policy_ref = (lambda: None) if policy is None else weakref.ref(policy)
 
-            def chunk(root, extras, fresh, all_false):
-                return _policy_chunk_steps(env_ref(), policy_ref(), plain_truncation, merge_params, root, extras,
-                                           fresh, all_false)
+            def chunk(root, extras, actions, fresh, all_false):
+                return _chunk_steps(env_ref(), policy_ref(), plain_truncation, merge_params, root, extras, actions,
+                                    fresh, all_false)
 
             fn = functions[key] = torch.compile(chunk, **self.compile_kwargs)
         return fn
@@ -468,11 +457,14 @@ class _RandomActions:
         self.used += 1
         return self.block[self.used - 1]
 
-    def close(self) -> None:
-        """Leaves the global generator as if only the used actions had been drawn."""
-        if self.block_steps > 1 and self.used < len(self.block):
+    def close(self, unused: int = 0) -> None:
+        """Leaves the global generator as if only the used actions had been drawn; ``unused``:
+        the last actions handed out that the rollout did not use (a compiled chunk cut short by
+        ``break_when_any_done``; rewound within the current block on CPU only)."""
+        used = self.used - unused
+        if self.block_steps > 1 and 0 <= used < len(self.block):
             torch.set_rng_state(self.state_before_block)
-            torch.rand((self.used, *self.shape), dtype=self.dtype, device=self.device)
+            torch.rand((used, *self.shape), dtype=self.dtype, device=self.device)
         self.block = []
 
 
@@ -491,6 +483,7 @@ class _Loop:
         if action_source is None and policy is None:
             action_source = _RandomActions(env, max_steps)
         self.action_source = action_source
+        self.pending: list[torch.Tensor] = []  # actions drawn for a chunk that then ran eagerly
         self.n = env.num_envs
         self.bs = env.batch_size
         self.device = env.device
@@ -513,59 +506,43 @@ class _Loop:
         )
         roots: list[dict] = []
         nexts: list[dict] = []
-        queued: list[torch.Tensor] = []  # drawn actions that a reset inside a chunk left unused
-        t, finished, eager_until = 0, False, 0
-        chunked = self.policy_chunks_unsupported(extras) is None
+        t, finished = 0, False
+        chunked = self.chunks_unsupported(extras) is None
         while not finished:
             if chunked and max_steps - t >= self.physics.chunk:
-                result = self.policy_chunk(td0, root, extras, t, max_steps, break_when_any_done, roots, nexts)
+                actions = None if self.policy is not None else [self.next_action() for _ in range(self.physics.chunk)]
+                result = self.run_chunk(td0, root, extras, actions, t, max_steps, break_when_any_done, roots, nexts)
                 if result is not None:
                     t, finished, root, extras = result
                     continue
                 chunked = False  # compiling failed (logged): eager from here on
+                self.pending = actions or []
             if self.policy is not None:
                 # step 0 runs on the input TensorDict itself, as in EnvBase
                 views: dict = {}
                 td = td0 if t == 0 else self.as_tensordict({**root, **extras}, views)
                 root_t = self.call_policy(td, views)  # what the policy leaves at the root is what TorchRL stores
-                actions = [root_t["action"]]
-                start = root_t
+                action = root_t["action"]
             else:
-                # compiled chunks run only between resets: right after one, step eagerly for a
-                # chunk's length (a task that resets every few steps stays eager)
-                chunk = min(self.physics.chunk if t >= eager_until else 1, max_steps - t)
-                while len(queued) < chunk:
-                    queued.append(next(self.action_source))
-                actions, queued = queued[:chunk], queued[chunk:]
+                action = self.next_action()
                 if t == 0:  # EnvBase writes step 0's action into the input tensordict
-                    first = actions[0]
-                    td0.set("action", first.clone() if isinstance(self.action_source, _RandomActions) else first)
-                start = root
-            nxts = self.physics.steps(start["state"], start["params"], start["episode_step"], actions)
-            for j, nxt in enumerate(nxts):
-                if self.policy is None:
-                    root_t = {**root, **extras, "action": actions[j]}
-                roots.append(root_t)
-                nexts.append(nxt)
-                t += 1
-                if t == max_steps:
-                    finished = True
-                    break
-                any_done = bool(nxt["done"].any())
-                if break_when_any_done and any_done:
-                    finished = True
-                    break
-                # step_mdp: the next root is the "next" entries plus whatever else was at the root
-                root = {key: nxt[key] for key in _ENV_KEYS}
-                extras = {key: value for key, value in root_t.items() if key not in _ENV_KEYS}
-                if any_done:  # only without break_when_any_done
-                    root, extras = self.reset_done(nxt["done"], root, extras)
-                    queued = actions[j + 1:] + queued  # the rest of the chunk ran without this reset
-                    eager_until = t + self.physics.chunk
-                    break
+                    td0.set("action", self.first_action(action))
+                root_t = {**root, **extras, "action": action}
+            nxt = self.physics.steps(root_t["state"], root_t["params"], root_t["episode_step"], [action])[0]
+            roots.append(root_t)
+            nexts.append(nxt)
+            t += 1
+            any_done = bool(nxt["done"].any())
+            if t == max_steps or (break_when_any_done and any_done):
+                break
+            # step_mdp: the next root is the "next" entries plus whatever else was at the root
+            root = {key: nxt[key] for key in _ENV_KEYS}
+            extras = {key: value for key, value in root_t.items() if key not in _ENV_KEYS}
+            if any_done:  # only without break_when_any_done
+                root, extras = self.reset_done(nxt["done"], root, extras)
 
         if isinstance(self.action_source, _RandomActions):
-            self.action_source.close()
+            self.action_source.close(unused=len(self.pending))
         out_td = self.build_output(roots, nexts, return_contiguous)
         # EnvBase leaves step 0's "next" in the input tensordict; rendering wants the last output
         td0.set("next", self.as_tensordict(nexts[0]))
@@ -585,14 +562,25 @@ class _Loop:
             raise KeyError(f"{self.env.name}: the policy wrote no 'action' entry (keys: {sorted(entries)})")
         return entries
 
-    # ------------------------------------------------------------------ compiled policy chunks
-    def policy_chunks_unsupported(self, extras: dict) -> str | None:
-        """Why the policy steps cannot run in compiled chunks (:func:`compile_physics`), or ``None``."""
+    def next_action(self) -> torch.Tensor:
+        """The next random or given action (without a policy)."""
+        return self.pending.pop(0) if self.pending else next(self.action_source)
+
+    def first_action(self, action: torch.Tensor) -> torch.Tensor:
+        """What EnvBase leaves as the input tensordict's ``"action"`` without a policy."""
+        return action.clone() if isinstance(self.action_source, _RandomActions) else action
+
+    # ------------------------------------------------------------------ compiled chunks
+    def chunks_unsupported(self, extras: dict) -> str | None:
+        """Why the steps cannot run in compiled chunks (:func:`compile_physics`), or ``None``."""
         compiled = self.physics.compiled
-        if compiled is None or self.policy is None:
-            return "no compile_physics, or no policy"
+        if compiled is None:
+            return "no compile_physics"
         if compiled.fallback_reason is not None:
             return compiled.fallback_reason
+        if self.policy is None:
+            # the eager loop carries other root entries along (zeroed at resets): not in chunks
+            return None if set(extras) <= {"action"} else "the input tensordict has entries besides the env's"
         out_keys = getattr(self.policy, "out_keys", None)
         if not isinstance(self.policy, TensorDictModuleBase) or out_keys is None:
             return "the policy is not a TensorDict module"
@@ -602,10 +590,11 @@ class _Loop:
             return "the input tensordict holds nested entries besides the env's"
         return None
 
-    def policy_chunk(self, td0: TensorDictBase, root: dict, extras: dict, t: int, max_steps: int,
-                     break_when_any_done: bool, roots: list, nexts: list) -> tuple | None:
-        """Runs ``K`` policy + physics steps in one compiled call and books them as the eager loop
-        would (same entries, same tensors reused between steps, same draws from ``env.rng``).
+    def run_chunk(self, td0: TensorDictBase, root: dict, extras: dict, actions: list | None, t: int, max_steps: int,
+                  break_when_any_done: bool, roots: list, nexts: list) -> tuple | None:
+        """Runs ``K`` policy + physics steps (or physics steps of the ``K`` given actions) in one
+        compiled call and books them as the eager loop would (same entries, same tensors reused
+        between steps, same draws from ``env.rng``).
 
         Returns ``(t, finished, root, extras)`` after the chunk, or ``None`` when compiling
         failed: the reason is logged and kept (``compile_report(env)``), nothing was consumed and
@@ -614,14 +603,17 @@ class _Loop:
         env, compiled = self.env, self.physics.compiled
         merge_params = not self.params_are_env_params
         fresh, rng_states = self.fresh_starts(root, merge_params)
-        function = compiled.policy_chunk(self.policy, self.physics.plain_truncation, merge_params)
+        function = compiled.chunk_function(self.policy, self.physics.plain_truncation, merge_params)
         # The previous step's outputs (the only extras, usually) are overwritten by the policy and
         # not read by it: leave them out, so that every chunk has the first chunk's inputs (one compile).
-        policy_keys = set(self.policy.out_keys) - set(self.policy.in_keys)
-        extras_in = {} if set(extras) <= policy_keys else extras
+        policy_keys = set() if self.policy is None else set(self.policy.out_keys) - set(self.policy.in_keys)
+        extras_in = {} if set(extras) <= policy_keys or self.policy is None else extras
+        if actions is not None:
+            for action in actions:
+                env._check_action(action)
         started = time.perf_counter()
         try:
-            steps = function(_chunk_inputs(root), extras_in, fresh, self.all_false)
+            steps = function(_chunk_inputs(root), extras_in, actions, fresh, self.all_false)
         except COMPILE_ERRORS as err:
             if rng_states is not None:
                 env.rng.set_state(rng_states[0])
@@ -630,10 +622,15 @@ class _Loop:
             _logger.warning("%s: compiled rollout chunks disabled, running eagerly: %s", env.name,
                             compiled.fallback_reason)
             return None
-        compiled.note_first_call(f"policy + physics, {len(steps)} steps", time.perf_counter() - started)
+        what = "physics" if self.policy is None else "policy + physics"
+        compiled.note_first_call(f"{what}, {len(steps)} steps", time.perf_counter() - started)
         compiled.cannot_terminate = all(nxt["terminated"] is None for _, nxt, _ in steps)
+        if actions is not None:  # the actions as given (the same tensors as the eager loop stores)
+            steps = [({"action": action}, nxt, merged) for action, (_, nxt, merged) in zip(actions, steps)]
         env._check_action(steps[0][0]["action"])
-        if t == 0:  # EnvBase runs step 0's policy on the input tensordict itself
+        if t == 0 and actions is not None:  # EnvBase writes step 0's action into the input tensordict
+            td0.set("action", self.first_action(actions[0]))
+        elif t == 0:  # EnvBase runs step 0's policy on the input tensordict itself
             for key, value in steps[0][0].items():
                 td0.set(key, value)
         finished, resets, nxt = False, 0, None
@@ -645,6 +642,8 @@ class _Loop:
             any_done = bool(nxt["done"].any())
             if t == max_steps or (break_when_any_done and any_done):
                 finished = True
+                if actions is not None:
+                    self.pending = actions[j + 1:]  # drawn, not used: the generator is rewound past them
                 break
             if j < len(steps) - 1 and any_done:  # reset inside the chunk
                 resets += 1
