@@ -39,6 +39,26 @@ class BenchmarkSettings(Settings):
     out: str | None = None  # JSON output path (default benchmarks/results/<name>.json)
 
 
+_SYNCHRONIZE: list = []  # torch.cuda.synchronize when timing on a GPU
+
+
+def setup_device(device: str) -> str:
+    """Checks ``device=`` and makes :func:`timed` wait for the GPU; returns the device."""
+    import torch
+
+    try:
+        resolved = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise SystemExit(f"device={device!r}: expected cpu, cuda or cuda:<index>") from None
+    if resolved.type == "cuda":
+        if not torch.cuda.is_available():
+            raise SystemExit(f"device={device!r}: torch.cuda.is_available() is False on this machine")
+        _SYNCHRONIZE[:] = [torch.cuda.synchronize]
+    elif resolved.type != "cpu":
+        raise SystemExit(f"device={device!r}: expected cpu, cuda or cuda:<index>")
+    return device
+
+
 def setup_threads(threads: int) -> None:
     import torch
 
@@ -85,6 +105,8 @@ def timed(fn: Callable[[], object]) -> tuple[float, float]:
     """(wall seconds, CPU seconds) of one call; the result is dropped before returning."""
     wall, cpu = time.perf_counter(), cpu_seconds()
     result = fn()
+    for synchronize in _SYNCHRONIZE:  # GPU work counts until it is done
+        synchronize()
     wall, cpu = time.perf_counter() - wall, cpu_seconds() - cpu
     del result
     return wall, cpu

@@ -59,7 +59,7 @@ def raw_loop(env, steps: int):
     low, span = env.action_low, env.action_high - env.action_low
     shape = (env.num_envs, env.action_dim)
     for _ in range(steps):
-        action = torch.rand(shape, dtype=env.float_dtype) * span + low
+        action = torch.rand(shape, dtype=env.float_dtype, device=env.device) * span + low
         state, reward, terminated = env.transition(state, action, params)
         observation = env.observation(state, params)
     return observation, reward
@@ -93,10 +93,10 @@ def raw_loop_with_resets(env, steps: int):
     n = env.num_envs
     params = dict(env.params.items())
     state = env.initial_state(env.params, n)
-    episode_step = torch.zeros(n, dtype=torch.int64)
+    episode_step = torch.zeros(n, dtype=torch.int64, device=env.device)
     low, span = env.action_low, env.action_high - env.action_low
     for _ in range(steps):
-        action = torch.rand((n, env.action_dim), dtype=env.float_dtype) * span + low
+        action = torch.rand((n, env.action_dim), dtype=env.float_dtype, device=env.device) * span + low
         state, reward, terminated = env.transition(state, action, params)
         observation = env.observation(state, params)
         episode_step = episode_step + 1
@@ -146,11 +146,15 @@ class EnvThroughputSettings(C.BenchmarkSettings):
     compile: bool = False  # also time compile_physics (compiles per task and N)
     gym: bool = True  # false: skip gymnasium and TorchRL's PendulumEnv
     policy: bool = False  # also time rollouts with make_actor's actor against a raw loop with the same network
+    # where our envs run: cpu | cuda | cuda:<k> (gymnasium and JAX stay on the CPU). On CUDA the timings
+    # synchronise the device; read the wall-clock rates (JSON, *_wall), not the CPU-time ones
+    device: str = "cpu"
 
 
 def main(argv=None) -> dict:
     args = parse_cli(EnvThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
+    device = C.setup_device(args.device)
 
     import gymnasium
     import torch
@@ -169,6 +173,7 @@ def main(argv=None) -> dict:
     rounds = args.repeats or (2 if quick else 5)
     target_seconds = 0.01 if quick else 0.25
     info = C.versions()
+    info["device"] = device
     C.print_header("env throughput, no grad (env-steps/s from CPU time)", info)
 
     results = []  # one dict per (task, N)
@@ -185,24 +190,24 @@ def main(argv=None) -> dict:
                 lambda: trl.rollout(trl_steps, tensordict=start.clone(), auto_reset=False, break_when_any_done=False),
                 trl_steps)
         for task in tasks:
-            env = make_env(task, num_envs=n, seed=0)
+            env = make_env(task, num_envs=n, seed=0, device=device)
             candidates = {
                 "ours": (lambda env=env: env.rollout(steps, break_when_any_done=False), steps),
                 "EnvBase.rollout": (lambda env=env: EnvBase.rollout(env, steps, break_when_any_done=False), steps),
                 "raw": (lambda env=env: raw_loop(env, steps), steps),
                 "raw + resets": (lambda env=env: raw_loop_with_resets(env, steps), steps),
             }
-            if task == "pendulum":
+            if task == "pendulum" and device == "cpu":
                 candidates["raw by hand"] = (lambda: raw_pendulum_by_hand(n, steps), steps)
             if args.policy:
                 torch.manual_seed(0)
-                actor = make_actor(env)
+                actor = make_actor(env).to(env.device)
                 candidates["ours + policy"] = (
                     lambda env=env, actor=actor: env.rollout(steps, actor, break_when_any_done=False), steps)
                 candidates["raw + policy"] = (lambda env=env, actor=actor: raw_policy_loop(env, actor, steps), steps)
             compile_seconds = None
             if args.compile:
-                cenv = compile_physics(make_env(task, num_envs=n, seed=0), steps_per_chunk=8)
+                cenv = compile_physics(make_env(task, num_envs=n, seed=0, device=device), steps_per_chunk=8)
                 with torch.no_grad():
                     t0 = time.perf_counter()
                     cenv.rollout(16, break_when_any_done=False)  # compiles the 8-step chunk

@@ -63,6 +63,9 @@ class JaxComparisonSettings(C.BenchmarkSettings):
     horizon: int | None = None  # H of the BPTT window (default 32; quick: 4)
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # the policy's hidden layers
     compile: bool = checked(False, checks.boolean)  # also time ours after compile_physics
+    # where our envs run: cpu | cuda | cuda:<k> (gymnasium and JAX stay on the CPU). On CUDA the timings
+    # synchronise the device; read the wall-clock rates (JSON, *_wall), not the CPU-time ones
+    device: str = "cpu"
 
 
 def jax_available() -> str | None:
@@ -78,12 +81,12 @@ def jax_available() -> str | None:
 
 
 # ---------------------------------------------------------------------- ours (torch)
-def ours_forward(task: str, n: int, t: int, compiled: bool = False):
+def ours_forward(task: str, n: int, t: int, compiled: bool = False, device: str = "cpu"):
     import torch
 
     from torchrl_diffenvs import compile_physics, make_env
 
-    env = make_env(task, num_envs=n, seed=0)
+    env = make_env(task, num_envs=n, seed=0, device=device)
     if compiled:
         compile_physics(env)
 
@@ -107,16 +110,16 @@ def torch_mlp(in_dim: int, out_dim: int, hidden, dtype):
     return nn.Sequential(*layers)
 
 
-def ours_bptt(n: int, h: int, hidden, compiled: bool = False):
+def ours_bptt(n: int, h: int, hidden, compiled: bool = False, device: str = "cpu"):
     """Our BPTT window on Pendulum-v1: rollout with the policy, then backward."""
     from tensordict.nn import TensorDictModule
 
     from torchrl_diffenvs import compile_physics, make_env
 
-    env = make_env("Pendulum-v1", num_envs=n, seed=0)
+    env = make_env("Pendulum-v1", num_envs=n, seed=0, device=device)
     if compiled:
         compile_physics(env)
-    net = torch_mlp(env.observation_dim, env.action_dim, hidden, env.float_dtype)
+    net = torch_mlp(env.observation_dim, env.action_dim, hidden, env.float_dtype).to(env.device)
     scale = float(env.action_spec.space.high.flatten()[0])
     policy = TensorDictModule(lambda obs: net(obs) * scale, in_keys=["observation"], out_keys=["action"])
     start = env.reset()
@@ -250,6 +253,7 @@ def jax_bptt(n: int, h: int, hidden):
 def main(argv=None) -> dict:
     args = parse_cli(JaxComparisonSettings, argv, __doc__)
     C.setup_threads(args.threads)
+    device = C.setup_device(args.device)
     quick = args.quick
     sizes = args.sizes or ([8] if quick else [1024])
     t = args.steps or (8 if quick else 200)
@@ -257,6 +261,7 @@ def main(argv=None) -> dict:
     rounds = args.repeats or (2 if quick else 5)
     missing = jax_available()
     info = C.versions()
+    info["device"] = device
     if missing is None:
         import gymnax
         import jax
@@ -271,9 +276,9 @@ def main(argv=None) -> dict:
     results, rows = [], []
     for n in sizes:
         for task in args.tasks:
-            fns = {"ours": ours_forward(task, n, t)}
+            fns = {"ours": ours_forward(task, n, t, device=device)}
             if args.compile:
-                fns["ours compiled"] = ours_forward(task, n, t, compiled=True)
+                fns["ours compiled"] = ours_forward(task, n, t, compiled=True, device=device)
             if missing is None:
                 fns["gymnax"] = gymnax_forward(SHARED[task], n, t)
             if task == "Pendulum-v1":
@@ -282,9 +287,9 @@ def main(argv=None) -> dict:
                     fns["raw JAX"] = raw_jax_pendulum(n, t)
             results.append(summarise("forward", task, n, t, fns, rounds))
             rows.append(row(results[-1]))
-        bptt = {"ours fwd+bwd": ours_bptt(n, h, args.hidden)}
+        bptt = {"ours fwd+bwd": ours_bptt(n, h, args.hidden, device=device)}
         if args.compile:
-            bptt["ours compiled"] = ours_bptt(n, h, args.hidden, compiled=True)
+            bptt["ours compiled"] = ours_bptt(n, h, args.hidden, compiled=True, device=device)
         if missing is None:
             bptt["JAX value_and_grad"] = jax_bptt(n, h, args.hidden)
         results.append(summarise("BPTT", "Pendulum-v1", n, h, bptt, rounds))

@@ -51,6 +51,23 @@ def test_env_throughput_quick(tmp_path):
         assert set(row["ratios_cpu"]) == {f"ours / {name}" for name in row["candidates"] if name != "ours"}
 
 
+def test_env_throughput_with_a_policy_quick(tmp_path):
+    payload = load("env_throughput").main(["quick=true", "tasks=[pendulum]", "gym=false", "policy=true",
+                                           f"out={tmp_path / 'env.json'}"])
+    (row,) = payload["results"]
+    assert {"ours + policy", "raw + policy"} <= set(row["candidates"])
+    assert row["ratios_cpu"]["ours + policy / raw + policy"] > 0
+    assert payload["info"]["device"] == "cpu"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")
+def test_benchmarks_refuse_cuda_without_a_gpu(tmp_path):
+    with pytest.raises(SystemExit, match=r"device='cuda': torch.cuda.is_available\(\) is False"):
+        load("env_throughput").main(["quick=true", "device=cuda", f"out={tmp_path / 'env.json'}"])
+    with pytest.raises(SystemExit, match="device='tpu': expected cpu, cuda or cuda:<index>"):
+        load("jax_comparison").main(["quick=true", "device=tpu", f"out={tmp_path / 'jax.json'}"])
+
+
 def test_gradient_throughput_quick(tmp_path):
     payload = load("gradient_throughput").main(["quick=true", f"out={tmp_path / 'grad.json'}"])
     assert [(r["mode"], r["H"], r["N"]) for r in payload["results"]] == [("policy", 4, 2), ("open-loop", 4, 2)]
