@@ -91,6 +91,15 @@ def test_policy_chunks_match_eager_with_resets_inside_chunks():
     assert len([t for t in done_steps if t < 3]) >= 2, f"want several resets inside the first chunk: {done_steps}"
 
 
+def test_a_chunk_first_run_without_resets_is_run_again_with_the_same_noise():
+    """The first chunk has no reset, so the second is first run without resets; an env's time
+    limit inside it makes the loop run it again with resets, with the same sampled noise."""
+    env = make_env("pendulum", num_envs=3, seed=0, max_episode_steps=6, dtype=torch.float64)
+    actor = make_actor(env, hidden=(16,)).double()
+    out = compare_paths(env, actor, 12, env.reset(), break_when_any_done=False)
+    assert out["next", "done"][:, 5].all() and not out["next", "done"][:, :5].any()
+
+
 def test_policy_chunks_match_eager_with_termination_and_parameter_gradients():
     """A task that terminates (CartPole-v1), physical parameters with gradient (merged at resets
     inside the chunk rather than kept), deterministic actions."""
@@ -166,7 +175,9 @@ def test_random_action_chunks_match_eager_with_resets_inside_chunks(break_when_a
 
 
 def test_policy_chunk_is_one_graph():
-    """The whole chunk (policy, physics, resets) is one graph: no graph break per step."""
+    """The whole chunk (policy, physics, resets) is one graph: no graph break per step. Two
+    variants run here: with resets inside (the first chunk), and without (the second chunk is
+    first tried without, as the first had none, then run again with resets)."""
     graphs = []
 
     def counting_backend(graph_module, example_inputs):
@@ -178,7 +189,7 @@ def test_policy_chunk_is_one_graph():
     compile_physics(env, steps_per_chunk=4, backend=counting_backend)
     with set_exploration_type(ExplorationType.RANDOM):
         env.rollout(8, actor, break_when_any_done=False)
-    assert len(graphs) == 1
+    assert len(graphs) == 2  # a graph break would add graphs
     assert compile_report(env)["fallback_reason"] is None
 
 

@@ -221,8 +221,8 @@ def _physics_steps(env: EnvBase, plain_truncation: bool, state: dict, params: di
     return out
 
 
-def _chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_params: bool, root: dict, extras: dict,
-                 actions: list | None, fresh: dict | None, all_false: torch.Tensor) -> list[tuple]:
+def _chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_params: bool, chunk: int, root: dict,
+                 extras: dict, actions: list | None, fresh: dict | None, all_false: torch.Tensor) -> list[tuple]:
     """``K`` steps of policy + physics + auto-reset on plain tensors (``torch.compile`` traces it).
 
     The actions come from ``policy`` (a TensorDict module called on each step's entries) or,
@@ -239,14 +239,15 @@ def _chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_params: boo
         extras: the other root entries (the previous step's policy outputs).
         actions: the ``K`` actions without a policy, else ``None``.
         fresh: ``{"observation": [K-1, N, ...], "state": {...}}`` (plus ``"params"``, env.params,
-            when ``merge_params``), or ``None`` for ``K = 1``.
+            when ``merge_params``), or ``None``: no resets inside the chunk (the caller knows none
+            is needed, or checks afterwards that none was).
 
     Returns ``(policy outputs, "next" entries, merged root or None)`` per step; the merged root
     (observation, state, episode step, and parameters when ``merge_params``) is that of the next
-    step when some env was done, computed at every step but the last (the loop uses it only then).
+    step when some env was done, computed at every step but the last when ``fresh`` is given (the
+    loop uses it only then).
     """
     steps = []
-    chunk = len(actions) if policy is None else 1 if fresh is None else fresh["observation"].shape[0] + 1
     resets = torch.zeros(1, dtype=torch.int64, device=all_false.device)  # resets so far in this chunk
     zero = torch.zeros((), dtype=root["episode_step"].dtype, device=all_false.device)
     flags = {key: all_false.unsqueeze(-1) for key in _FLAG_KEYS}  # the TorchRL layout: [N, 1]
@@ -259,7 +260,7 @@ def _chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_params: boo
         nxt = _physics_steps(env, plain_truncation, root["state"], root["params"], root["episode_step"],
                              [out["action"]])[0]
         merged = None
-        if j < chunk - 1:
+        if j < chunk - 1 and fresh is not None:
             done = nxt["done"] if nxt["done"] is not None else nxt["truncated"]
             done = all_false if done is None else done
             keep = ~done
@@ -281,6 +282,10 @@ def _chunk_steps(env: EnvBase, policy, plain_truncation: bool, merge_params: boo
                       for key, value in out.items()}
             resets = resets + done.any().to(resets.dtype)
             root = {**merged, "params": merged.get("params", root["params"])}
+        else:
+            root = {"observation": nxt["observation"], "state": nxt["state"], "params": root["params"],
+                    "episode_step": nxt["episode_step"]}
+            extras = out
         steps.append((out, nxt, merged))
     return steps
 
@@ -328,25 +333,25 @@ class _CompiledPhysics:
         self.fallback_reason: str | None = None  # why compiled chunks were given up (then eager)
         self.first_call_seconds: dict[str, float] = {}  # first call (tracing + compiling + running)
         self.cannot_terminate = False  # learned from the first chunk: the task returns no "terminated"
-        self.fresh_cache: dict | None = None  # start states of the last draw, reused when no env can reset
+        self.expect_resets = True  # the last chunk that could reset did: draw start states ahead
 
     def note_first_call(self, what: str, seconds: float) -> None:
         """Records the duration of the first call of each compiled function (mostly compiling)."""
         what = f"{what}, {'with' if torch.is_grad_enabled() else 'without'} grad"
         self.first_call_seconds.setdefault(what, seconds)
 
-    def chunk_function(self, policy, plain_truncation: bool, merge_params: bool) -> Callable:
+    def chunk_function(self, policy, plain_truncation: bool, merge_params: bool, with_resets: bool) -> Callable:
         """The compiled :func:`_chunk_steps` for ``policy`` (one per policy object, or ``None``)."""
         functions = self.functions if policy is None else self.policy_functions.setdefault(policy, {})
-        key = (plain_truncation, merge_params)
+        key = (plain_truncation, merge_params, with_resets)
         fn = functions.get(key)
         if fn is None:
-            env_ref = self.env_ref
+            env_ref, steps = self.env_ref, self.steps_per_chunk
             policy_ref = (lambda: None) if policy is None else weakref.ref(policy)
 
             def chunk(root, extras, actions, fresh, all_false):
-                return _chunk_steps(env_ref(), policy_ref(), plain_truncation, merge_params, root, extras, actions,
-                                    fresh, all_false)
+                return _chunk_steps(env_ref(), policy_ref(), plain_truncation, merge_params, steps, root, extras,
+                                    actions, fresh, all_false)
 
             fn = functions[key] = torch.compile(chunk, **self.compile_kwargs)
         return fn
@@ -362,7 +367,10 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
       ``DiffWindowCollector`` windows and their gradients run compiled. Resets do not cut chunks:
       the ``K - 1`` full-batch start states that a chunk's resets may need are drawn ahead from
       ``env.rng`` and the generator is then set as if only the resets that happened had drawn,
-      so the start states are those of the eager path.
+      so the start states are those of the eager path. Drawing and merging costs about a physics
+      step per step, so a chunk that cannot reset (no termination, far from the time limit, or
+      ``break_when_any_done``) skips it, and one that probably will not (the previous one did not)
+      first runs without it and runs again with it (the same policy noise) if some env was done.
     * Without a policy (random actions, or ``actions=``): the physics of ``K`` steps per
       compiled call. Resets stay eager here: a chunk is cut at the first step where an env is
       done, the reset runs eagerly, and the next ``K`` steps run eagerly too before chunks resume.
@@ -602,8 +610,6 @@ class _Loop:
         """
         env, compiled = self.env, self.physics.compiled
         merge_params = not self.params_are_env_params
-        fresh, rng_states = self.fresh_starts(root, merge_params)
-        function = compiled.chunk_function(self.policy, self.physics.plain_truncation, merge_params)
         # The previous step's outputs (the only extras, usually) are overwritten by the policy and
         # not read by it: leave them out, so that every chunk has the first chunk's inputs (one compile).
         policy_keys = set() if self.policy is None else set(self.policy.out_keys) - set(self.policy.in_keys)
@@ -611,12 +617,34 @@ class _Loop:
         if actions is not None:
             for action in actions:
                 env._check_action(action)
+        inputs = _chunk_inputs(root)
+
+        def run(with_resets: bool):
+            fresh, rng_states = self.fresh_starts(merge_params) if with_resets else (None, None)
+            function = compiled.chunk_function(self.policy, self.physics.plain_truncation, merge_params, with_resets)
+            try:
+                return function(inputs, extras_in, actions, fresh, self.all_false), rng_states
+            except COMPILE_ERRORS:
+                if rng_states is not None:
+                    env.rng.set_state(rng_states[0])
+                raise
+
+        # Drawing start states ahead and merging them costs about a physics step per step: a chunk
+        # that cannot reset (break_when_any_done, or no termination and far from the time limit)
+        # skips it, and one that probably will not (the last one did not) runs without and is run
+        # again with resets if some env was done before its last step.
+        with_resets = self.physics.chunk > 1 and not (break_when_any_done or self.no_reset_possible(root))
+        speculate = with_resets and not compiled.expect_resets
+        random_state = _global_random_state(env.device) if speculate else None
         started = time.perf_counter()
         try:
-            steps = function(_chunk_inputs(root), extras_in, actions, fresh, self.all_false)
+            steps, rng_states = run(with_resets and not speculate)
+            if speculate and any(_any_done(nxt) for _, nxt, _ in steps[:-1]):
+                _set_global_random_state(env.device, random_state)  # the policy's noise, as the first time
+                steps, rng_states = run(True)
         except COMPILE_ERRORS as err:
-            if rng_states is not None:
-                env.rng.set_state(rng_states[0])
+            if random_state is not None:
+                _set_global_random_state(env.device, random_state)
             message = " ".join(line.strip() for line in str(err).splitlines()[:3] if line.strip())
             compiled.fallback_reason = f"torch.compile failed ({type(err).__name__}: {message})"
             _logger.warning("%s: compiled rollout chunks disabled, running eagerly: %s", env.name,
@@ -654,29 +682,29 @@ class _Loop:
                 extras = out
         if rng_states is not None:  # as if only the resets that happened had drawn
             env.rng.set_state(rng_states[resets])
+            compiled.expect_resets = resets > 0
+        elif with_resets:  # speculated right: no reset
+            compiled.expect_resets = False
         if not finished and bool(nxt["done"].any()):  # done at the chunk's last step
             root, extras = self.reset_done(nxt["done"], root, extras)
         return t, finished, root, extras
 
-    def fresh_starts(self, root: dict, merge_params: bool) -> tuple[dict | None, list | None]:
-        """The ``K - 1`` full-batch start states a chunk may reset to, drawn ahead from ``env.rng``.
-
-        Returns them with the generator's state before each draw and after the last, so that the
-        loop can leave ``env.rng`` as if only the resets that happened had drawn; ``None`` for the
-        states when no env can reset in this chunk (a task without termination, far from its time
-        limit): the last draw is then reused without drawing.
-        """
-        env, compiled, size = self.env, self.physics.compiled, self.physics.chunk
-        if size == 1:
-            return None, None
+    def no_reset_possible(self, root: dict) -> bool:
+        """No env can be done before a chunk's last step: the task has no termination (learned
+        from the first chunk) and every env is more than a chunk away from its time limit."""
+        env, compiled = self.env, self.physics.compiled
+        if not (compiled.cannot_terminate and self.physics.plain_truncation):
+            return False
         limit = env.max_episode_steps
-        cannot_reset = compiled.cannot_terminate and self.physics.plain_truncation and (
-            limit is None or int(root["episode_step"].max()) + size - 1 < limit)
-        cached = compiled.fresh_cache
-        if cannot_reset and cached is not None and ("params" in cached) == merge_params:
-            return cached, None
+        return limit is None or int(root["episode_step"].max()) + self.physics.chunk - 1 < limit
+
+    def fresh_starts(self, merge_params: bool) -> tuple[dict, list]:
+        """The ``K - 1`` full-batch start states a chunk may reset to, drawn ahead from ``env.rng``,
+        with the generator's state before each draw and after the last, so that the loop can leave
+        ``env.rng`` as if only the resets that happened had drawn."""
+        env = self.env
         states, observations, starts = [env.rng.get_state()], [], []
-        for _ in range(size - 1):
+        for _ in range(self.physics.chunk - 1):
             start = env.initial_state(env.params, self.n)
             observations.append(env.observation(start, env.params))
             starts.append(start)
@@ -685,10 +713,6 @@ class _Loop:
                  "state": {key: torch.stack([start[key] for start in starts]) for key in starts[0]}}
         if merge_params:
             fresh["params"] = dict(env.params.items())
-        compiled.fresh_cache = fresh
-        if cannot_reset:
-            env.rng.set_state(states[0])
-            return fresh, None
         return fresh, states
 
     def reset_done(self, done: torch.Tensor, root: dict, extras: dict) -> tuple[dict, dict]:
@@ -865,6 +889,23 @@ def _stack_root(root_values: list[torch.Tensor], next_values: list[torch.Tensor]
     if start is not None:
         pieces.append(next_stack[:, start - 1:len(root_values) - 1])
     return torch.cat(pieces, dim=1)
+
+
+def _any_done(nxt: dict) -> bool:
+    done = nxt["done"] if nxt["done"] is not None else nxt["truncated"]
+    return done is not None and bool(done.any())
+
+
+def _global_random_state(device: torch.device) -> tuple:
+    """Torch's global generator (and the device's): what a policy's noise is drawn from."""
+    cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
+    return torch.get_rng_state(), cuda
+
+
+def _set_global_random_state(device: torch.device, state: tuple) -> None:
+    torch.set_rng_state(state[0])
+    if state[1] is not None:
+        torch.cuda.set_rng_state(state[1], device)
 
 
 def _chunk_inputs(root: dict) -> dict:
