@@ -193,6 +193,24 @@ def test_policy_chunk_is_one_graph():
     assert compile_report(env)["fallback_reason"] is None
 
 
+def test_many_envs_in_one_process_all_run_compiled():
+    """torch.compile allows 8 recompilations per code object: each env's chunk functions need
+    their own, or the ninth compiled variant in a process (tests, benchmarks, sweeps) would
+    silently run eagerly."""
+    graphs = []
+
+    def counting_backend(graph_module, example_inputs):
+        graphs.append(graph_module)
+        return graph_module.forward
+
+    for i in range(6):
+        env = make_env("pendulum", num_envs=3 + i, seed=0, max_episode_steps=5)
+        compile_physics(env, steps_per_chunk=4, backend=counting_backend)
+        with set_exploration_type(ExplorationType.RANDOM):
+            env.rollout(8, make_actor(env, hidden=(8,)), break_when_any_done=False)
+    assert len(graphs) == 12  # two variants per env (see test_policy_chunk_is_one_graph)
+
+
 def test_compile_failure_falls_back_to_eager_with_the_reason(caplog):
     def broken_backend(graph_module, example_inputs):
         raise RuntimeError("no compiler here")

@@ -30,9 +30,11 @@ What the lean loop reproduces, step by step (``EnvBase._rollout_nonstop`` /
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import operator
 import time
+import types
 import weakref
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
@@ -353,8 +355,22 @@ class _CompiledPhysics:
                 return _chunk_steps(env_ref(), policy_ref(), plain_truncation, merge_params, steps, root, extras,
                                     actions, fresh, all_false)
 
-            fn = functions[key] = torch.compile(chunk, **self.compile_kwargs)
+            fn = functions[key] = torch.compile(_own_code(chunk), **self.compile_kwargs)
         return fn
+
+
+_CHUNK_FUNCTIONS = itertools.count()
+
+
+def _own_code(function: Callable) -> Callable:
+    """``function`` with a code object of its own.
+
+    ``torch.compile`` keeps compiled code, and its limit of 8 recompilations, per code object;
+    every env's chunk function is the same closure code, so a process with many envs (a test
+    suite, a benchmark, a sweep of runs) would reach the limit and silently run the rest eagerly.
+    """
+    code = function.__code__.replace(co_name=f"{function.__name__}_{next(_CHUNK_FUNCTIONS)}")
+    return types.FunctionType(code, function.__globals__, code.co_name, function.__defaults__, function.__closure__)
 
 
 def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) -> EnvBase:
