@@ -193,6 +193,24 @@ def test_policy_chunk_is_one_graph():
     assert compile_report(env)["fallback_reason"] is None
 
 
+def test_collector_windows_do_not_recompile():
+    """A window starts from slices of the previous window (strided) and detached tensors: the
+    chunks take them contiguous and differentiable, so every window reuses the same graphs (one
+    with resets inside the chunk, one without)."""
+    graphs = []
+
+    def counting_backend(graph_module, example_inputs):
+        graphs.append(graph_module)
+        return graph_module.forward
+
+    env = make_env("pendulum", num_envs=4, seed=0, max_episode_steps=6)
+    compile_physics(env, steps_per_chunk=4, backend=counting_backend)
+    actor = make_actor(env, hidden=(8,))
+    for window in DiffWindowCollector(env, actor, horizon=4, total_windows=6):
+        window["next", "reward"].sum().backward()
+    assert len(graphs) <= 2, f"{len(graphs)} graphs: the windows recompiled"
+
+
 def test_many_envs_in_one_process_all_run_compiled():
     """torch.compile allows 8 recompilations per code object: each env's chunk functions need
     their own, or the ninth compiled variant in a process (tests, benchmarks, sweeps) would

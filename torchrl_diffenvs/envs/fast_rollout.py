@@ -629,17 +629,21 @@ class _Loop:
         # The previous step's outputs (the only extras, usually) are overwritten by the policy and
         # not read by it: leave them out, so that every chunk has the first chunk's inputs (one compile).
         policy_keys = set() if self.policy is None else set(self.policy.out_keys) - set(self.policy.in_keys)
-        extras_in = {} if set(extras) <= policy_keys or self.policy is None else extras
+        extras_in = {} if set(extras) <= policy_keys or self.policy is None else {
+            key: value.contiguous() for key, value in extras.items()}
         if actions is not None:
             for action in actions:
                 env._check_action(action)
+            actions_in = [action.contiguous() for action in actions]
+        else:
+            actions_in = None
         inputs = _chunk_inputs(root)
 
         def run(with_resets: bool):
             fresh, rng_states = self.fresh_starts(merge_params) if with_resets else (None, None)
             function = compiled.chunk_function(self.policy, self.physics.plain_truncation, merge_params, with_resets)
             try:
-                return function(inputs, extras_in, actions, fresh, self.all_false), rng_states
+                return function(inputs, extras_in, actions_in, fresh, self.all_false), rng_states
             except COMPILE_ERRORS:
                 if rng_states is not None:
                     env.rng.set_state(rng_states[0])
@@ -925,27 +929,29 @@ def _set_global_random_state(device: torch.device, state: tuple) -> None:
 
 
 def _chunk_inputs(root: dict) -> dict:
-    """The root entries a compiled chunk takes: no done flags, and with grad on, the
-    floating-point state and observation as tensors that require grad.
+    """The root entries a compiled chunk takes: no done flags, every tensor contiguous, and with
+    grad on, the floating-point state and observation as tensors that require grad.
 
-    A window starts from detached tensors and continues from differentiable ones; compiled code is
-    specialised on ``requires_grad``, so without this the first chunk of every window would need
-    its own compiled function. A detached input becomes a fresh leaf with the same values (its
-    gradient is computed and dropped: an ``[N, d]`` tensor per chunk).
+    Compiled code is specialised on strides and ``requires_grad``: a window continues from slices
+    of the previous window's output (strided) and from detached tensors, while its later chunks
+    get contiguous, differentiable ones; without this every window would alternate between two
+    compiled functions (and compile both). A detached input becomes a fresh leaf with the same
+    values (its gradient is computed and dropped: an ``[N, d]`` tensor per chunk).
     """
     # The done flags at a chunk's start are always all False (a done env has been reset), and
     # passing them would specialise the compiled code on which of them are the same tensor.
-    root = {key: value for key, value in root.items() if key not in _FLAG_KEYS}
-    if not torch.is_grad_enabled():
-        return root
+    grad = torch.is_grad_enabled()
 
-    def leaf(value):
-        if value.requires_grad or not value.is_floating_point():
-            return value
-        return value.detach().requires_grad_(True)
+    def prepared(value, differentiable: bool):
+        value = value.contiguous()
+        if grad and differentiable and value.is_floating_point() and not value.requires_grad:
+            value = value.detach().requires_grad_(True)
+        return value
 
-    return {**root, "observation": leaf(root["observation"]),
-            "state": {key: leaf(value) for key, value in root["state"].items()}}
+    return {"observation": prepared(root["observation"], True),
+            "state": {key: prepared(value, True) for key, value in root["state"].items()},
+            "params": {key: prepared(value, False) for key, value in root["params"].items()},
+            "episode_step": root["episode_step"].contiguous()}
 
 
 def _zero_where(reset: torch.Tensor, value):
