@@ -142,3 +142,36 @@ def test_config_checks_critic_input():
         validate_config(cfg)
     validate_config(make_cfg("env=pendulum", "loss=sac", "loss.critic_input=state",
                              "env.options.observe_velocity=false"))
+
+
+# ---------------------------------------------------------------------- env.randomize
+def test_randomized_physical_parameters_are_per_env_seeded_and_in_range():
+    from torchrl_diffenvs.training import make_env_from_config
+
+    cfg = make_cfg("env=pendulum", "loss=shac", "+env.randomize.mass=[0.5,1.5]", "+env.randomize.length=[0.7,1.3]")
+    env = make_env_from_config(cfg, 64, seed=3)
+    mass, length = env.params["mass"], env.params["length"]
+    assert mass.shape == (64,) and 0.5 <= mass.min() < mass.max() <= 1.5
+    assert 0.7 <= length.min() < length.max() <= 1.3
+    assert (env.params["g"] == 9.8).all()  # the others stay at their defaults
+    again, other = make_env_from_config(cfg, 64, seed=3), make_env_from_config(cfg, 64, seed=4)
+    assert torch.equal(again.params["mass"], mass) and not torch.equal(other.params["mass"], mass)
+    # the critic's privileged inputs see each env's own values
+    from torchrl_diffenvs.modules import privileged_inputs
+
+    assert (("params", "mass"), 1) in privileged_inputs(env)
+
+
+@pytest.mark.parametrize("override, message", [
+    ("+env.randomize.mass=[1.5,0.5]", "env.randomize.mass=[1.5, 0.5]: expected [low, high] with low <= high"),
+    ("+env.randomize.mass=2", "env.randomize.mass=2: expected [low, high]"),
+    ("+env.randomize.bogus=[0,1]", "unknown physical parameter(s) ['bogus']"),
+    ("+env.params.mass=2", "env.randomize.mass and env.params.mass are both set: keep one"),
+])
+def test_bad_randomize_values_are_rejected(override, message):
+    from torchrl_diffenvs.training import ConfigError, validate_config
+
+    extra = ["+env.randomize.mass=[0.5,1.5]"] if override.startswith("+env.params") else []
+    with pytest.raises(ConfigError) as err:
+        validate_config(make_cfg("env=pendulum", "loss=shac", *extra, override))
+    assert message in str(err.value)

@@ -105,7 +105,7 @@ def env_config(name: str) -> dict:
     """The training script's ``env`` section for task ``name`` (``python sota_scripts/train.py env=<name>``)."""
     spec = _spec(name)
     return {"name": name, "num_envs": spec.num_envs, "max_episode_steps": None, "options": dict(spec.options),
-            "params": {}}
+            "params": {}, "randomize": {}}
 
 
 def make_env(name: str, num_envs: int = 1, **kwargs):

@@ -102,15 +102,31 @@ def env_kwargs(env_cfg: Mapping) -> dict:
     return kwargs
 
 
+def randomized_params(ranges: Mapping, num_envs: int, seed: int) -> dict[str, torch.Tensor]:
+    """``env.randomize``: one value per env for each named physical parameter, uniform in its
+    ``[low, high]``, drawn from a generator seeded with ``seed`` (the env's seed: each rank and
+    the evaluation envs get their own draw, the same at every run). Fixed for the env's life."""
+    generator = torch.Generator().manual_seed(int(seed))
+    values = {}
+    for key in sorted(ranges):
+        low, high = (float(bound) for bound in ranges[key])
+        values[key] = low + (high - low) * torch.rand(num_envs, generator=generator, dtype=torch.float64)
+    return values
+
+
 def make_env_from_config(cfg: DictConfig, num_envs: int, seed: int):
     """Builds the env named by ``cfg.env`` with ``num_envs`` envs on ``cfg.device`` in ``cfg.dtype``."""
+    kwargs = env_kwargs(cfg.env)
+    ranges = cfg.env.get("randomize")
+    if ranges:
+        kwargs["params"] = {**kwargs.get("params", {}), **randomized_params(ranges, num_envs, seed)}
     return make_env(
         cfg.env.name,
         num_envs=num_envs,
         device=resolve_device(cfg.device),
         dtype=resolve_dtype(cfg.dtype),
         seed=seed,
-        **env_kwargs(cfg.env),
+        **kwargs,
     )
 
 
@@ -157,6 +173,21 @@ def _check_file(value, key: str, problems: list[str]) -> None:
     path = Path(str(value)).expanduser()
     if not path.is_file():
         problems.append(f"{key}={value!r}: no such checkpoint file" + (" (it is a directory)" if path.is_dir() else ""))
+
+
+def _check_randomize(env_cfg, problems: list[str]) -> None:
+    ranges = env_cfg.get("randomize") or {}
+    example = "e.g. env.randomize={mass:[0.5,1.5]} (one value per env, uniform, fixed for the env's life)"
+    if not isinstance(ranges, Mapping):
+        problems.append(f"env.randomize={ranges!r}: expected a mapping of physical parameter -> [low, high], {example}")
+        return
+    for key, bounds in ranges.items():
+        pair = list(bounds) if isinstance(bounds, (list, tuple, ListConfig)) else None
+        if pair is None or len(pair) != 2 or not all(is_number(b) for b in pair) or pair[0] > pair[1]:
+            shown = OmegaConf.to_container(bounds) if isinstance(bounds, (DictConfig, ListConfig)) else bounds
+            problems.append(f"env.randomize.{key}={shown!r}: expected [low, high] with low <= high, {example}")
+        elif key in (env_cfg.get("params") or {}):
+            problems.append(f"env.randomize.{key} and env.params.{key} are both set: keep one")
 
 
 def validate_config(cfg: DictConfig) -> None:
@@ -250,6 +281,8 @@ def validate_config(cfg: DictConfig) -> None:
             problems.append("resume= continues training; with mode=eval use checkpoint=<path> instead")
         else:
             _check_file(cfg.resume, "resume", problems)
+
+    _check_randomize(cfg.env, problems)
 
     # build one env: catches bad options / params / max_episode_steps with the env's own message
     if env_name in list_envs() and not any(p.startswith(("env.", "device", "dtype")) for p in problems):
