@@ -234,6 +234,7 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = (), world: Worl
                dynamic_ncols=True, disable=not (cfg.train.progress_bar and world.is_main),
                desc=f"{cfg.env.name} {cfg.loss.name}")
     start = time.perf_counter() - progress["wall_time_s"]
+    compile_reported = False
     try:
         while True:
             if progress["env_steps"] >= progress["next_eval"]:
@@ -258,8 +259,9 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = (), world: Worl
             progress["wall_time_s"] = time.perf_counter() - start
             if "return" in metrics:
                 last["train/return"] = metrics["return"]
-            if progress["iteration"] == 1 and cfg.get("compile"):
+            if cfg.get("compile") and not compile_reported and world.is_main:  # this process's first iteration
                 report_compile(env, time.perf_counter() - tic)
+                compile_reported = True
             if world.is_main and logging_now:
                 row = {f"train/{k}": v for k, v in metrics.items()}
                 row.update({"time/iteration": progress["iteration"], "time/wall_s": progress["wall_time_s"],
