@@ -387,9 +387,8 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
       step per step, so a chunk that cannot reset (no termination, far from the time limit, or
       ``break_when_any_done``) skips it, and one that probably will not (the previous one did not)
       first runs without it and runs again with it (the same policy noise) if some env was done.
-    * Without a policy (random actions, or ``actions=``): the physics of ``K`` steps per
-      compiled call. Resets stay eager here: a chunk is cut at the first step where an env is
-      done, the reset runs eagerly, and the next ``K`` steps run eagerly too before chunks resume.
+    * Without a policy (random actions, or ``actions=``): the same chunk function steps the
+      given actions (drawn eagerly, so the random stream is the eager path's), resets included.
     * Steps beyond whole chunks (``max_steps`` not a multiple of ``K``) run eagerly: choose
       ``K`` dividing the window length.
 
