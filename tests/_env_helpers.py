@@ -14,17 +14,31 @@ from torchrl_diffenvs import list_envs, make_env
 F64 = torch.float64
 
 
+def multi_agent_envs() -> list[str]:
+    """The registered tasks with TorchRL's ``("agents", ...)`` layout (tests/test_multi_agent.py)."""
+    from torchrl_diffenvs.envs import MultiAgentDiffEnv, env_class
+
+    return [name for name in list_envs() if issubclass(env_class(name), MultiAgentDiffEnv)]
+
+
+def single_agent_envs() -> list[str]:
+    """Every registered env whose policy reads ``"observation"`` and writes ``"action"``."""
+    multi = set(multi_agent_envs())
+    return [name for name in list_envs() if name not in multi]
+
+
 def classic_envs() -> list[str]:
-    """Every registered env but the MuJoCo-model tasks.
+    """Every single-agent env but the MuJoCo-model tasks.
 
     The table-driven suites (behaviour, composition, gradients, rendering) describe these tasks
     one by one; the MuJoCo-model tasks have their own suites (test_mujoco_parity.py,
-    test_mujoco_gradients.py, test_rendering_mujoco.py) with MuJoCo and Gymnasium as the references.
+    test_mujoco_gradients.py, test_rendering_mujoco.py) with MuJoCo and Gymnasium as the
+    references, and the multi-agent tasks theirs (test_multi_agent.py).
     """
     from torchrl_diffenvs.envs.mujoco import MUJOCO_TASKS
 
     mujoco_names = {cls.name for cls in MUJOCO_TASKS}
-    return [name for name in list_envs() if name not in mujoco_names]
+    return [name for name in single_agent_envs() if name not in mujoco_names]
 
 
 def is_gymnasium_variant(name: str) -> bool:

@@ -4,6 +4,7 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from torchrl_diffenvs import list_envs, make_env
+from torchrl_diffenvs.envs import is_multi_agent
 
 IVY_TASKS = ["cartpole", "pendulum", "mountaincar", "reacher", "swimmer"]
 
@@ -18,8 +19,12 @@ def test_check_env_specs(name, dtype):
     env = make_env(name, num_envs=3, dtype=dtype, seed=0)
     check_env_specs(env)
     td = env.reset()
-    assert td["observation"].dtype == dtype
-    assert td["observation"].shape == (3, env.observation_dim)
+    if is_multi_agent(env):
+        observation, shape = td["agents", "observation"], (3, env.num_agents, env.observation_dim)
+    else:
+        observation, shape = td["observation"], (3, env.observation_dim)
+    assert observation.dtype == dtype
+    assert observation.shape == shape
 
 
 def test_unknown_env_lists_valid_names():

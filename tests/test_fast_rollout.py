@@ -14,7 +14,9 @@ from torchrl.envs import EnvBase, StepCounter, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
-from torchrl_diffenvs import list_envs, make_env
+from _env_helpers import single_agent_envs
+
+from torchrl_diffenvs import make_env
 from torchrl_diffenvs.envs.fast_rollout import (
     compile_physics,
     compile_report,
@@ -84,14 +86,14 @@ def tanh_normal_actor(env, hidden=16):
 
 
 # ---------------------------------------------------------------------------- every env, no policy
-@pytest.mark.parametrize("name", list_envs())
+@pytest.mark.parametrize("name", single_agent_envs())
 def test_every_env_takes_the_fast_path(name):
     env = make_env(name, num_envs=2, seed=0)
     assert fast_rollout_unsupported(env, None, {}) is None
     assert fast_rollout_unsupported(env, None, {"break_when_any_done": False, "tensordict": env.reset()}) is None
 
 
-@pytest.mark.parametrize("name", list_envs())
+@pytest.mark.parametrize("name", single_agent_envs())
 @pytest.mark.parametrize("break_when_any_done", [True, False])
 def test_random_actions_match_envbase(name, break_when_any_done):
     env = make_fast_env(name)
@@ -136,7 +138,7 @@ def test_terminations_and_partial_resets_match_envbase():
     assert_same_tensordict(got, ref)
 
 
-@pytest.mark.parametrize("name", list_envs())
+@pytest.mark.parametrize("name", single_agent_envs())
 def test_policy_values_and_gradients_match_envbase(name):
     """A TanhNormal actor sampling with rsample; gradients of the return w.r.t. its weights."""
     env = make_fast_env(name, dtype=torch.float64)

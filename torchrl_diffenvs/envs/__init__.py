@@ -7,6 +7,8 @@ from .cartpole import CartPoleEnv
 from .fast_rollout import compile_physics, eager_physics
 from .gym_classic import CartPoleV1Env, MountainCarContinuousV0Env, PendulumV1Env
 from .mountaincar import MountainCarEnv
+from .multi_agent import MultiAgentDiffEnv, is_multi_agent
+from .multi_swimmer import MultiSwimmerEnv
 from .mujoco import (
     MUJOCO_TASKS,
     HalfCheetahV5Env,
@@ -26,5 +28,5 @@ __all__ = [
     "DiffEnv", "MUJOCO_TASKS", "CartPoleEnv", "PendulumEnv", "MountainCarEnv", "ReacherEnv", "SwimmerEnv",
     "CartPoleV1Env", "PendulumV1Env", "MountainCarContinuousV0Env", "MuJoCoModelEnv", "InvertedPendulumV5Env",
     "InvertedDoublePendulumV5Env", "ReacherV5Env", "HalfCheetahV5Env", "HopperV5Env", "Walker2dV5Env",
-    "env_class", "env_config", "list_envs", "make_env", "register_env", "compile_physics", "eager_physics",
+    "MultiAgentDiffEnv", "MultiSwimmerEnv", "is_multi_agent", "env_class", "env_config", "list_envs", "make_env", "register_env", "compile_physics", "eager_physics",
 ]

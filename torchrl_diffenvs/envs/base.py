@@ -172,22 +172,38 @@ class DiffEnv(EnvBase):
             params=unbounded_like(self.params),
             episode_step=Unbounded(shape=(n,), dtype=torch.int64, device=self.device),
         )
-        self.observation_spec = Composite(
-            observation=Unbounded(shape=(n, self.observation_dim), dtype=dtype, device=self.device),
-            **carried,
-            shape=(n,),
-            device=self.device,
-        )
+        observation, action, reward = self._policy_specs()
+        self.observation_spec = Composite(**observation, **carried, shape=(n,), device=self.device)
         # The env is stateless: everything needed to step it travels in the TensorDict.
         self.state_spec = Composite(carried, shape=(n,), device=self.device).clone()
-        self.action_spec = Bounded(
-            low=self.action_low, high=self.action_high, shape=(n, self.action_dim), dtype=dtype, device=self.device
-        )
-        self.reward_spec = Unbounded(shape=(n, 1), dtype=dtype, device=self.device)
+        self.action_spec = action
+        self.reward_spec = reward
+        self._action_key, self._reward_key = self.action_key, self.reward_key  # cached: read every step
         done = Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device)
         self.done_spec = Composite(
             done=done, terminated=done.clone(), truncated=done.clone(), shape=(n,), device=self.device
         )
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        """One env's action shape: ``(action_dim,)`` (a multi-agent env: ``(num_agents, action_dim)``)."""
+        return (self.action_dim,)
+
+    def _policy_specs(self) -> tuple[dict, object, object]:
+        """The specs of what a policy reads and writes: ``({"observation": spec}, action_spec,
+        reward_spec)``; the multi-agent base moves them into an ``"agents"`` group."""
+        n, dtype = self.num_envs, self.float_dtype
+        observation = Unbounded(shape=(n, self.observation_dim), dtype=dtype, device=self.device)
+        action = Bounded(low=self.action_low, high=self.action_high, shape=(n, self.action_dim), dtype=dtype,
+                         device=self.device)
+        return {"observation": observation}, action, Unbounded(shape=(n, 1), dtype=dtype, device=self.device)
+
+    def _policy_entries(self, observation: torch.Tensor, reward: torch.Tensor | None) -> dict:
+        """The output entries a policy reads (and the reward), laid out as :meth:`_policy_specs` says."""
+        out = {"observation": observation}
+        if reward is not None:
+            out["reward"] = reward.unsqueeze(-1)
+        return out
 
     # ------------------------------------------------------------------ helpers for tasks
     def uniform(self, low: float, high: float, *shape: int) -> torch.Tensor:
@@ -204,14 +220,14 @@ class DiffEnv(EnvBase):
 
     # ------------------------------------------------------------------ TorchRL plumbing
     def _check_action(self, action: torch.Tensor | None) -> None:
-        expected = (self.num_envs, self.action_dim)
+        expected = (self.num_envs, *self.action_shape)
         if action is None:
-            raise KeyError(f"{self.name}: the input TensorDict has no 'action' entry (expected shape {expected})")
-        if tuple(action.shape) != expected:
-            raise ValueError(
-                f"{self.name}: expected an action of shape {expected} ([num_envs, action_dim]), "
-                f"got {tuple(action.shape)}"
+            raise KeyError(
+                f"{self.name}: the input TensorDict has no {self._action_key!r} entry (expected shape {expected})"
             )
+        if tuple(action.shape) != expected:
+            layout = "[num_envs, action_dim]" if len(expected) == 2 else "[num_envs, num_agents, action_dim]"
+            raise ValueError(f"{self.name}: expected an action of shape {expected} ({layout}), got {tuple(action.shape)}")
         if action.dtype != self.float_dtype:
             raise TypeError(f"{self.name}: expected an action of dtype {self.float_dtype}, got {action.dtype}")
 
@@ -258,7 +274,7 @@ class DiffEnv(EnvBase):
             terminated = torch.zeros(n, dtype=torch.bool, device=self.device)
         truncated = self._truncated(episode_step, terminated)
         out = {
-            "observation": self.observation(state, params),
+            **self._policy_entries(self.observation(state, params), reward),
             "state": TensorDict(dict(state), batch_size=[n]),
             "params": params,
             "episode_step": episode_step,
@@ -266,12 +282,10 @@ class DiffEnv(EnvBase):
             "truncated": truncated.unsqueeze(-1),
             "done": (terminated | truncated).unsqueeze(-1),
         }
-        if reward is not None:
-            out["reward"] = reward.unsqueeze(-1)
         return TensorDict(out, batch_size=[n], device=self.device)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action", None)
+        action = tensordict.get(self._action_key, None)
         self._check_action(action)
         if self.clip_actions:
             action = action.clamp(self.action_low, self.action_high)
@@ -343,7 +357,7 @@ class DiffEnv(EnvBase):
         because ``nn.Module.__setattr__`` costs about 7 us per call, a tenth of a ``_step``.
         """
         params = tensordict.get("params", None)
-        reward = tensordict.get("reward", None)
+        reward = tensordict.get(self._reward_key, None)
         source = {
             "state": {key: value.detach() for key, value in tensordict.get("state").items()},
             "params": None if params is None else {key: value.detach() for key, value in params.items()},

@@ -24,7 +24,6 @@ class SwimmerEnv(DiffEnv):
     name = "swimmer"
     action_dim = 2
     default_params = {"max_accel": 1.0, "urchin_sharpness": 30.0, "dt": 0.05}
-    MAX_RESAMPLES = 1000
 
     def __init__(self, num_envs=1, *, num_urchins: int = 5, urchin_clearance: float = 0.25,
                  observe_urchins: bool = True, **kwargs):
@@ -41,15 +40,8 @@ class SwimmerEnv(DiffEnv):
 
     def initial_state(self, params, n):
         pos, goal = self.uniform(-1.0, 1.0, n, 2), self.uniform(-1.0, 1.0, n, 2)
-        urchins = self.uniform(-1.0, 1.0, n, self.num_urchins, 2)
-        for _ in range(self.MAX_RESAMPLES):
-            too_close = torch.zeros(urchins.shape[:-1], dtype=torch.bool, device=urchins.device)
-            for point in (pos, goal):
-                too_close |= (urchins - point.unsqueeze(-2)).norm(dim=-1) < self.urchin_clearance
-            if not too_close.any():
-                break
-            fresh = self.uniform(-1.0, 1.0, n, self.num_urchins, 2)
-            urchins = torch.where(too_close.unsqueeze(-1), fresh, urchins)
+        urchins = redraw_near(self, self.uniform(-1.0, 1.0, n, self.num_urchins, 2),
+                              lambda points: torch.stack([pos, goal], dim=1), self.urchin_clearance)
         return {"pos": pos, "vel": torch.zeros_like(pos), "goal": goal, "urchins": urchins}
 
     def transition(self, state, action, params):
@@ -65,3 +57,23 @@ class SwimmerEnv(DiffEnv):
     def observation(self, state, params):
         seen = [state["urchins"].flatten(-2)] if self.observe_urchins else []
         return torch.cat([*seen, state["pos"], state["vel"], state["goal"]], dim=-1)
+
+
+def redraw_near(env: DiffEnv, points: torch.Tensor, anchors, clearance: float, exclude_self: bool = False,
+                max_redraws: int = 1000) -> torch.Tensor:
+    """Redraws ``points`` ``[n, K, 2]`` from ``U[-1, 1]^2`` (``env.uniform``, so seeding holds)
+    where one lies closer than ``clearance`` to an anchor, until none does (or ``max_redraws``).
+
+    ``anchors(points) -> [n, M, 2]``: recomputed every round, so the points can be their own
+    anchors (``exclude_self`` then skips each point's distance to itself: ``M == K``).
+    """
+    n, k = points.shape[:2]
+    for _ in range(max_redraws):
+        distance = (points.unsqueeze(-2) - anchors(points).unsqueeze(-3)).norm(dim=-1)  # [n, K, M]
+        if exclude_self:
+            distance = distance + torch.eye(k, dtype=distance.dtype, device=distance.device) * clearance
+        too_close = (distance < clearance).any(-1)
+        if not too_close.any():
+            break
+        points = torch.where(too_close.unsqueeze(-1), env.uniform(-1.0, 1.0, n, k, 2), points)
+    return points

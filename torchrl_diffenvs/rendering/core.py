@@ -248,7 +248,10 @@ def _snapshot(source, index: int, default_params: TensorDictBase):
     params_source = default_params if params_source is None else params_source
     params = {key: _to_python(value[index]) for key, value in params_source.items()}
     reward = source.get("reward", None)
-    reward = None if reward is None else float(reward[index].detach().reshape(-1)[0])
+    if reward is None and isinstance(source, TensorDictBase):  # a multi-agent step: ("agents", "reward")
+        reward = source.get(("agents", "reward"), None)
+    # one colour per env: the mean over its agents (a single-agent reward is one number)
+    reward = None if reward is None else float(reward[index].detach().to(torch.float64).mean())
     return state, params, reward
 
 

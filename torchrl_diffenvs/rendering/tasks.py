@@ -140,6 +140,28 @@ def draw_swimmer(canvas: Canvas, state, params, color) -> None:
     canvas.circle(transform([(0.075, 0.025)], heading, pos)[0], 0.016, INK)
 
 
+# One colour per fish (its tail and its goal's ring), so that a fish can be matched to its goal.
+AGENT_COLORS = [(31, 119, 180), (255, 127, 14), (148, 103, 189), (23, 190, 207), (227, 119, 194), (140, 86, 75)]
+
+
+def draw_multi_swimmer(canvas: Canvas, state, params, color) -> None:
+    """The single swimmer's picture for every fish: goal discs ringed in the fish's colour, the
+    urchins, and each fish's body in the reward colour (the mean over fish) with a tail in its own colour."""
+    positions = np.asarray(state["pos"]).reshape(-1, 2)
+    velocities = np.asarray(state["vel"]).reshape(-1, 2)
+    goals = np.asarray(state["goal"]).reshape(-1, 2)
+    for i, goal in enumerate(goals):
+        canvas.circle(goal, 0.2, GOAL, outline=AGENT_COLORS[i % len(AGENT_COLORS)])
+    for urchin in np.asarray(state["urchins"]).reshape(-1, 2):
+        canvas.polygon(_URCHIN + urchin, INK)
+    for i, (pos, vel) in enumerate(zip(positions, velocities)):
+        speed = math.hypot(vel[0], vel[1])
+        heading = math.atan2(vel[1], vel[0]) if math.isfinite(speed) and speed > 1e-6 else 0.0
+        canvas.polygon(transform(_FISH_TAIL, heading, pos), AGENT_COLORS[i % len(AGENT_COLORS)], outline=INK)
+        canvas.polygon(transform(_FISH_BODY, heading, pos), color, outline=INK)
+        canvas.circle(transform([(0.075, 0.025)], heading, pos)[0], 0.016, INK)
+
+
 # ---------------------------------------------------------------------------- registration
 #: Gymnasium Pendulum-v1's worst reward, -(pi^2 + 0.1 * 8^2 + 0.001 * 2^2).
 PENDULUM_V1_MIN_REWARD = -(math.pi**2 + 0.1 * 8**2 + 0.001 * 2**2)
@@ -162,3 +184,4 @@ MOUNTAINCAR = Drawer(draw_mountaincar, bounds=(-1.2, 0.6, 0.0, 1.25))
 MOUNTAINCAR_CONTINUOUS_V0 = Drawer(draw_mountaincar, bounds=(-1.2, 0.6, 0.0, 1.25), reward_range=(0.0, 100.0))
 REACHER = Drawer(draw_reacher, bounds=_reacher_bounds)
 SWIMMER = Drawer(draw_swimmer, bounds=SQUARE(1.5))
+MULTI_SWIMMER = Drawer(draw_multi_swimmer, bounds=SQUARE(1.5))
