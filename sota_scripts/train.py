@@ -366,7 +366,7 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path) -> dict:
         env.set_seed(cfg.eval.seed + round_index)
         with torch.no_grad(), set_exploration_type(exploration_of(cfg)):
             rollout = env.rollout(steps, policy, break_when_any_done=False)
-        returns.extend(episode_returns(rollout).double().tolist())
+        returns.extend(episode_returns(rollout, env.reward_key).double().tolist())
     returns = torch.tensor(returns[:games], dtype=torch.float64)
     scores = {"return": returns.mean().item(), "return_std": returns.std(unbiased=False).item(),
               "return_min": returns.min().item(), "return_max": returns.max().item()}

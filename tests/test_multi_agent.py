@@ -279,3 +279,127 @@ def test_render_draws_every_fish():
     assert frame.shape == (96, 96, 3)
     one = make(num_envs=2, num_agents=1, dtype=torch.float32)
     assert (frame != one.render(one.rollout(3)[:, -1]["next"], size=96)).any()
+
+
+# ---------------------------------------------------------------------------- learners
+def window_of(env, horizon=6, seed=0):
+    """A multi-agent window with the graph on, from a parameter-shared actor."""
+    from torchrl_diffenvs.collectors import DiffWindowCollector
+    from torchrl_diffenvs.modules import make_actor
+
+    torch.manual_seed(seed)
+    actor = make_actor(env, hidden=(16,))
+    return actor, DiffWindowCollector(env, actor, horizon=horizon).rollout()
+
+
+def agent_slice(window, i):
+    """Agent ``i``'s part of a multi-agent window, laid out as a single-agent window."""
+    out = window.exclude("agents", ("next", "agents"))
+    out.set("observation", window["agents", "observation"][:, :, i])
+    out.set(("next", "observation"), window["next", "agents", "observation"][:, :, i])
+    out.set(("next", "reward"), window["next", "agents", "reward"][:, :, i])
+    return out
+
+
+def test_bptt_loss_is_the_mean_of_the_agents_returns():
+    from torchrl_diffenvs.objectives import BPTTLoss
+
+    env = make(num_envs=3, num_agents=2, max_episode_steps=4)  # an episode ends inside the window
+    actor, window = window_of(env)
+    loss = BPTTLoss(actor, gamma=0.9)
+    loss.set_keys(reward=("agents", "reward"))
+    per_agent = [BPTTLoss(actor, gamma=0.9)(agent_slice(window, i))["loss_actor"] for i in range(2)]
+    torch.testing.assert_close(loss(window)["loss_actor"], sum(per_agent) / 2)
+
+
+def test_shac_loss_and_targets_are_each_agents_own():
+    """Per agent, the multi-agent SHAC loss and critic targets equal the single-agent ones on that
+    agent's slice of the window (its rewards, its values; the episode ends are shared)."""
+    from torchrl_diffenvs.modules import make_critic
+    from torchrl_diffenvs.objectives import SHACLoss
+
+    env = make(num_envs=3, num_agents=2, max_episode_steps=4)
+    actor, window = window_of(env)
+    torch.manual_seed(1)
+    critic = make_critic(env, hidden=(16,))  # decentralised: each agent's value from its own observation
+    loss = SHACLoss(actor, critic, gamma=0.9, lmbda=0.8)
+    loss.set_keys(reward=("agents", "reward"), value=("agents", "state_value"))
+    out = loss(window)
+    # the same network as a single-agent critic V(o) (parameter sharing: one MLP for every agent)
+    from torchrl_diffenvs.modules import LeanModule
+
+    class OneAgent(torch.nn.Module):
+        def __init__(self, net):
+            super().__init__()
+            self.net = net
+
+        def forward(self, observation):
+            return self.net(observation.unsqueeze(-2).expand(*observation.shape[:-1], 2, -1))[..., 0, :]
+
+    single_critic = LeanModule(OneAgent(critic.module), in_keys=["observation"], out_keys=["state_value"])
+    reference = SHACLoss(actor, single_critic, gamma=0.9, lmbda=0.8)
+    reference.load_state_dict(loss.state_dict())  # the same target weights
+    slices = [agent_slice(window, i).exclude("value_target") for i in range(2)]
+    per_agent = [reference(piece) for piece in slices]
+    torch.testing.assert_close(out["loss_actor"], sum(o["loss_actor"] for o in per_agent) / 2)
+    assert window["next", "done"].any()  # the shared episode end is inside the window
+    for i, piece in enumerate(slices):
+        torch.testing.assert_close(window["value_target"][:, :, i], piece["value_target"])
+
+
+@pytest.mark.parametrize("loss", ["bptt", "shac", "mappo", "ippo"])
+def test_train_script_trains_and_resumes_exactly_on_multi_swimmer(loss, tmp_path):
+    from test_train import STEPS_PER_ITER, read_jsonl, tiny_cfg, train_script
+
+    from torchrl_diffenvs.training import load_checkpoint
+
+    steps = STEPS_PER_ITER[loss]
+    extra = [f"train.checkpoint_interval={2 * steps}", "eval.interval=16", "env.options.num_agents=2"]
+    result_a = train_script.run(tiny_cfg("multi_swimmer", loss, 4, *extra), tmp_path / "a")
+    assert math.isfinite(result_a["eval/return"])
+    stopped = tmp_path / "a" / "checkpoints" / f"ckpt_{2 * steps:012d}.pt"
+    result_b = train_script.run(tiny_cfg("multi_swimmer", loss, 4, *extra, f"resume={stopped}"), tmp_path / "b")
+    final_a, final_b = (load_checkpoint(tmp_path / run / "checkpoints" / "last.pt") for run in "ab")
+    for key, value in final_a["policy"].items():
+        assert torch.equal(value, final_b["policy"][key]), key
+    rows = [[{k: v for k, v in r.items() if not k.startswith("time/")} for r in read_jsonl(tmp_path / run / "metrics.jsonl")]
+            for run in "ab"]
+    assert rows[0] == rows[1] and result_b["eval/return"] == result_a["eval/return"]
+
+
+def test_mappo_uses_a_centralised_critic_and_ippo_a_decentralised_one():
+    from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
+    from torchrl.objectives.value import MultiAgentGAE
+
+    from test_train import make_cfg
+    from torchrl_diffenvs.learners import make_learner
+
+    env = make(num_envs=4, num_agents=3, dtype=torch.float32)
+    td = env.reset()
+    for preset, loss_class in (("mappo", MAPPOLoss), ("ippo", IPPOLoss)):
+        cfg = make_cfg("env=multi_swimmer", f"loss={preset}")
+        learner = make_learner(cfg.loss, env, 10_000)
+        assert type(learner.loss) is loss_class and isinstance(learner.loss.value_estimator, MultiAgentGAE)
+        values = learner.critic(td.clone())["agents", "state_value"]
+        assert values.shape == (4, 3, 1)
+        # moving agent 1's observation changes agent 0's value only with a centralised critic
+        moved = td.clone()
+        moved["agents", "observation"][:, 1] += 1.0
+        changed = (learner.critic(moved)["agents", "state_value"][:, 0] != values[:, 0]).any()
+        assert bool(changed) == (preset == "mappo")
+        learner.close()
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["env=multi_swimmer", "loss=sac"], "is multi-agent; train it with bptt, shac, mappo or ippo"),
+    (["env=multi_swimmer", "loss=shac", "loss.critic_input=state"], "its critic reads the agents' observations"),
+    (["env=pendulum", "loss=mappo"], "centralised_critic=true: env 'pendulum' has a single agent"),
+    (["env=multi_swimmer", "loss=ppo", "env.options.num_agents=0"], "num_agents must be an integer >= 1"),
+])
+def test_train_script_rejects_what_a_multi_agent_env_cannot_do(overrides, message):
+    from test_train import make_cfg, train_script
+
+    from torchrl_diffenvs.training import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        train_script.validate_config(make_cfg(*overrides))

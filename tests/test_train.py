@@ -20,7 +20,7 @@ from omegaconf import OmegaConf
 from hydra import compose, initialize_config_dir
 from hydra.errors import MissingConfigException
 
-from _env_helpers import classic_envs
+from _env_helpers import classic_envs, multi_agent_envs
 from torchrl_diffenvs import list_envs
 from torchrl_diffenvs.envs import env_config
 from torchrl_diffenvs.evaluation import episode_returns
@@ -62,7 +62,8 @@ TINY = {
     "sac": ["loss.rollout_len=2", "loss.init_random_frames=8", "loss.batch_size=8", "loss.buffer_size=256",
             "loss.utd_ratio=0.25", "loss.actor.hidden=[16]", "loss.qvalue.hidden=[16]"],
 }
-STEPS_PER_ITER = {"bptt": 16, "shac": 16, "ppo": 16, "sac": 8}  # num_envs x horizon / rollout_len
+TINY.update(mappo=TINY["ppo"], ippo=TINY["ppo"])
+STEPS_PER_ITER = {"bptt": 16, "shac": 16, "ppo": 16, "sac": 8, "mappo": 16, "ippo": 16}  # num_envs x horizon / rollout_len
 
 
 def make_cfg(*overrides: str):
@@ -81,12 +82,14 @@ def read_jsonl(path: Path) -> list[dict]:
 
 
 # ---------------------------------------------------------------------- configuration
+# configs/loss/<preset>.yaml: a learner with other settings (its loss.name is the learner's)
+PRESETS = {"bptt_reference": "bptt", "shac_reference": "shac", "mappo": "ppo", "ippo": "ppo"}
 REFERENCE_LOSSES = ("bptt_reference", "shac_reference")
 
 
 def test_every_registered_env_and_loss_has_a_config():
     loss_files = {p.stem for p in (CONFIGS / "loss").glob("*.yaml")}
-    assert loss_files == set(LOSSES) | set(REFERENCE_LOSSES)
+    assert loss_files == set(LOSSES) | set(PRESETS)
     assert not (CONFIGS / "env").exists(), "env sections come from the task registrations"
     for name in list_envs():
         cfg = make_cfg(f"env={name}", "loss=shac")
@@ -99,10 +102,18 @@ def test_every_registered_env_and_loss_has_a_config():
 
 @pytest.mark.parametrize("env", list_envs())
 def test_default_config_of_every_pair_is_valid(env):
-    for loss in (*LOSSES, *REFERENCE_LOSSES):
+    multi_agent = env in multi_agent_envs()
+    for loss in (*LOSSES, *PRESETS):
         cfg = make_cfg(f"env={env}", f"loss={loss}")
-        assert cfg.env.name == env and cfg.loss.name == loss.removesuffix("_reference")
-        train_script.validate_config(cfg)  # raises on any problem
+        assert cfg.env.name == env and cfg.loss.name == PRESETS.get(loss, loss)
+        if multi_agent and loss == "sac":
+            with pytest.raises(ConfigError, match="is multi-agent; train it with bptt, shac, mappo or ippo"):
+                train_script.validate_config(cfg)
+        elif not multi_agent and loss == "mappo":
+            with pytest.raises(ConfigError, match="centralised_critic=true: env .* has a single agent"):
+                train_script.validate_config(cfg)
+        else:
+            train_script.validate_config(cfg)  # raises on any problem
 
 
 def test_a_newly_registered_task_is_trainable_without_a_config_file():

@@ -11,8 +11,12 @@ from collections.abc import Iterator
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import Composite
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from .envs.multi_agent import policy_keys, reward_per_env
 
 __all__ = ["DiffWindowCollector", "EpisodeReturnTracker", "batch_size_of"]
 
@@ -45,16 +49,18 @@ class EpisodeReturnTracker:
     in checkpoints so that a resumed run reports the same returns.
     """
 
-    def __init__(self, num_envs: int, device: torch.device | str = "cpu"):
+    def __init__(self, num_envs: int, device: torch.device | str = "cpu", reward_key: NestedKey = "reward"):
         self.running = torch.zeros(num_envs, dtype=torch.float64, device=device)
+        self.reward_key = reward_key
 
     def update(self, batch: TensorDictBase) -> tuple[list[float], torch.Tensor]:
-        """Adds a ``[N, T]`` batch (``("next", "reward")``, ``("next", "done")``).
+        """Adds a ``[N, T]`` batch (``("next", reward_key)``, ``("next", "done")``).
 
         Returns the returns of the episodes that ended in it and the running return at every step
-        ``[N, T]`` (float64; at a done step, the finished episode's return).
+        ``[N, T]`` (float64; at a done step, the finished episode's return). A multi-agent reward
+        (``("agents", "reward")``) counts as the mean over the agents.
         """
-        reward = batch.get(("next", "reward")).detach().reshape(batch.shape).to(torch.float64)
+        reward = reward_per_env(batch, self.reward_key).detach().to(torch.float64)
         done = batch.get(("next", "done")).reshape(batch.shape)
         running = self.running
         per_step = torch.empty_like(reward)
@@ -163,9 +169,9 @@ class DiffWindowCollector:
         self.finished_returns: list[float] = []
         self.windows = 0
         # what the env needs to continue: its observation/state entries and the done flags
-        self._carry_keys = list(env.observation_spec.keys()) + list(env.done_keys)
+        self._carry_keys = list(env.observation_spec.keys(True, True)) + list(env.done_keys)  # leaves: not a group's reward
         self._carried: TensorDictBase | None = None
-        self.tracker = EpisodeReturnTracker(self.num_envs, env.device)
+        self.tracker = EpisodeReturnTracker(self.num_envs, env.device, env.reward_key)
 
     @property
     def num_envs(self) -> int:
@@ -191,7 +197,7 @@ class DiffWindowCollector:
             step = self._carried.get("episode_step")
             offset = torch.randint(self.env.max_episode_steps, step.shape, generator=self.generator, device="cpu")
             self._carried.set("episode_step", step + offset.to(step.device))
-        self.tracker = EpisodeReturnTracker(self.num_envs, self.env.device)
+        self.tracker = EpisodeReturnTracker(self.num_envs, self.env.device, self.env.reward_key)
         return self._carried
 
     def state_dict(self) -> dict:
@@ -210,16 +216,21 @@ class DiffWindowCollector:
     def load_state_dict(self, state: dict) -> None:
         """Restores :meth:`state_dict` (same env class and ``num_envs``)."""
         carried = state["carried"]
-        self._carried = (
-            None
-            if carried is None
-            else TensorDict(carried, batch_size=[self.num_envs], device=self.env.device)
-        )
+        self._carried = None if carried is None else self._from_dict(carried)
         self.tracker.load_state_dict(state["tracker"])
         self.finished_returns = list(state["finished_returns"])
         self.windows = int(state["windows"])
         if state.get("env_rng") is not None and isinstance(getattr(self.env, "rng", None), torch.Generator):
             self.env.rng.set_state(state["env_rng"].cpu())  # generator states are CPU byte tensors, also for CUDA
+
+    def _from_dict(self, carried: dict) -> TensorDictBase:
+        """The carried TensorDict from its plain nested dict: batch ``[N]``, and a group's own
+        batch size where the env's spec has one (``"agents"``: ``[N, A]``)."""
+        td = TensorDict(carried, batch_size=[self.num_envs], device=self.env.device)
+        for key, spec in self.env.full_observation_spec.items(True):
+            if isinstance(spec, Composite) and len(spec.shape) > td.batch_dims and key in td.keys(True):
+                td.get(key).batch_size = spec.shape
+        return td
 
     # ------------------------------------------------------------------ collection
     def rollout(self) -> TensorDictBase:
@@ -249,16 +260,18 @@ class DiffWindowCollector:
 
     def _check_differentiable(self, window: TensorDictBase) -> None:
         """A window whose actions carry gradients must give rewards or observations that do."""
-        action = window.get("action", None)
+        keys = policy_keys(self.env)
+        action = window.get(keys.action, None)
         if action is None or not action.requires_grad:
             return  # nothing to differentiate (e.g. a policy without parameters)
         nxt = window.get("next")
-        outputs = [nxt.get(key, None) for key in ("reward", "observation")]
+        outputs = [nxt.get(key, None) for key in (keys.reward, keys.observation)]
         if not any(value is not None and value.requires_grad for value in outputs):
             raise RuntimeError(
                 f"DiffWindowCollector: {type(self.env).__name__} returned rewards and observations without "
                 "gradient w.r.t. the actions, so BPTT and SHAC cannot learn through it. They need a differentiable "
-                "env: its step must compute ('next', 'reward') and ('next', 'observation') from the action with "
+                f"env: its step must compute ('next', {keys.reward!r}) and ('next', {keys.observation!r}) from the "
+                "action with "
                 "differentiable torch operations (no .detach(), .item(), numpy or torch.no_grad inside _step)."
             )
 
@@ -266,8 +279,8 @@ class DiffWindowCollector:
     def _track_returns(self, window: TensorDictBase) -> None:
         """Writes ``("next", "episode_reward")`` and records the returns of finished episodes."""
         self.finished_returns, running = self.tracker.update(window)
-        reward = window.get(("next", "reward"))
-        window.set(("next", "episode_reward"), running.to(reward.dtype).reshape(reward.shape))
+        dtype = window.get(("next", self.env.reward_key)).dtype
+        window.set(("next", "episode_reward"), running.to(dtype).unsqueeze(-1))  # [N, H, 1], the team's for agents
 
     def __iter__(self) -> Iterator[TensorDictBase]:
         while self.total_windows is None or self.windows < self.total_windows:

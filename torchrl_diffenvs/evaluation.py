@@ -6,7 +6,8 @@ Given a ``seed``, every evaluation restarts the evaluation envs from it, so succ
 evaluations (and runs with different training seeds) are scored on the same start states. Each
 env plays one episode of ``steps`` steps; the score of an env is the undiscounted sum of rewards
 up to and including the step where its first episode ends (termination or truncation): later
-episodes, started by the auto-reset, are not counted.
+episodes, started by the auto-reset, are not counted. On a multi-agent env the score is the mean
+over its agents of their returns.
 """
 from __future__ import annotations
 
@@ -14,7 +15,10 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from .envs.multi_agent import reward_per_env
 
 __all__ = [
     "episode_returns", "evaluate", "evaluate_random", "first_episode_mask", "record_video", "uniform_random_policy",
@@ -26,23 +30,25 @@ def first_episode_mask(rollout: TensorDictBase) -> torch.Tensor:
     including its first ``("next", "done")``)."""
     done = rollout.get(("next", "done"))[..., 0].to(torch.int64)
     ended_before = torch.cumsum(done, dim=-1) - done  # dones strictly before t
-    return (ended_before == 0).to(rollout.get(("next", "reward")).dtype)
+    return (ended_before == 0).to(torch.float64)
 
 
-def episode_returns(rollout: TensorDictBase) -> torch.Tensor:
-    """Per-env return of the *first* episode of a ``[N, T]`` rollout (later episodes ignored)."""
-    return (rollout.get(("next", "reward"))[..., 0] * first_episode_mask(rollout)).sum(-1)
+def episode_returns(rollout: TensorDictBase, reward_key: NestedKey = "reward") -> torch.Tensor:
+    """Per-env return of the *first* episode of a ``[N, T]`` rollout (later episodes ignored);
+    a multi-agent env's (``reward_key=("agents", "reward")``) is the mean over its agents."""
+    reward = reward_per_env(rollout, reward_key)
+    return (reward * first_episode_mask(rollout).to(reward.dtype)).sum(-1)
 
 
 def uniform_random_policy(env):
     """A policy writing uniformly random actions within the action spec, drawn from ``env.rng``
     (so it neither consumes nor disturbs torch's global generator)."""
-    space = env.action_spec.space
+    space = env.full_action_spec[env.action_key].space
     low, high = space.low, space.high
 
     def policy(td: TensorDictBase) -> TensorDictBase:
         u = torch.rand(low.shape, generator=env.rng, device=low.device, dtype=low.dtype)
-        return td.set("action", low + (high - low) * u)
+        return td.set(env.action_key, low + (high - low) * u)
 
     return policy
 
@@ -68,7 +74,7 @@ def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, 
     steps: how well a task is held once reached, e.g. a pendulum kept upright).
     """
     rollout = _rollout(env, policy, steps, seed, exploration_type)
-    reward = rollout.get(("next", "reward"))[..., 0].double()
+    reward = reward_per_env(rollout, env.reward_key).double()  # the agents' mean on a multi-agent env
     in_first = first_episode_mask(rollout)
     returns = (reward * in_first).sum(-1)
     return {
@@ -84,7 +90,7 @@ def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, 
 def evaluate_random(env, steps: int | None = None, seed: int | None = None) -> float:
     """Mean return of uniformly random actions on the same start states as :func:`evaluate`."""
     rollout = _rollout(env, uniform_random_policy(env), steps, seed, ExplorationType.RANDOM)
-    return episode_returns(rollout).double().mean().item()
+    return episode_returns(rollout, env.reward_key).double().mean().item()
 
 
 def record_video(env, policy, steps: int, seed: int, path: str | Path, env_index: int = 0, fps: int = 30,

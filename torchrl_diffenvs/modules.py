@@ -26,9 +26,10 @@ from tensordict import TensorDictBase
 from tensordict.nn import AddStateIndependentNormalScale, InteractionType, TensorDictModuleBase
 from torch import nn
 from torch.distributions import AffineTransform
-from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.modules import MLP, MultiAgentMLP, ProbabilisticActor, TanhNormal, ValueOperator
 
 from ._compat import SafeTanhTransform, current_interaction_type, sampler_has_own_generator, standard_normal
+from .envs.multi_agent import policy_keys
 
 __all__ = [
     "LeanModule",
@@ -41,6 +42,7 @@ __all__ = [
     "privileged_inputs",
     "critic_from_config",
     "make_actor",
+    "make_agent_mlp",
     "make_critic",
     "make_mlp",
     "make_qvalue",
@@ -191,6 +193,34 @@ def make_mlp(
     return net
 
 
+def make_agent_mlp(
+    in_dim: int,
+    out_dim: int,
+    num_agents: int,
+    hidden: Sequence[int] = (64, 64),
+    activation: type[nn.Module] = nn.ELU,
+    layer_norm: bool = True,
+    dtype: torch.dtype = torch.float32,
+    norm_after_activation: bool = False,
+    init: str = "default",
+    centralised: bool = False,
+) -> MultiAgentMLP:
+    """The networks of a multi-agent env: TorchRL's ``MultiAgentMLP`` with parameters shared by the
+    agents, on ``[..., num_agents, in_dim]``. ``centralised=False``: each agent's output from its own
+    input (a decentralised policy or critic: :func:`make_mlp` applied to every agent);
+    ``True``: from every agent's input (MAPPO's centralised critic)."""
+    if norm_after_activation or init != "default":
+        raise ValueError("the multi-agent networks (TorchRL's MultiAgentMLP) are Linear-LayerNorm-activation with "
+                         "PyTorch's initialisation: set norm_after_activation=false and init=default")
+    norm = {}
+    if layer_norm:
+        norm = {"norm_class": nn.LayerNorm,
+                "norm_kwargs": [{"normalized_shape": int(width), "dtype": dtype} for width in hidden]}
+    return MultiAgentMLP(in_dim, out_dim, num_agents, centralized=centralised, share_params=True,
+                         num_cells=[int(width) for width in hidden], activation_class=activation,
+                         layer_kwargs={"dtype": dtype}, **norm)
+
+
 class _ScaledTanh(nn.Module):
     """``low + (tanh(x) + 1) / 2 * (high - low)``: squashes into the action bounds."""
 
@@ -220,11 +250,11 @@ def env_dims(env, in_key="observation") -> tuple[int, int, torch.dtype]:
         )
     if not observation.dtype.is_floating_point:
         raise ValueError(f"{type(env).__name__}: {in_key!r} must be floating point, got {observation.dtype}")
-    return int(observation.shape[-1]), int(env.action_spec.shape[-1]), observation.dtype
+    return int(observation.shape[-1]), int(env.full_action_spec[env.action_key].shape[-1]), observation.dtype
 
 
 def _action_bounds(env) -> tuple[float, float]:
-    spec = env.action_spec_unbatched
+    spec = env.full_action_spec_unbatched[env.action_key]
     low, high = spec.space.low, spec.space.high
     if not (torch.all(low == low.flatten()[0]) and torch.all(high == high.flatten()[0])):
         raise ValueError(f"make_actor: expected the same bounds for every action dimension, got {low} and {high}")
@@ -252,7 +282,7 @@ class TanhNormalActor(ProbabilisticActor):
     def __init__(self, module: TensorDictModuleBase, low: float, high: float, **kwargs):
         super().__init__(
             module,
-            in_keys=["loc", "scale"],
+            in_keys=list(module.out_keys),  # "loc", "scale" (or ("agents", "loc"), ...)
             distribution_class=TanhNormal,
             distribution_kwargs={"low": low, "high": high},
             **kwargs,
@@ -283,10 +313,11 @@ class TanhNormalActor(ProbabilisticActor):
         if mode is None:
             return super().forward(tensordict, tensordict_out, **kwargs)
         tensordict = self.module[0](tensordict)  # writes "loc" and "scale"
-        loc = tensordict.get("loc")
+        loc_key, scale_key = self.module[0].out_keys
+        loc = tensordict.get(loc_key)
         pre_tanh = loc
         if mode is InteractionType.RANDOM:
-            scale = tensordict.get("scale")
+            scale = tensordict.get(scale_key)
             # Normal.rsample: loc + eps * scale, eps from the global stream
             pre_tanh = loc + standard_normal(loc.shape, dtype=loc.dtype, device=loc.device) * scale
         action = self._tanh(pre_tanh)
@@ -307,9 +338,13 @@ def make_actor(
     distribution: str = "tanh_normal",
     normalizer: ObservationNormalizer | None = None,
     return_log_prob: bool = False,
-    in_key: str = "observation",
+    in_key: str | None = None,
 ) -> TensorDictModuleBase:
     """A policy for ``env`` reading ``in_key`` and writing ``"action"``.
+
+    On a multi-agent env (``("agents", ...)`` keys) the same policy acts for every agent from its
+    own observation: a parameter-shared ``MultiAgentMLP`` reading ``("agents", "observation")``
+    and writing ``("agents", "loc")``, ``("agents", "scale")``, ``("agents", "action")``.
 
     Args:
         env: a :class:`~torchrl_diffenvs.DiffEnv`, or any TorchRL env with a floating-point
@@ -326,21 +361,28 @@ def make_actor(
             policy); no sampling.
         normalizer: an :class:`ObservationNormalizer` applied to the observation first.
         return_log_prob: store the log-probability of the sampled action (needed by PPO).
-        in_key: the observation entry to read.
+        in_key: the observation entry to read (default: the env's, :func:`~torchrl_diffenvs.envs.policy_keys`).
     """
     if distribution not in DISTRIBUTIONS:
         raise ValueError(f"make_actor: unknown distribution {distribution!r}; valid: {DISTRIBUTIONS}")
+    keys = policy_keys(env)
+    in_key = keys.observation if in_key is None else in_key
     observation_dim, action_dim, dtype = env_dims(env, in_key)
     low, high = _action_bounds(env)
-    net = make_mlp(observation_dim, action_dim, hidden, activation, layer_norm, dtype, norm_after_activation, init)
+    if keys.num_agents is None:
+        net = make_mlp(observation_dim, action_dim, hidden, activation, layer_norm, dtype, norm_after_activation, init)
+    else:
+        net = make_agent_mlp(observation_dim, action_dim, keys.num_agents, hidden, activation, layer_norm, dtype,
+                             norm_after_activation, init)
     prefix = [normalizer] if normalizer is not None else []
     if distribution == "deterministic":
-        return LeanModule(nn.Sequential(*prefix, net, _ScaledTanh(low, high)), in_keys=[in_key], out_keys=["action"])
+        return LeanModule(nn.Sequential(*prefix, net, _ScaledTanh(low, high)), in_keys=[in_key], out_keys=[keys.action])
     # loc = MLP(observation), scale = exp(log-std), one learned value per action dimension
     scale = AddStateIndependentNormalScale(action_dim, scale_mapping="exp", init_value=float(init_log_std))
     head = nn.Sequential(*prefix, net, scale.to(dtype))
-    module = LeanModule(head, in_keys=[in_key], out_keys=["loc", "scale"])
-    return TanhNormalActor(module, low, high, spec=env.action_spec_unbatched, return_log_prob=return_log_prob)
+    module = LeanModule(head, in_keys=[in_key], out_keys=[keys.loc, keys.scale])
+    return TanhNormalActor(module, low, high, spec=env.full_action_spec_unbatched[keys.action], out_keys=[keys.action],
+                           return_log_prob=return_log_prob, log_prob_key=keys.log_prob)
 
 
 CRITIC_INPUTS = ("observation", "state")
@@ -404,6 +446,7 @@ def make_critic(
     normalizer: ObservationNormalizer | None = None,
     in_key: str = "observation",
     critic_input: str = "observation",
+    centralised: bool = False,
 ) -> LeanModule:
     """A state-value network writing ``"state_value"`` (``[..., 1]``).
 
@@ -413,7 +456,23 @@ def make_critic(
     flattened per env), while the actor keeps seeing the observation only. ``normalizer``
     applies to the observation part; the state and parameters enter raw (the network's
     LayerNorm takes their scale).
+
+    On a multi-agent env it writes ``("agents", "state_value")`` ``[..., A, 1]``, one value per
+    agent, from a parameter-shared ``MultiAgentMLP``: from the agent's own observation
+    (``centralised=False``, IPPO) or from every agent's (``centralised=True``, MAPPO).
     """
+    agent_keys = policy_keys(env)
+    if agent_keys.num_agents is not None:
+        if critic_input != "observation":
+            raise ValueError(f"critic_input={critic_input!r}: a multi-agent critic reads the agents' observations; "
+                             "use critic_input='observation' (with centralised=True it sees every agent's)")
+        observation_dim, _, dtype = env_dims(env, agent_keys.observation)
+        net = make_agent_mlp(observation_dim, 1, agent_keys.num_agents, hidden, activation, layer_norm, dtype,
+                             norm_after_activation, init, centralised=centralised)
+        return LeanModule(nn.Sequential(normalizer, net) if normalizer is not None else net,
+                          in_keys=[agent_keys.observation], out_keys=[agent_keys.value])
+    if centralised:
+        raise ValueError(f"centralised critic: {type(env).__name__} has a single agent (no ('agents', ...) group)")
     keys, event_dims, input_dim = _critic_inputs(env, in_key, critic_input)
     dtype = env_dims(env, in_key)[2]
     net = make_mlp(input_dim, 1, hidden, activation, layer_norm, dtype, norm_after_activation, init)
@@ -429,6 +488,9 @@ def make_qvalue(env, hidden: Sequence[int] = (256, 256), activation: type[nn.Mod
     """``Q(observation, action)`` writing ``"state_action_value"`` (what TorchRL's ``SACLoss``
     expects); with ``critic_input="state"``, ``Q(observation, state, params, action)`` (see
     :func:`make_critic`)."""
+    if policy_keys(env).num_agents is not None:
+        raise ValueError(f"make_qvalue: {type(env).__name__} is a multi-agent env; SAC's Q-networks are single-agent "
+                         "(train it with bptt, shac or ppo: loss=mappo / loss=ippo)")
     keys, event_dims, input_dim = _critic_inputs(env, "observation", critic_input)
     _, action_dim, dtype = env_dims(env)
     net = make_mlp(input_dim + action_dim, 1, hidden, activation, layer_norm, dtype, norm_after_activation, init)
@@ -465,7 +527,7 @@ def actor_from_config(loss_cfg: Mapping, env, return_log_prob: bool = False):
     """
     normalizer = None
     if loss_cfg.get("obs_norm", False):
-        observation_dim, _, dtype = env_dims(env)
+        observation_dim, _, dtype = env_dims(env, policy_keys(env).observation)
         normalizer = ObservationNormalizer(observation_dim, dtype=dtype).to(env.device)
     actor_cfg = loss_cfg["actor"]
     actor = make_actor(env, **network_kwargs(actor_cfg), distribution=actor_cfg.get("distribution", "tanh_normal"),
@@ -474,10 +536,10 @@ def actor_from_config(loss_cfg: Mapping, env, return_log_prob: bool = False):
 
 
 def critic_from_config(section: Mapping, env, normalizer: ObservationNormalizer | None = None,
-                       critic_input: str = "observation") -> LeanModule:
+                       critic_input: str = "observation", centralised: bool = False) -> LeanModule:
     """:func:`make_critic` from a ``loss.critic`` section, sharing the actor's normaliser."""
-    return make_critic(env, **network_kwargs(section), normalizer=normalizer,
-                       critic_input=critic_input).to(env.device)
+    return make_critic(env, **network_kwargs(section), normalizer=normalizer, critic_input=critic_input,
+                       centralised=centralised).to(env.device)
 
 
 def qvalue_from_config(section: Mapping, env, critic_input: str = "observation") -> ValueOperator:

@@ -16,13 +16,16 @@ every agent's actions, the other agents' included.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
 from torchrl.data import Bounded, Composite, Unbounded
 
 from .base import DiffEnv
 
-__all__ = ["AGENTS", "MultiAgentDiffEnv", "is_multi_agent"]
+__all__ = ["AGENTS", "MultiAgentDiffEnv", "PolicyKeys", "is_multi_agent", "policy_keys", "reward_per_env"]
 
 AGENTS = "agents"  # the group's name, TorchRL's convention
 
@@ -30,6 +33,41 @@ AGENTS = "agents"  # the group's name, TorchRL's convention
 def is_multi_agent(env) -> bool:
     """Whether ``env`` (any TorchRL env) uses the ``("agents", ...)`` layout for its actions."""
     return env.action_key == (AGENTS, "action")
+
+
+@dataclass(frozen=True)
+class PolicyKeys:
+    """Where the entries a policy, a critic and a loss exchange live in an env's TensorDicts:
+    at the root for a single-agent env (``"observation"``, ``"action"``, ...), in the
+    ``"agents"`` group for a multi-agent one (``("agents", "observation")``, ...).
+
+    ``num_agents`` is ``None`` for a single-agent env.
+    """
+
+    observation: NestedKey = "observation"
+    action: NestedKey = "action"
+    reward: NestedKey = "reward"
+    loc: NestedKey = "loc"
+    scale: NestedKey = "scale"
+    log_prob: NestedKey = "action_log_prob"
+    value: NestedKey = "state_value"
+    num_agents: int | None = None
+
+
+def policy_keys(env) -> PolicyKeys:
+    """The :class:`PolicyKeys` of ``env`` (any TorchRL env)."""
+    if not is_multi_agent(env):
+        return PolicyKeys()
+    names = ("observation", "action", "reward", "loc", "scale", "log_prob", "value")
+    grouped = {name: (AGENTS, getattr(PolicyKeys, name)) for name in names}
+    return PolicyKeys(**grouped, num_agents=int(env.full_action_spec[env.action_key].shape[-2]))
+
+
+def reward_per_env(tensordict: TensorDictBase, key: NestedKey = "reward") -> torch.Tensor:
+    """``("next", key)`` of a ``[*B]`` TensorDict as ``[*B]``: a multi-agent env's rewards
+    ``[*B, A, 1]`` are averaged over its agents (the team's mean reward)."""
+    reward = tensordict.get(("next", *((key,) if isinstance(key, str) else key)))
+    return reward.reshape(*tensordict.batch_size, -1).mean(-1)
 
 
 class MultiAgentDiffEnv(DiffEnv):

@@ -23,6 +23,7 @@ from tensordict import TensorDictBase
 from .. import checks
 from ..collectors import DiffWindowCollector
 from ..distributed import SINGLE_PROCESS, World
+from ..envs.multi_agent import policy_keys
 from ..modules import ObservationNormalizer, actor_from_config
 from ..objectives import BPTTLoss, GradientGuard
 from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
@@ -50,6 +51,9 @@ class BPTTConfig(LearnerConfig):
 
 class BPTTLearner(Learner):
     """Back-propagation through time over short windows with carried env state.
+
+    On a multi-agent env one parameter-shared actor acts for every agent and the loss is the
+    team's mean return (:class:`~torchrl_diffenvs.objectives.BPTTLoss`).
 
     Args:
         env: a batched differentiable env (rewards and observations carry gradients w.r.t. actions).
@@ -79,6 +83,8 @@ class BPTTLearner(Learner):
         self.collector = DiffWindowCollector(env, actor, horizon=c.horizon, start_state=start_state,
                                              stagger_episodes=c.stagger_episodes, reset_input=reset_input)
         self.loss = BPTTLoss(actor, gamma=c.gamma)
+        self.keys = policy_keys(env)
+        self.loss.set_keys(reward=self.keys.reward)  # ("agents", "reward") on a multi-agent env
         self.actor_params = [p for p in actor.parameters() if p.requires_grad]
         # foreach: one kernel per Adam operation for all tensors (about 2x faster for small nets on CPU)
         self.actor_optim = torch.optim.Adam(self.actor_params, lr=c.actor_lr, betas=c.betas, foreach=True)
@@ -117,7 +123,7 @@ class BPTTLearner(Learner):
             metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
         # 3. observation statistics, frozen during the window, move after it
         if self.normalizer is not None:
-            self.normalizer.update(self.world.gather(window.get("observation")))
+            self.normalizer.update(self.world.gather(window.get(self.keys.observation)))
         # 4. learning-rate schedule
         self.actor_schedule.step()
         self.iteration += 1

@@ -29,12 +29,13 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
 from torchrl.modules import RunningValueNorm
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
-from torchrl.objectives.multiagent import MAPPOLoss
+from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
 
 from .. import checks
 from .._compat import collector_carrier_state, load_collector_carrier
 from ..collectors import EpisodeReturnTracker
 from ..distributed import SINGLE_PROCESS, World
+from ..envs.multi_agent import policy_keys, reward_per_env
 from ..modules import CRITIC_INPUTS, ObservationNormalizer, actor_from_config, critic_from_config, env_dims
 from ..objectives import GradientGuard
 from .base import Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
@@ -75,6 +76,9 @@ class PPOConfig(LearnerConfig):
     obs_norm: bool = checked(False, checks.boolean)  # running observation normalisation (from_config)
     # observation | state: an asymmetric critic that also reads the physical state and parameters (from_config)
     critic_input: str = checked("observation", checks.one_of(CRITIC_INPUTS))
+    # multi-agent envs: MAPPO (true: each agent's value from every agent's observation, TorchRL's MAPPOLoss)
+    # or IPPO (false: from its own observation, IPPOLoss) (from_config)
+    centralised_critic: bool = checked(False, checks.boolean)
 
     @classmethod
     def relation_problems(cls, values, where: str = "") -> list[str]:
@@ -86,6 +90,10 @@ class PPOConfig(LearnerConfig):
 
 class PPOLearner(Learner):
     """TorchRL's ``ClipPPOLoss`` with GAE (``make_value_estimator``) on data from TorchRL's ``Collector``.
+
+    On a multi-agent env (``("agents", ...)`` keys): TorchRL's ``MAPPOLoss`` (a centralised
+    critic, ``centralised_critic=True``) or ``IPPOLoss`` (each agent's critic reads its own
+    observation) with ``MultiAgentGAE``, a parameter-shared actor and per-agent rewards.
 
     Args:
         env: the batched training env (gradients through it are not used).
@@ -118,14 +126,26 @@ class PPOLearner(Learner):
             # union of the ranks' minibatches (standardize_advantage); ClipPPOLoss would use its own
             normalize_advantage=c.normalize_advantage and world.size == 1,
         )
+        self.keys = keys = policy_keys(env)
+        norm = None
         if c.value_normalization:
-            # TorchRL's MAPPOLoss is ClipPPOLoss plus a value normaliser; with one agent (no agent dim
-            # to exclude) and plain GAE it is single-agent PPO with normalised critic targets
-            norm = AllRanksValueNorm(world, shape=1).to(device=env.device, dtype=env_dims(env)[2])
-            self.loss = MAPPOLoss(actor, critic, value_norm=norm, normalize_advantage_exclude_dims=(), **settings)
+            norm = AllRanksValueNorm(world, shape=1).to(device=env.device, dtype=env_dims(env, keys.observation)[2])
+        if keys.num_agents is not None:
+            # MAPPO / IPPO: the same clipped objective; the critic (centralised or not) makes the difference.
+            # MultiAgentGAE broadcasts the shared done flags over the agents; advantages are
+            # standardised per agent (the agent dim excluded), as TorchRL's losses do
+            loss_class = MAPPOLoss if c.centralised_critic else IPPOLoss
+            self.loss = loss_class(actor, critic, value_norm=norm, **settings)
+            self.loss.set_keys(action=keys.action, sample_log_prob=keys.log_prob, value=keys.value, reward=keys.reward)
+            self.loss.make_value_estimator(ValueEstimators.MAGAE, gamma=c.gamma, lmbda=c.lmbda)
         else:
-            self.loss = ClipPPOLoss(actor, critic, **settings)
-        self.loss.make_value_estimator(ValueEstimators.GAE, gamma=c.gamma, lmbda=c.lmbda)
+            if norm is not None:
+                # TorchRL's MAPPOLoss is ClipPPOLoss plus a value normaliser; with one agent (no agent dim
+                # to exclude) and plain GAE it is single-agent PPO with normalised critic targets
+                self.loss = MAPPOLoss(actor, critic, value_norm=norm, normalize_advantage_exclude_dims=(), **settings)
+            else:
+                self.loss = ClipPPOLoss(actor, critic, **settings)
+            self.loss.make_value_estimator(ValueEstimators.GAE, gamma=c.gamma, lmbda=c.lmbda)
         self.params = [p for p in self.loss.parameters() if p.requires_grad]
         self.optim = torch.optim.Adam(self.params, lr=c.lr)
         # the adaptive schedule moves the lr itself (in _adapt_lr); the scheduler then keeps it constant
@@ -142,12 +162,13 @@ class PPOLearner(Learner):
             auto_register_policy_transforms=False,  # the policy reads only "observation"
         )
         self._batches = iter(self.collector)
-        self.tracker = EpisodeReturnTracker(self.num_envs, env.device)
+        self.tracker = EpisodeReturnTracker(self.num_envs, env.device, env.reward_key)
 
     @classmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> PPOLearner:
         actor, normalizer = actor_from_config(loss_cfg, env, return_log_prob=True)
-        critic = critic_from_config(loss_cfg.critic, env, normalizer, loss_cfg.get("critic_input", "observation"))
+        critic = critic_from_config(loss_cfg.critic, env, normalizer, loss_cfg.get("critic_input", "observation"),
+                                    loss_cfg.get("centralised_critic", False))
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
         return cls(env, actor, critic, PPOConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,
                    world=world)
@@ -174,7 +195,7 @@ class PPOLearner(Learner):
                     sums[key] += value
                 updates += 1
         metrics = {key: value / max(updates, 1) for key, value in sums.items()}
-        metrics.update(reward=data.get(("next", "reward")).mean().item(), skipped=self.guard.skipped,
+        metrics.update(reward=reward_per_env(data, self.keys.reward).mean().item(), skipped=self.guard.skipped,
                        lr=self.optim.param_groups[0]["lr"])
         if finished:
             metrics["return"] = sum(finished) / len(finished)
@@ -183,7 +204,7 @@ class PPOLearner(Learner):
             self.schedule.step()
         # 4. normaliser statistics, then the collector gets the new weights
         if self.normalizer is not None:
-            self.normalizer.update(self.world.gather(data.get("observation")))
+            self.normalizer.update(self.world.gather(data.get(self.keys.observation)))
         self.collector.update_policy_weights_()
         self.iteration += 1
         return metrics
@@ -217,7 +238,7 @@ class PPOLearner(Learner):
 
     def bounds_loss(self, batch) -> torch.Tensor:
         """rl_games' bounds loss on the pre-squash mean ``loc`` of the policy, averaged over the batch."""
-        loc = self.actor.module[0](batch.select(*self.actor.module[0].in_keys).clone()).get("loc")
+        loc = self.actor.module[0](batch.select(*self.actor.module[0].in_keys).clone()).get(self.keys.loc)
         if self.config.bound_loss_type == "regularisation":
             return loc.pow(2).sum(-1).mean()
         soft_bound = 1.1

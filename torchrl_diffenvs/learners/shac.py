@@ -25,6 +25,7 @@ import torch
 from .. import checks
 from ..collectors import DiffWindowCollector
 from ..distributed import SINGLE_PROCESS, World
+from ..envs.multi_agent import policy_keys
 from ..modules import CRITIC_INPUTS, ObservationNormalizer, actor_from_config, critic_from_config
 from ..objectives import GradientGuard, SHACLoss
 from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
@@ -56,10 +57,16 @@ class SHACConfig(LearnerConfig):
     obs_norm: bool = checked(True, checks.boolean)  # running observation normalisation (from_config)
     # observation | state: an asymmetric critic that also reads the physical state and parameters (from_config)
     critic_input: str = checked("observation", checks.one_of(CRITIC_INPUTS))
+    # multi-agent envs: each agent's value from every agent's observation (true) or its own (from_config)
+    centralised_critic: bool = checked(False, checks.boolean)
 
 
 class SHACLearner(Learner):
     """Short-horizon actor-critic.
+
+    On a multi-agent env one parameter-shared actor acts for every agent; the critic gives one
+    value per agent (from its own observation, or from every agent's with a centralised critic)
+    and the actor loss averages the agents' bootstrapped returns.
 
     Args:
         env: a batched differentiable env.
@@ -87,6 +94,8 @@ class SHACLearner(Learner):
         self.normalizer = normalizer
         self.collector = DiffWindowCollector(env, actor, horizon=c.horizon, reset_input=reset_input)
         self.loss = SHACLoss(actor, critic, gamma=c.gamma, lmbda=c.lmbda)
+        self.keys = policy_keys(env)
+        self.loss.set_keys(reward=self.keys.reward, value=self.keys.value)  # ("agents", ...) on a multi-agent env
         self.target_updater = self.loss.make_target_updater(tau=c.target_tau)
         self.actor_params = [p for p in actor.parameters() if p.requires_grad]
         self.critic_params = [p for p in self.loss.critic_network.parameters() if p.requires_grad]
@@ -103,7 +112,8 @@ class SHACLearner(Learner):
     @classmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> SHACLearner:
         actor, normalizer = actor_from_config(loss_cfg, env)
-        critic = critic_from_config(loss_cfg.critic, env, normalizer, loss_cfg.get("critic_input", "observation"))
+        critic = critic_from_config(loss_cfg.critic, env, normalizer, loss_cfg.get("critic_input", "observation"),
+                                    loss_cfg.get("centralised_critic", False))
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
         return cls(env, actor, critic, SHACConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,
                    world=world)
@@ -144,7 +154,7 @@ class SHACLearner(Learner):
         self.target_updater.step()
         # 6. observation statistics, frozen during the window, move after it
         if self.normalizer is not None:
-            self.normalizer.update(self.world.gather(data.get("observation")))
+            self.normalizer.update(self.world.gather(data.get(self.keys.observation)))
         metrics.update({
             "reward": metrics.pop("reward_mean"),
             "value": metrics.pop("value_mean"),

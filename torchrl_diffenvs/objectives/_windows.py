@@ -20,7 +20,8 @@ def steps_since_start(done: torch.Tensor) -> torch.Tensor:
 
 
 def window_entry(td: TensorDictBase, key, name: str) -> torch.Tensor:
-    """``td[("next", key)]`` of a window ``[N, H]`` as ``[N, H]`` (the trailing 1 removed)."""
+    """``td[("next", key)]`` of a window ``[N, H]`` as ``[N, H]`` (the trailing 1 removed), or
+    ``[N, H, A]`` for a multi-agent entry ``[N, H, A, 1]`` (e.g. ``("agents", "reward")``)."""
     if td.batch_dims != 2:
         raise ValueError(
             f"{name}: expected a rollout window with batch size [N, H] (envs, time), got {tuple(td.batch_size)}"
@@ -28,6 +29,15 @@ def window_entry(td: TensorDictBase, key, name: str) -> torch.Tensor:
     value = td.get(("next", key), None)
     if value is None:
         raise KeyError(f"{name}: the window has no ('next', {key!r}) entry; keys: {sorted(map(str, td.keys(True, True)))}")
-    if value.shape[2:] not in ((), (1,)):
-        raise ValueError(f"{name}: expected ('next', {key!r}) of shape [N, H] or [N, H, 1], got {tuple(value.shape)}")
-    return value.reshape(td.batch_size)
+    if value.shape[2:] in ((), (1,)):
+        return value.reshape(td.batch_size)
+    if value.ndim == 4 and value.shape[-1] == 1:
+        return value.squeeze(-1)
+    raise ValueError(f"{name}: expected ('next', {key!r}) of shape [N, H], [N, H, 1] or [N, H, A, 1] "
+                     f"(A agents), got {tuple(value.shape)}")
+
+
+def like_agents(flags: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
+    """Per-env ``flags`` ``[N, H]`` (done, discounts) broadcastable against ``reward`` ``[N, H]``
+    or ``[N, H, A]``: the agents of a multi-agent env share one episode."""
+    return flags.reshape(*flags.shape, *([1] * (reward.ndim - flags.ndim)))

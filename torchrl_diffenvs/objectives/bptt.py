@@ -8,7 +8,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
-from ._windows import steps_since_start, window_entry
+from ._windows import like_agents, steps_since_start, window_entry
 
 __all__ = ["BPTTLoss"]
 
@@ -25,7 +25,10 @@ class BPTTLoss(LossModule):
 
     where :math:`k_{i,t}` counts the steps since env ``i``'s sub-trajectory started (the window
     start, or the reset after an episode ended inside the window). Dividing by ``H`` makes the
-    learning rate independent of the window length. With ``H`` equal to the episode length and
+    learning rate independent of the window length. With a multi-agent reward
+    (``set_keys(reward=("agents", "reward"))``, ``[N, H, A, 1]``) the agents' rewards are
+    averaged: the team's return, whose gradient reaches each agent's actions also through the
+    other agents' rewards. With ``H`` equal to the episode length and
     one episode per window this is full-episode BPTT (Ivy Gym's demos, TorchRL's Pendulum
     tutorial); with short windows and carried state it is Brax's APG.
 
@@ -72,10 +75,9 @@ class BPTTLoss(LossModule):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         reward = window_entry(tensordict, self.tensor_keys.reward, "BPTTLoss")
         done = window_entry(tensordict, self.tensor_keys.done, "BPTTLoss").bool()
-        n, h = reward.shape
-        discount = self.gamma ** steps_since_start(done).to(reward.dtype)
+        discount = like_agents(self.gamma ** steps_since_start(done).to(reward.dtype), reward)
         out = {
-            "loss_actor": -(discount * reward).sum() / (n * h),
+            "loss_actor": -(discount * reward).sum() / reward.numel(),
             "reward_mean": reward.detach().mean(),
         }
         return TensorDict(out, batch_size=[])

@@ -12,7 +12,7 @@ from torch import nn
 from torchrl.objectives import LossModule, SoftUpdate
 from torchrl.objectives.value import TDLambdaEstimator
 
-from ._windows import steps_since_start, window_entry
+from ._windows import like_agents, steps_since_start, window_entry
 
 __all__ = ["SHACLoss"]
 
@@ -53,6 +53,10 @@ class SHACLoss(LossModule):
     reference keeps 0.2 of the old target, i.e. ``tau = 0.8`` (``eps = 0.2``). Buffers of the
     critic (e.g. the statistics of an :class:`~torchrl_diffenvs.modules.ObservationNormalizer`)
     are shared by the critic and the target critic: only the weights lag.
+
+    **Multi-agent.** With ``set_keys(reward=("agents", "reward"), value=("agents", "state_value"))``
+    each agent has its own return and value (``[N, H, A, 1]``; the done flags are shared); the
+    actor loss averages the agents' bootstrapped returns, the critic fits each agent's targets.
 
     **Usage.** ``forward(window)`` returns ``loss_actor`` (backpropagate it into the actor) and
     detached diagnostics (``reward_mean``, ``value_mean``), and writes the detached critic targets
@@ -161,10 +165,14 @@ class SHACLoss(LossModule):
     def _value_targets(self, tensordict: TensorDictBase, next_value: torch.Tensor) -> torch.Tensor:
         keys = self.tensor_keys
         data = tensordict.select(("next", keys.reward), ("next", keys.done), ("next", keys.terminated)).detach()
-        for key in (keys.reward, keys.done, keys.terminated):
-            value = data.get(("next", key))
-            if value.shape == tensordict.batch_size:  # the estimator wants a trailing feature dim
-                data.set(("next", key), value.unsqueeze(-1))
+        reward = data.get(("next", keys.reward))
+        if reward.shape == tensordict.batch_size:  # the estimator wants a trailing feature dim
+            reward = reward.unsqueeze(-1)
+            data.set(("next", keys.reward), reward)
+        for key in (keys.done, keys.terminated):
+            # [N, H, 1], or [N, H, A, 1] beside a multi-agent reward: the agents share the episode
+            flag = data.get(("next", key)).reshape(*tensordict.batch_size, *([1] * (reward.ndim - 2)))
+            data.set(("next", key), flag.expand(reward.shape), inplace=False)
         return self.value_estimator.value_estimate(data, next_value=next_value.detach(), time_dim=1)
 
     def compute_value_targets(self, tensordict: TensorDictBase) -> torch.Tensor:
@@ -196,15 +204,15 @@ class SHACLoss(LossModule):
         reward = window_entry(tensordict, keys.reward, "SHACLoss")
         done = window_entry(tensordict, keys.done, "SHACLoss").bool()
         terminated = window_entry(tensordict, keys.terminated, "SHACLoss").bool()
-        n, h = reward.shape
 
-        next_value = self._next_target_values(tensordict)  # [N, H, 1], graph through the observation
-        k = steps_since_start(done).to(reward.dtype)
+        next_value = self._next_target_values(tensordict)  # [N, H, (A,) 1], graph through the observation
+        k = like_agents(steps_since_start(done).to(reward.dtype), reward)
         # a sub-trajectory closes at an episode end or at the window end; a terminal state is worth 0
         closes = done.clone()
         closes[:, -1] = True
-        bootstrap = torch.where(closes & ~terminated, self.gamma ** (k + 1) * next_value.reshape(n, h), 0.0)
-        loss_actor = -((self.gamma**k) * reward + bootstrap).sum() / (n * h)
+        bootstrap_here = like_agents(closes & ~terminated, reward)
+        bootstrap = torch.where(bootstrap_here, self.gamma ** (k + 1) * next_value.reshape(reward.shape), 0.0)
+        loss_actor = -((self.gamma**k) * reward + bootstrap).sum() / reward.numel()
 
         targets = self._value_targets(tensordict, next_value)
         tensordict.set(keys.value_target, targets)

@@ -14,7 +14,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ..checks import is_int as _is_int
 from ..checks import is_number
-from ..envs import env_config, list_envs, make_env
+from ..envs import env_config, is_multi_agent, list_envs, make_env
 from ..learners import LEARNERS
 from ..modules import ACTIVATIONS, DISTRIBUTIONS, NETWORK_INITS, privileged_inputs
 
@@ -293,11 +293,21 @@ def validate_config(cfg: DictConfig) -> None:
         else:
             if env.max_episode_steps is None and cfg.eval.get("max_steps") is None:
                 problems.append(f"env {env_name!r} never truncates episodes: set eval.max_steps")
-            if OmegaConf.select(cfg, "loss.critic_input", default="observation") == "state":
+            multi_agent = is_multi_agent(env)
+            critic_input = OmegaConf.select(cfg, "loss.critic_input", default="observation")
+            if multi_agent and loss_name == "sac":
+                problems.append(f"loss=sac: env {env_name!r} is multi-agent; train it with bptt, shac, mappo or ippo")
+            elif multi_agent and critic_input != "observation":
+                problems.append(f"loss.critic_input={critic_input}: env {env_name!r} is multi-agent; its critic reads "
+                                "the agents' observations (loss.centralised_critic=true: every agent's)")
+            elif critic_input == "state":
                 try:
                     privileged_inputs(env)
                 except ValueError as err:
                     problems.append(f"loss.critic_input=state: {err}")
+            if not multi_agent and OmegaConf.select(cfg, "loss.centralised_critic", default=False) is True:
+                problems.append(f"loss.centralised_critic=true: env {env_name!r} has a single agent (MAPPO's "
+                                "centralised critic needs a multi-agent env, e.g. env=multi_swimmer)")
 
     if problems:
         lines = "\n".join(f"  - {p}" for p in problems)
