@@ -59,6 +59,7 @@ from torchrl_diffenvs.learners import make_learner
 from torchrl_diffenvs.modules import actor_from_config
 from torchrl_diffenvs.training.checkpoint import atomic_copy
 from torchrl_diffenvs.training.config import check_resume_compatible, merge_overrides
+from torchrl_diffenvs.training.selfplay import SelfPlay
 
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "configs")
 log = logging.getLogger("train")  # Hydra sends it to the console and <run dir>/train.log
@@ -146,6 +147,9 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = (), world: Worl
     world.check_same(parameters_checksum(learner.policy.state_dict().values()), "initial policy")
     if not world.is_main:  # its own exploration noise and minibatch order (rank 0 goes on as one process would)
         seed_everything(rank_seed(cfg.seed, world.rank))
+    selfplay = None
+    if cfg.selfplay.refresh_interval is not None:  # the opponent: snapshots of the policy (rl_games' self-play)
+        selfplay = SelfPlay(env, learner.policy, cfg.selfplay.refresh_interval, cfg.selfplay.pool_size, seed=cfg.seed)
     eval_env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed) if world.is_main else None
     eval_steps = cfg.eval.max_steps or (eval_env or env).max_episode_steps
     if cfg.get("compile"):
@@ -168,6 +172,8 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = (), world: Worl
                 f"(torchrun --nproc_per_node={ckpt.get('world_size', 1)}), not {world.size}")
         mine = ckpt if world.is_main else ckpt["other_ranks"][world.rank - 1]
         learner.load_state_dict(mine["learner"])
+        if selfplay is not None:
+            selfplay.load_state_dict(mine["selfplay"])
         progress, history, wandb_run_id = ckpt["progress"], ckpt["history"], ckpt.get("wandb_run_id")
         progress.pop("won", None)  # a resumed run trains on, even past an earlier score_to_win
         restore_rng_state(mine["rng"], {"env": env.rng})  # last: building the learner drew numbers
@@ -182,7 +188,8 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = (), world: Worl
     def checkpoint(name: str | None = None) -> Path | None:
         """Writes a numbered checkpoint (and last.pt), or the one called ``name`` (best.pt), with
         every rank's state; every rank calls it, rank 0 writes."""
-        ranks = world.gather_object({"learner": learner.state_dict(), "rng": capture_rng_state({"env": env.rng})})
+        ranks = world.gather_object({"learner": learner.state_dict(), "rng": capture_rng_state({"env": env.rng}),
+                                     "selfplay": selfplay.state_dict() if selfplay is not None else None})
         if not world.is_main:
             return None
         state = {
@@ -249,7 +256,11 @@ def train(cfg: DictConfig, run_dir: Path, overrides: list[str] = (), world: Worl
                 break
 
             tic = time.perf_counter()
+            if selfplay is not None:
+                selfplay.step(progress["env_steps"])
             metrics = learner.train_iteration()
+            if selfplay is not None:
+                metrics.update(selfplay.metrics())
             steps = learner.env_steps_per_iteration  # all ranks'
             progress["iteration"] += 1
             logging_now = progress["iteration"] % cfg.train.log_interval == 0

@@ -71,13 +71,15 @@ def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, 
     Returns ``return`` (mean over envs of the first episode's return), ``return_std``,
     ``return_min``, ``return_max``, ``reward_mean`` (mean per-step reward over the steps of
     the first episodes) and ``tail_reward_mean`` (mean per-step reward of the last ``tail_steps``
-    steps: how well a task is held once reached, e.g. a pendulum kept upright).
+    steps: how well a task is held once reached, e.g. a pendulum kept upright); on a two-player
+    env (``player_wins``) also ``win_rate``: the fraction of first episodes the policy won
+    against the env's opponent.
     """
     rollout = _rollout(env, policy, steps, seed, exploration_type)
     reward = reward_per_env(rollout, env.reward_key).double()  # the agents' mean on a multi-agent env
     in_first = first_episode_mask(rollout)
     returns = (reward * in_first).sum(-1)
-    return {
+    scores = {
         "return": returns.mean().item(),
         "return_std": returns.std(unbiased=False).item(),
         "return_min": returns.min().item(),
@@ -85,6 +87,11 @@ def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, 
         "reward_mean": (returns.sum() / in_first.sum()).item(),
         "tail_reward_mean": reward[:, -tail_steps:].mean().item(),
     }
+    if hasattr(env, "player_wins"):  # a two-player env: did the policy beat the opponent in its first episode?
+        last = in_first.sum(-1).long() - 1  # each env's last step of its first episode
+        end = rollout.get("next")[torch.arange(rollout.shape[0]), last]
+        scores["win_rate"] = env.player_wins(end.get("state"), end.get("params")).double().mean().item()
+    return scores
 
 
 def evaluate_random(env, steps: int | None = None, seed: int | None = None) -> float:

@@ -320,11 +320,13 @@ class TanhNormalActor(ProbabilisticActor):
             scale = tensordict.get(scale_key)
             # Normal.rsample: loc + eps * scale, eps from the global stream
             pre_tanh = loc + standard_normal(loc.shape, dtype=loc.dtype, device=loc.device) * scale
-        action = self._tanh(pre_tanh)
-        if self._affine is not None:
-            action = self._affine(action)
-        tensordict.set(self.module[-1].out_keys[0], action)  # "action"
+        tensordict.set(self.module[-1].out_keys[0], self.squash(pre_tanh))  # "action"
         return tensordict
+
+    def squash(self, pre_tanh: torch.Tensor) -> torch.Tensor:
+        """TanhNormal's map into the action bounds; ``squash(loc)`` is the deterministic action."""
+        action = self._tanh(pre_tanh)
+        return self._affine(action) if self._affine is not None else action
 
 
 def make_actor(

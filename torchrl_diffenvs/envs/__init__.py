@@ -9,6 +9,7 @@ from .gym_classic import CartPoleV1Env, MountainCarContinuousV0Env, PendulumV1En
 from .mountaincar import MountainCarEnv
 from .multi_agent import MultiAgentDiffEnv, is_multi_agent
 from .multi_swimmer import MultiSwimmerEnv
+from .opponent import TwoPlayerDiffEnv, opponent_from_actor
 from .mujoco import (
     MUJOCO_TASKS,
     HalfCheetahV5Env,
@@ -23,10 +24,12 @@ from .pendulum import PendulumEnv
 from .reacher import ReacherEnv
 from .registry import env_class, env_config, list_envs, make_env, register_env
 from .swimmer import SwimmerEnv
+from .swimmer_race import SwimmerRaceEnv
 
 __all__ = [
     "DiffEnv", "MUJOCO_TASKS", "CartPoleEnv", "PendulumEnv", "MountainCarEnv", "ReacherEnv", "SwimmerEnv",
     "CartPoleV1Env", "PendulumV1Env", "MountainCarContinuousV0Env", "MuJoCoModelEnv", "InvertedPendulumV5Env",
     "InvertedDoublePendulumV5Env", "ReacherV5Env", "HalfCheetahV5Env", "HopperV5Env", "Walker2dV5Env",
-    "MultiAgentDiffEnv", "MultiSwimmerEnv", "is_multi_agent", "env_class", "env_config", "list_envs", "make_env", "register_env", "compile_physics", "eager_physics",
+    "MultiAgentDiffEnv", "MultiSwimmerEnv", "is_multi_agent", "SwimmerRaceEnv", "TwoPlayerDiffEnv",
+    "opponent_from_actor", "env_class", "env_config", "list_envs", "make_env", "register_env", "compile_physics", "eager_physics",
 ]

@@ -283,6 +283,11 @@ def validate_config(cfg: DictConfig) -> None:
             _check_file(cfg.resume, "resume", problems)
 
     _check_randomize(cfg.env, problems)
+    refresh, pool = OmegaConf.select(cfg, "selfplay.refresh_interval"), OmegaConf.select(cfg, "selfplay.pool_size")
+    if refresh is not None and (not _is_int(refresh) or refresh < 1):
+        problems.append(f"selfplay.refresh_interval={refresh!r}: expected an integer >= 1 (env steps), or null")
+    if not _is_int(pool) or pool < 1:
+        problems.append(f"selfplay.pool_size={pool!r}: expected an integer >= 1")
 
     # build one env: catches bad options / params / max_episode_steps with the env's own message
     if env_name in list_envs() and not any(p.startswith(("env.", "device", "dtype")) for p in problems):
@@ -305,6 +310,9 @@ def validate_config(cfg: DictConfig) -> None:
                     privileged_inputs(env)
                 except ValueError as err:
                     problems.append(f"loss.critic_input=state: {err}")
+            if refresh is not None and not hasattr(env, "set_opponent"):
+                problems.append(f"selfplay.refresh_interval={refresh}: env {env_name!r} has no opponent to replace; "
+                                "self-play needs a two-player env (e.g. env=swimmer_race)")
             if not multi_agent and OmegaConf.select(cfg, "loss.centralised_critic", default=False) is True:
                 problems.append(f"loss.centralised_critic=true: env {env_name!r} has a single agent (MAPPO's "
                                 "centralised critic needs a multi-agent env, e.g. env=multi_swimmer)")

@@ -1,0 +1,74 @@
+"""Swimmer race: two fish race to one goal around the urchins; the learner is fish 0."""
+import math
+
+import torch
+
+from .opponent import TwoPlayerDiffEnv
+from .registry import register_env
+from .swimmer import redraw_near
+
+
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:MULTI_SWIMMER",
+              options={"num_urchins": 5, "clearance": 0.25})
+class SwimmerRaceEnv(TwoPlayerDiffEnv):
+    """Two fish (the swimmer's point masses) start at the same distance from one goal, on opposite
+    sides of it; fish 0 is the learner, fish 1 the opponent (:meth:`set_opponent`; default: the
+    scripted controller below).
+
+    Zero-sum reward of fish 0: ``c_0 - c_1`` with ``c_i = exp(-0.5 |p_i - g|^2) * prod_k (1 -
+    exp(-urchin_sharpness |p_i - u_k|^2))``, the single swimmer's reward of each fish: positive
+    while fish 0 is nearer the goal (and clear of urchins) than fish 1. Fish 0 wins when it ends
+    the episode nearer the goal. Observation of fish ``i`` (``2K + 10``): ``[urchins (2K), p_i,
+    v_i, g, p_j - p_i, v_j]``. Start: ``g ~ U[-0.5, 0.5]^2``, ``p_{0,1} = g +- r (cos a, sin a)``
+    with ``r ~ U[0.7, 1]``, ``a ~ U[0, 2 pi)``, ``v = 0``; urchins ``U[-1, 1]^2`` away from both
+    starts and the goal by ``clearance``. Scripted opponent: ``tanh(2 (g - p) - 2 v)``, straight
+    to the goal, blind to the urchins.
+    """
+
+    name = "swimmer_race"
+    action_dim = 2
+    default_params = {"max_accel": 1.0, "urchin_sharpness": 30.0, "dt": 0.05}
+
+    def __init__(self, num_envs=1, *, num_urchins: int = 5, clearance: float = 0.25, **kwargs):
+        if isinstance(num_urchins, bool) or not isinstance(num_urchins, int) or num_urchins < 0:
+            raise ValueError(f"swimmer_race: num_urchins must be an integer >= 0, got {num_urchins!r}")
+        if not 0.0 <= clearance < 1.0:
+            raise ValueError(f"swimmer_race: clearance must lie in [0, 1), got {clearance!r}")
+        self.num_urchins = num_urchins
+        self.clearance = clearance
+        super().__init__(num_envs, **kwargs)
+
+    def initial_state(self, params, n):
+        goal = self.uniform(-0.5, 0.5, n, 2)
+        radius, angle = self.uniform(0.7, 1.0, n, 1), self.uniform(0.0, 2 * math.pi, n, 1)
+        offset = radius * torch.cat([torch.cos(angle), torch.sin(angle)], dim=-1)
+        pos = torch.stack([goal + offset, goal - offset], dim=1)  # [n, 2 fish, 2]
+        urchins = redraw_near(self, self.uniform(-1.0, 1.0, n, self.num_urchins, 2),
+                              lambda points: torch.cat([pos, goal.unsqueeze(1)], dim=1), self.clearance)
+        return {"pos": pos, "vel": torch.zeros_like(pos), "goal": goal, "urchins": urchins}
+
+    def closeness(self, pos, goal, urchins, params):
+        """``c_i`` of every fish ``[n, 2]``."""
+        near_goal = torch.exp(-0.5 * ((pos - goal.unsqueeze(1)) ** 2).sum(-1))
+        urchin_dist2 = ((pos.unsqueeze(-2) - urchins.unsqueeze(1)) ** 2).sum(-1)  # [n, 2, K]
+        return near_goal * (1 - torch.exp(-params["urchin_sharpness"][:, None, None] * urchin_dist2)).prod(-1)
+
+    def play(self, state, actions, params):
+        dt, accel = params["dt"][:, None, None], params["max_accel"][:, None, None]
+        vel = state["vel"] + dt * accel * actions
+        pos = state["pos"] + dt * vel
+        goal, urchins = state["goal"], state["urchins"]
+        c = self.closeness(pos, goal, urchins, params)
+        return {"pos": pos, "vel": vel, "goal": goal, "urchins": urchins}, c[:, 0] - c[:, 1], None
+
+    def observe(self, state, params, player):
+        me, other = state["pos"][:, player], state["pos"][:, 1 - player]
+        return torch.cat([state["urchins"].flatten(-2), me, state["vel"][:, player], state["goal"], other - me,
+                          state["vel"][:, 1 - player]], dim=-1)
+
+    def scripted_action(self, state, params):
+        return torch.tanh(2.0 * (state["goal"] - state["pos"][:, 1]) - 2.0 * state["vel"][:, 1])
+
+    def player_wins(self, state, params):
+        distance = (state["pos"] - state["goal"].unsqueeze(1)).norm(dim=-1)
+        return distance[:, 0] < distance[:, 1]
