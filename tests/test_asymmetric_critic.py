@@ -11,7 +11,7 @@ from torchrl.envs import PendulumEnv as TorchRLPendulumEnv
 
 from torchrl_diffenvs import make_env
 from torchrl_diffenvs.learners import make_learner
-from torchrl_diffenvs.modules import make_critic, make_qvalue, privileged_inputs
+from torchrl_diffenvs.modules import make_critic, make_qvalue, privileged_inputs, update_privileged_statistics
 from torchrl_diffenvs.training import ConfigError, validate_config
 
 from test_train import CONFIGS, make_cfg
@@ -75,9 +75,21 @@ def test_privileged_critic_reads_observation_state_and_params_in_spec_order():
     critic = make_critic(env, hidden=(8,), critic_input="state")
     assert critic.in_keys == ["observation", *keys]
     td = env.reset()
-    by_hand = torch.cat([td["observation"]] + [td[key].unsqueeze(-1) for key in keys], -1)  # 2 + 7 inputs
+    privileged = torch.cat([td[key].unsqueeze(-1) for key in keys], -1)  # 7 inputs
+    # their own running normaliser: identity (up to eps) before any update
+    by_hand = torch.cat([td["observation"], privileged / math.sqrt(1 + 1e-5)], -1)
     assert by_hand.shape == (4, 9)
     torch.testing.assert_close(critic(td.clone())["state_value"], critic.module.net(by_hand))
+    # after an update: standardised by the statistics of what it saw
+    rollout = env.rollout(20)
+    update_privileged_statistics(critic, rollout)
+    seen = torch.cat([rollout[key].reshape(-1, 1) for key in keys], -1)
+    mean, var = seen.mean(0), seen.var(0, unbiased=False)
+    standardised = (privileged - mean) / torch.sqrt(var + 1e-5)
+    torch.testing.assert_close(critic(td.clone())["state_value"],
+                               critic.module.net(torch.cat([td["observation"], standardised], -1)))
+    raw = make_critic(env, hidden=(8,), critic_input="state", privileged_norm=False)
+    assert raw.module.privileged_normalizer is None
     # the value sees the velocity the observation hides
     faster = td.clone()
     faster.set(("state", "thd"), td["state", "thd"] + 1.0)
@@ -134,6 +146,13 @@ def test_learners_train_a_privileged_critic_on_the_partial_pendulum(loss):
     assert any(not torch.equal(a, b) for a, b in zip(before, params))  # the critic learned
     if loss == "sac":
         assert ("next", "state", "thd") in learner.buffer.sample(4).keys(True, True)
+    else:
+        # the privileged inputs' statistics moved, and the loss's critic (TorchRL's functional copy
+        # of its parameters and buffers) scores with them
+        norm = critic.module.privileged_normalizer
+        assert norm.count == 2 * learner.env_steps_per_iteration and norm.mean.abs().sum() > 0
+        loss_buffers = dict(learner.loss.critic_network_params.items(True, True))
+        torch.testing.assert_close(loss_buffers[("module", "privileged_normalizer", "mean")], norm.mean)
 
 
 def test_config_checks_critic_input():

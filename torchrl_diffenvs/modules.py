@@ -40,6 +40,7 @@ __all__ = [
     "env_dims",
     "CRITIC_INPUTS",
     "privileged_inputs",
+    "update_privileged_statistics",
     "critic_from_config",
     "make_actor",
     "make_agent_mlp",
@@ -406,22 +407,50 @@ def privileged_inputs(env) -> list[tuple[tuple[str, str], int]]:
 class _ConcatInputs(nn.Module):
     """Feeds ``cat(inputs)`` to ``net`` (a ``ValueOperator`` or ``LeanModule`` passes them one by
     one): each input is flattened per env (its trailing ``event_dims``, 0 for a scalar), the first
-    one (the observation) goes through ``normalizer`` when given."""
+    one (the observation) goes through ``normalizer`` when given, and the privileged block (the
+    inputs read from ``privileged_keys``, right after the observation) through
+    ``privileged_normalizer`` when given (see :func:`update_privileged_statistics`)."""
 
     def __init__(self, net: nn.Module, event_dims: Sequence[int] | None = None,
-                 normalizer: ObservationNormalizer | None = None):
+                 normalizer: ObservationNormalizer | None = None, privileged_keys: Sequence = (),
+                 privileged_normalizer: ObservationNormalizer | None = None):
         super().__init__()
         self.net = net
         self.event_dims = None if event_dims is None else tuple(event_dims)
         self.normalizer = normalizer
+        self.privileged_keys = list(privileged_keys)
+        self.privileged_normalizer = privileged_normalizer
+
+    def _flat(self, inputs, event_dims, dtype) -> list[torch.Tensor]:
+        return [(x.unsqueeze(-1) if k == 0 else x.flatten(-k)).to(dtype) for x, k in zip(inputs, event_dims)]
+
+    def privileged_block(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The privileged inputs of ``tensordict`` flattened and concatenated ``[..., P]``, raw."""
+        count = len(self.privileged_keys)
+        dtype = self.privileged_normalizer.mean.dtype
+        return torch.cat(self._flat([tensordict.get(key) for key in self.privileged_keys],
+                                    self.event_dims[1:1 + count], dtype), dim=-1)
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         if self.normalizer is not None:
             inputs = (self.normalizer(inputs[0]), *inputs[1:])
         if self.event_dims is not None:
-            dtype = inputs[0].dtype
-            inputs = [(x.unsqueeze(-1) if k == 0 else x.flatten(-k)).to(dtype) for x, k in zip(inputs, self.event_dims)]
+            inputs = self._flat(inputs, self.event_dims, inputs[0].dtype)
+        if self.privileged_normalizer is not None:
+            count = len(self.privileged_keys)
+            block = self.privileged_normalizer(torch.cat(inputs[1:1 + count], dim=-1))
+            inputs = [inputs[0], block, *inputs[1 + count:]]
         return self.net(torch.cat(inputs, dim=-1))
+
+
+@torch.no_grad()
+def update_privileged_statistics(critic: nn.Module, tensordict: TensorDictBase, gather=lambda x: x) -> None:
+    """Merges the privileged inputs of ``tensordict`` (a batch the critic was trained on) into the
+    running statistics of ``critic``'s privileged normaliser (``critic_input="state"``); a no-op
+    for any other critic. ``gather`` collects the ranks' blocks (``world.gather``)."""
+    for module in critic.modules():
+        if isinstance(module, _ConcatInputs) and module.privileged_normalizer is not None:
+            module.privileged_normalizer.update(gather(module.privileged_block(tensordict)))
 
 
 def _critic_inputs(env, in_key: str, critic_input: str) -> tuple[list, list[int], int]:
@@ -449,6 +478,7 @@ def make_critic(
     in_key: str = "observation",
     critic_input: str = "observation",
     centralised: bool = False,
+    privileged_norm: bool = True,
 ) -> LeanModule:
     """A state-value network writing ``"state_value"`` (``[..., 1]``).
 
@@ -456,8 +486,9 @@ def make_critic(
     (privileged) critic ``V(observation, state, params)`` that also reads every ``("state", ...)``
     and ``("params", ...)`` entry of the env's TensorDicts (the physical state and parameters,
     flattened per env), while the actor keeps seeing the observation only. ``normalizer``
-    applies to the observation part; the state and parameters enter raw (the network's
-    LayerNorm takes their scale).
+    applies to the observation part; the state and parameters go through their own running
+    normaliser (as rl_games normalises its central value's inputs), which the learner updates
+    with :func:`update_privileged_statistics` (``privileged_norm=False``: they enter raw).
 
     On a multi-agent env it writes ``("agents", "state_value")`` ``[..., A, 1]``, one value per
     agent, from a parameter-shared ``MultiAgentMLP``: from the agent's own observation
@@ -481,7 +512,11 @@ def make_critic(
     if critic_input == "observation":
         return LeanModule(nn.Sequential(normalizer, net) if normalizer is not None else net, in_keys=keys,
                           out_keys=["state_value"])
-    return LeanModule(_ConcatInputs(net, event_dims, normalizer), in_keys=keys, out_keys=["state_value"])
+    privileged_normalizer = None
+    if privileged_norm:
+        privileged_normalizer = ObservationNormalizer(input_dim - env_dims(env, in_key)[0], dtype=dtype).to(env.device)
+    inputs = _ConcatInputs(net, event_dims, normalizer, keys[1:], privileged_normalizer)
+    return LeanModule(inputs, in_keys=keys, out_keys=["state_value"])
 
 
 def make_qvalue(env, hidden: Sequence[int] = (256, 256), activation: type[nn.Module] = nn.ReLU,
@@ -489,7 +524,8 @@ def make_qvalue(env, hidden: Sequence[int] = (256, 256), activation: type[nn.Mod
                 critic_input: str = "observation") -> ValueOperator:
     """``Q(observation, action)`` writing ``"state_action_value"`` (what TorchRL's ``SACLoss``
     expects); with ``critic_input="state"``, ``Q(observation, state, params, action)`` (see
-    :func:`make_critic`)."""
+    :func:`make_critic`), the privileged inputs raw: SAC keeps no running input statistics (its
+    replay buffer would mix them)."""
     if policy_keys(env).num_agents is not None:
         raise ValueError(f"make_qvalue: {type(env).__name__} is a multi-agent env; SAC's Q-networks are single-agent "
                          "(train it with bptt, shac or ppo: loss=mappo / loss=ippo)")

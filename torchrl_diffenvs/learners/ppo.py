@@ -10,8 +10,9 @@ One iteration, in the algorithm's order:
    a guard (clip to ``max_grad_norm``; skip NaN/inf); with ``lr_schedule=adaptive`` the learning
    rate follows each step's KL estimate;
 3. step the learning-rate schedule (linear to 0 over the budget, or constant);
-4. update the observation normaliser, so the data of an iteration is scored with the
-   statistics it was collected with; hand the new weights to the collector.
+4. update the observation normaliser (and a privileged critic's input normaliser), so the data
+   of an iteration is scored with the statistics it was collected with; hand the new weights to
+   the collector.
 
 Data parallel (``world`` with ``K`` ranks): each rank collects and samples its own minibatches of
 ``minibatch_size``; a step sees the union of the ranks' minibatches (``K x minibatch_size``):
@@ -36,7 +37,14 @@ from .._compat import collector_carrier_state, load_collector_carrier
 from ..collectors import EpisodeReturnTracker
 from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys, reward_per_env
-from ..modules import CRITIC_INPUTS, ObservationNormalizer, actor_from_config, critic_from_config, env_dims
+from ..modules import (
+    CRITIC_INPUTS,
+    ObservationNormalizer,
+    actor_from_config,
+    critic_from_config,
+    env_dims,
+    update_privileged_statistics,
+)
 from ..objectives import GradientGuard
 from .base import Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
@@ -205,6 +213,7 @@ class PPOLearner(Learner):
         # 4. normaliser statistics, then the collector gets the new weights
         if self.normalizer is not None:
             self.normalizer.update(self.world.gather(data.get(self.keys.observation)))
+        update_privileged_statistics(self.critic, data, self.world.gather)
         self.collector.update_policy_weights_()
         self.iteration += 1
         return metrics

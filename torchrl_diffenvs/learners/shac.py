@@ -12,7 +12,8 @@ One iteration, in the order of the reference implementation (DiffRL's ``shac.py`
 4. critic passes: ``critic_passes`` x ``critic_minibatches`` guarded MSE steps on shuffled
    minibatches of the window (each rank shuffles its own; gradients averaged over the ranks);
 5. target update: ``target <- (1 - target_tau) target + target_tau critic``;
-6. update the observation normaliser (shared by actor and critic) from the window, all ranks';
+6. update the observation normaliser (shared by actor and critic) from the window, all ranks'
+   (and a privileged critic's own input normaliser);
 7. step the learning-rate schedules.
 """
 from __future__ import annotations
@@ -26,7 +27,13 @@ from .. import checks
 from ..collectors import DiffWindowCollector
 from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
-from ..modules import CRITIC_INPUTS, ObservationNormalizer, actor_from_config, critic_from_config
+from ..modules import (
+    CRITIC_INPUTS,
+    ObservationNormalizer,
+    actor_from_config,
+    critic_from_config,
+    update_privileged_statistics,
+)
 from ..objectives import GradientGuard, SHACLoss
 from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
@@ -152,9 +159,10 @@ class SHACLearner(Learner):
                 critic_losses.append(critic_loss.item())
         # 5. the target critic follows the critic
         self.target_updater.step()
-        # 6. observation statistics, frozen during the window, move after it
+        # 6. observation (and privileged-input) statistics, frozen during the window, move after it
         if self.normalizer is not None:
             self.normalizer.update(self.world.gather(data.get(self.keys.observation)))
+        update_privileged_statistics(self.loss.critic_network, data, self.world.gather)
         metrics.update({
             "reward": metrics.pop("reward_mean"),
             "value": metrics.pop("value_mean"),
