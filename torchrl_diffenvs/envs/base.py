@@ -14,7 +14,10 @@ TensorDict layout (``N = num_envs``)::
     ("next", "terminated" | "truncated" | "done")   [N, 1] bool
 
 Keeping the state apart from the observation matters: an ObservationNorm (or any transform) on
-"observation" can never feed its output back into the dynamics.
+"observation" can never feed its output back into the dynamics. A multi-agent task
+(:class:`~torchrl_diffenvs.envs.multi_agent.MultiAgentDiffEnv`) moves "observation", "action" and
+"reward" into an "agents" group ``[N, A]`` (:meth:`DiffEnv._policy_specs` is the one place that
+lays them out).
 """
 from __future__ import annotations
 
