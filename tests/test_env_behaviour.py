@@ -21,9 +21,11 @@ from _env_helpers import (
     use_rollout_path,
 )
 from torchrl_diffenvs import make_env
+from torchrl_diffenvs.envs import TwoPlayerDiffEnv, env_class
 
 ALL_ENVS = classic_envs()
-IVY_TASKS = [n for n in ALL_ENVS if not is_gymnasium_variant(n)]
+# Ivy Gym's tasks (the two-player race has its hand-computed step in test_selfplay.py)
+IVY_TASKS = [n for n in ALL_ENVS if not is_gymnasium_variant(n) and not issubclass(env_class(n), TwoPlayerDiffEnv)]
 
 
 # ============================================================================ hand-computed physics
@@ -186,6 +188,8 @@ RESET_RANGES = {
     "reacher": dict(th=_uniform(-PI, PI), thd=_uniform(-1, 1)),  # goal: see the goal_sampling tests
     # urchins are resampled away from start and goal: checked in test_swimmer_urchin_clearance
     "swimmer": dict(pos=_uniform(-1, 1), goal=_uniform(-1, 1), vel=ZERO),
+    # the two fish start mirrored about the goal: checked in test_selfplay.py::test_specs_and_start_states
+    "swimmer_race": dict(goal=_uniform(-0.5, 0.5), vel=ZERO),
     "CartPole-v1": {k: _uniform(-0.05, 0.05) for k in ("x", "xd", "th", "thd")},
     "Pendulum-v1": dict(th=_uniform(-PI, PI), thd=_uniform(-1, 1)),
     "MountainCarContinuous-v0": dict(x=_uniform(-0.6, -0.4), xd=ZERO),
@@ -521,8 +525,10 @@ def test_nan_action_touches_only_its_env(name, fast):
 
 
 # the parameter that scales the action in each Ivy task (force = param * action)
+# swimmer_race: max_accel scales the opponent's acceleration too, so 3u is no rescaled u there;
+# only "unclipped, with its gradient" is checked
 ACTION_SCALE = {"cartpole": "max_force", "pendulum": "max_torque", "mountaincar": "max_force",
-                "reacher": "max_accel", "swimmer": "max_accel"}
+                "reacher": "max_accel", "swimmer": "max_accel", "swimmer_race": None}
 
 
 @pytest.mark.parametrize("name", ALL_ENVS)
@@ -547,6 +553,12 @@ def test_actions_outside_the_spec(name):
         if name not in ACTION_SCALE:
             pytest.fail(f"{name}: add the parameter that scales its action to ACTION_SCALE")
         scale = ACTION_SCALE[name]
+        if scale is None:
+            clipped = env.step(td.clone().set("action", big.detach().clamp(low, high)))["next"]
+            assert not torch.equal(out["state", "vel"], clipped["state", "vel"])
+            (grad,) = torch.autograd.grad(out["observation"].sum(), big)
+            assert (grad != 0).any(), "out-of-spec actions must keep their gradient"
+            return
         scaled = make(name, n, seed=9, params={scale: 3 * env.params[scale]})
         ref_td = td.clone()
         ref_td["params"] = scaled.params.clone()

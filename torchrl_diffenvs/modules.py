@@ -172,12 +172,7 @@ def make_mlp(
         raise ValueError(f"make_mlp: init must be one of {NETWORK_INITS}, got {init!r}")
     hidden = [int(width) for width in hidden]
     if not norm_after_activation:
-        norm = {}
-        if layer_norm:
-            norm = {"norm_class": nn.LayerNorm,
-                    "norm_kwargs": [{"normalized_shape": width, "dtype": dtype} for width in hidden]}
-        net = MLP(in_features=in_dim, out_features=out_dim, num_cells=hidden, activation_class=activation,
-                  layer_kwargs={"dtype": dtype}, **norm)
+        net = MLP(in_features=in_dim, out_features=out_dim, **_torchrl_mlp_layers(hidden, activation, layer_norm, dtype))
     else:
         layers: list[nn.Module] = []
         for width in hidden:
@@ -192,6 +187,15 @@ def make_mlp(
                 nn.init.orthogonal_(layer.weight, gain=math.sqrt(2))
                 nn.init.zeros_(layer.bias)
     return net
+
+
+def _torchrl_mlp_layers(hidden, activation, layer_norm: bool, dtype) -> dict:
+    """The hidden-layer arguments of TorchRL's ``MLP`` (and ``MultiAgentMLP``): Linear-(LayerNorm)-activation."""
+    norm = {}
+    if layer_norm:
+        norm = {"norm_class": nn.LayerNorm, "norm_kwargs": [{"normalized_shape": int(w), "dtype": dtype} for w in hidden]}
+    return {"num_cells": [int(w) for w in hidden], "activation_class": activation, "layer_kwargs": {"dtype": dtype},
+            **norm}
 
 
 def make_agent_mlp(
@@ -213,13 +217,8 @@ def make_agent_mlp(
     if norm_after_activation or init != "default":
         raise ValueError("the multi-agent networks (TorchRL's MultiAgentMLP) are Linear-LayerNorm-activation with "
                          "PyTorch's initialisation: set norm_after_activation=false and init=default")
-    norm = {}
-    if layer_norm:
-        norm = {"norm_class": nn.LayerNorm,
-                "norm_kwargs": [{"normalized_shape": int(width), "dtype": dtype} for width in hidden]}
     return MultiAgentMLP(in_dim, out_dim, num_agents, centralized=centralised, share_params=True,
-                         num_cells=[int(width) for width in hidden], activation_class=activation,
-                         layer_kwargs={"dtype": dtype}, **norm)
+                         **_torchrl_mlp_layers(hidden, activation, layer_norm, dtype))
 
 
 class _ScaledTanh(nn.Module):

@@ -3,7 +3,7 @@ import torch
 
 from .multi_agent import MultiAgentDiffEnv
 from .registry import register_env
-from .swimmer import redraw_near
+from .swimmer import check_pond_options, redraw_near
 
 
 def others(x: torch.Tensor) -> torch.Tensor:
@@ -38,12 +38,7 @@ class MultiSwimmerEnv(MultiAgentDiffEnv):
 
     def __init__(self, num_envs=1, *, num_agents: int = 3, num_urchins: int = 5, clearance: float = 0.25,
                  observe_urchins: bool = True, **kwargs):
-        if isinstance(num_urchins, bool) or not isinstance(num_urchins, int) or num_urchins < 0:
-            raise ValueError(f"multi_swimmer: num_urchins must be an integer >= 0, got {num_urchins!r}")
-        if not 0.0 <= clearance < 1.0:
-            raise ValueError(f"multi_swimmer: clearance must lie in [0, 1), got {clearance!r}")
-        if not isinstance(observe_urchins, bool):
-            raise ValueError(f"multi_swimmer: observe_urchins must be true or false, got {observe_urchins!r}")
+        check_pond_options(self.name, num_urchins=num_urchins, clearance=clearance, observe_urchins=observe_urchins)
         self.num_urchins = num_urchins
         self.clearance = clearance
         self.observe_urchins = observe_urchins

@@ -27,12 +27,8 @@ class SwimmerEnv(DiffEnv):
 
     def __init__(self, num_envs=1, *, num_urchins: int = 5, urchin_clearance: float = 0.25,
                  observe_urchins: bool = True, **kwargs):
-        if isinstance(num_urchins, bool) or not isinstance(num_urchins, int) or num_urchins < 0:
-            raise ValueError(f"swimmer: num_urchins must be an integer >= 0, got {num_urchins!r}")
-        if not 0.0 <= urchin_clearance < 1.0:
-            raise ValueError(f"swimmer: urchin_clearance must lie in [0, 1), got {urchin_clearance!r}")
-        if not isinstance(observe_urchins, bool):
-            raise ValueError(f"swimmer: observe_urchins must be true or false, got {observe_urchins!r}")
+        check_pond_options(self.name, num_urchins=num_urchins, urchin_clearance=urchin_clearance,
+                           observe_urchins=observe_urchins)
         self.observe_urchins = observe_urchins
         self.num_urchins = num_urchins
         self.urchin_clearance = urchin_clearance
@@ -77,3 +73,15 @@ def redraw_near(env: DiffEnv, points: torch.Tensor, anchors, clearance: float, e
             break
         points = torch.where(too_close.unsqueeze(-1), env.uniform(-1.0, 1.0, n, k, 2), points)
     return points
+
+
+def check_pond_options(task: str, *, num_urchins, observe_urchins=True, **clearance) -> None:
+    """The options of the swimmer tasks: ``num_urchins`` an integer >= 0, the one clearance
+    (``urchin_clearance=`` or ``clearance=``) in ``[0, 1)``, ``observe_urchins`` a bool."""
+    if isinstance(num_urchins, bool) or not isinstance(num_urchins, int) or num_urchins < 0:
+        raise ValueError(f"{task}: num_urchins must be an integer >= 0, got {num_urchins!r}")
+    ((name, value),) = clearance.items()
+    if not 0.0 <= value < 1.0:
+        raise ValueError(f"{task}: {name} must lie in [0, 1), got {value!r}")
+    if not isinstance(observe_urchins, bool):
+        raise ValueError(f"{task}: observe_urchins must be true or false, got {observe_urchins!r}")

@@ -5,11 +5,11 @@ import torch
 
 from .opponent import TwoPlayerDiffEnv
 from .registry import register_env
-from .swimmer import redraw_near
+from .swimmer import check_pond_options, redraw_near
 
 
 @register_env(drawer="torchrl_diffenvs.rendering.tasks:MULTI_SWIMMER",
-              options={"num_urchins": 5, "clearance": 0.25})
+              options={"num_urchins": 5, "urchin_clearance": 0.25})
 class SwimmerRaceEnv(TwoPlayerDiffEnv):
     """Two fish (the swimmer's point masses) start at the same distance from one goal, on opposite
     sides of it; fish 0 is the learner, fish 1 the opponent (:meth:`set_opponent`; default: the
@@ -21,7 +21,7 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
     the episode nearer the goal. Observation of fish ``i`` (``2K + 10``): ``[urchins (2K), p_i,
     v_i, g, p_j - p_i, v_j]``. Start: ``g ~ U[-0.5, 0.5]^2``, ``p_{0,1} = g +- r (cos a, sin a)``
     with ``r ~ U[0.7, 1]``, ``a ~ U[0, 2 pi)``, ``v = 0``; urchins ``U[-1, 1]^2`` away from both
-    starts and the goal by ``clearance``. Scripted opponent: ``tanh(2 (g - p) - 2 v)``, straight
+    starts and the goal by ``urchin_clearance``. Scripted opponent: ``tanh(2 (g - p) - 2 v)``, straight
     to the goal, blind to the urchins.
     """
 
@@ -29,13 +29,10 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
     action_dim = 2
     default_params = {"max_accel": 1.0, "urchin_sharpness": 30.0, "dt": 0.05}
 
-    def __init__(self, num_envs=1, *, num_urchins: int = 5, clearance: float = 0.25, **kwargs):
-        if isinstance(num_urchins, bool) or not isinstance(num_urchins, int) or num_urchins < 0:
-            raise ValueError(f"swimmer_race: num_urchins must be an integer >= 0, got {num_urchins!r}")
-        if not 0.0 <= clearance < 1.0:
-            raise ValueError(f"swimmer_race: clearance must lie in [0, 1), got {clearance!r}")
+    def __init__(self, num_envs=1, *, num_urchins: int = 5, urchin_clearance: float = 0.25, **kwargs):
+        check_pond_options(self.name, num_urchins=num_urchins, urchin_clearance=urchin_clearance)
         self.num_urchins = num_urchins
-        self.clearance = clearance
+        self.urchin_clearance = urchin_clearance
         super().__init__(num_envs, **kwargs)
 
     def initial_state(self, params, n):
@@ -44,7 +41,7 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
         offset = radius * torch.cat([torch.cos(angle), torch.sin(angle)], dim=-1)
         pos = torch.stack([goal + offset, goal - offset], dim=1)  # [n, 2 fish, 2]
         urchins = redraw_near(self, self.uniform(-1.0, 1.0, n, self.num_urchins, 2),
-                              lambda points: torch.cat([pos, goal.unsqueeze(1)], dim=1), self.clearance)
+                              lambda points: torch.cat([pos, goal.unsqueeze(1)], dim=1), self.urchin_clearance)
         return {"pos": pos, "vel": torch.zeros_like(pos), "goal": goal, "urchins": urchins}
 
     def closeness(self, pos, goal, urchins, params):
