@@ -368,6 +368,7 @@ def test_train_script_trains_and_resumes_exactly_on_multi_swimmer(loss, tmp_path
 
 
 def test_mappo_uses_a_centralised_critic_and_ippo_a_decentralised_one():
+    """MAPPO: each fish's value from every fish's observation; IPPO: from its own."""
     from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
     from torchrl.objectives.value import MultiAgentGAE
 
@@ -387,6 +388,8 @@ def test_mappo_uses_a_centralised_critic_and_ippo_a_decentralised_one():
         moved["agents", "observation"][:, 1] += 1.0
         changed = (learner.critic(moved)["agents", "state_value"][:, 0] != values[:, 0]).any()
         assert bool(changed) == (preset == "mappo")
+        # either way each fish gets its own value (its own reward): MAPPO's critic is one network per agent
+        assert (values[:, 0] != values[:, 1]).all()
         learner.close()
 
 

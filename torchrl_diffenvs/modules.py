@@ -210,14 +210,17 @@ def make_agent_mlp(
     init: str = "default",
     centralised: bool = False,
 ) -> MultiAgentMLP:
-    """The networks of a multi-agent env: TorchRL's ``MultiAgentMLP`` with parameters shared by the
-    agents, on ``[..., num_agents, in_dim]``. ``centralised=False``: each agent's output from its own
-    input (a decentralised policy or critic: :func:`make_mlp` applied to every agent);
-    ``True``: from every agent's input (MAPPO's centralised critic)."""
+    """The networks of a multi-agent env: TorchRL's ``MultiAgentMLP`` on ``[..., num_agents, in_dim]``.
+
+    ``centralised=False``: each agent's output from its own input, one network shared by the
+    agents (a decentralised policy or critic: :func:`make_mlp` applied to every agent).
+    ``True``: each agent's output from every agent's input (MAPPO's centralised critic), with one
+    network per agent: a shared one would give every agent the same value, which per-agent
+    rewards (``multi_swimmer``'s) do not have."""
     if norm_after_activation or init != "default":
         raise ValueError("the multi-agent networks (TorchRL's MultiAgentMLP) are Linear-LayerNorm-activation with "
                          "PyTorch's initialisation: set norm_after_activation=false and init=default")
-    return MultiAgentMLP(in_dim, out_dim, num_agents, centralized=centralised, share_params=True,
+    return MultiAgentMLP(in_dim, out_dim, num_agents, centralized=centralised, share_params=not centralised,
                          **_torchrl_mlp_layers(hidden, activation, layer_norm, dtype))
 
 
