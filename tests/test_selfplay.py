@@ -50,7 +50,8 @@ def placed(env):
     state = {"pos": torch.tensor([[[0.0, 0.0], [0.6, 0.2]]], dtype=F64),
              "vel": torch.tensor([[[0.1, 0.0], [0.0, -0.2]]], dtype=F64),
              "goal": torch.tensor([[0.3, 0.1]], dtype=F64),
-             "urchins": torch.tensor([[[0.5, -0.5]]], dtype=F64)}
+             "urchins": torch.tensor([[[0.5, -0.5]]], dtype=F64),
+             "steps_to_goal": torch.zeros(1, 2, dtype=F64), "arrived": torch.zeros(1, 2, dtype=F64)}
     return env.reset(TensorDict({"state": state}, batch_size=[1]), set_state=True)
 
 
@@ -146,18 +147,40 @@ def test_the_opponent_is_a_frozen_copy():
         env.set_opponent(3)
 
 
-def test_win_rate_counts_the_first_episode_ends():
-    env = race(num_envs=16, max_episode_steps=30)
-    actor = tiny_actor(env).double()
-    scores = evaluate(env, actor, steps=40, seed=5)
-    env.set_seed(5)
-    from torchrl.envs.utils import ExplorationType, set_exploration_type
+def scripted_player(td):
+    """Player 0 driven by the scripted opponent's rule (from its own side) with a gain from 0.5 to 4
+    across the envs: some beat the opponent's 2, some lose."""
+    state = td["state"]
+    gain = torch.linspace(0.5, 4.0, td.shape[0], dtype=F64).unsqueeze(-1)
+    return td.set("action", torch.tanh(gain * (state["goal"] - state["pos"][:, 0]) - 2.0 * state["vel"][:, 0]))
 
-    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        rollout = env.rollout(40, actor, break_when_any_done=False)
-    end = rollout["next", "state"][:, 29]  # the first episode's last step
-    distance = (end["pos"] - end["goal"].unsqueeze(1)).norm(dim=-1)
-    assert scores["win_rate"] == pytest.approx((distance[:, 0] < distance[:, 1]).double().mean().item())
+
+def test_the_first_fish_at_the_goal_wins():
+    env = race(num_envs=64, max_episode_steps=100)
+    with torch.no_grad():
+        rollout = env.rollout(100, scripted_player)
+    # by hand: the first step each fish is within 0.1 of the goal
+    distance = (rollout["next", "state", "pos"] - rollout["next", "state", "goal"].unsqueeze(2)).norm(dim=-1)
+    inside = distance < 0.1  # [N, T, 2]
+    first = torch.where(inside.any(1), inside.float().argmax(1), torch.full_like(inside[:, 0], 10**6, dtype=torch.long))
+    wins = first[:, 0] < first[:, 1]
+    end = rollout["next", "state"][:, -1]
+    assert 0 < wins.sum() < 64  # some races won, some lost or tied
+    assert torch.equal(env.player_wins(end, None), wins)
+    arrived = inside.any(1)
+    torch.testing.assert_close(end["arrived"], arrived.to(F64))
+    torch.testing.assert_close(end["steps_to_goal"][arrived], (first + 1)[arrived].to(F64))
+
+
+def test_win_rate_counts_the_first_episode_ends():
+    env = race(num_envs=16, max_episode_steps=60)
+    scores = evaluate(env, scripted_player, steps=80, seed=5)
+    env.set_seed(5)
+    with torch.no_grad():
+        rollout = env.rollout(80, scripted_player, break_when_any_done=False)
+    end = rollout["next", "state"][:, 59]  # the first episode's last step
+    assert scores["win_rate"] == pytest.approx(env.player_wins(end, None).double().mean().item())
+    assert 0 < scores["win_rate"] < 1
 
 
 # ---------------------------------------------------------------------------- the schedule

@@ -17,8 +17,9 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
 
     Zero-sum reward of fish 0: ``c_0 - c_1`` with ``c_i = exp(-0.5 |p_i - g|^2) * prod_k (1 -
     exp(-urchin_sharpness |p_i - u_k|^2))``, the single swimmer's reward of each fish: positive
-    while fish 0 is nearer the goal (and clear of urchins) than fish 1. Fish 0 wins when it ends
-    the episode nearer the goal. Observation of fish ``i`` (``2K + 10``): ``[urchins (2K), p_i,
+    while fish 0 is nearer the goal (and clear of urchins) than fish 1. Fish 0 wins a race when it
+    comes within ``GOAL_RADIUS`` of the goal first (the state counts each fish's steps until it
+    arrives: ``steps_to_goal``, ``arrived``; bookkeeping, no gradient). Observation of fish ``i`` (``2K + 10``): ``[urchins (2K), p_i,
     v_i, g, p_j - p_i, v_j]``. Start: ``g ~ U[-0.5, 0.5]^2``, ``p_{0,1} = g +- r (cos a, sin a)``
     with ``r ~ U[0.7, 1]``, ``a ~ U[0, 2 pi)``, ``v = 0``; urchins ``U[-1, 1]^2`` away from both
     starts and the goal by ``urchin_clearance``. Scripted opponent: ``tanh(2 (g - p) - 2 v)``, straight
@@ -27,6 +28,7 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
 
     name = "swimmer_race"
     action_dim = 2
+    GOAL_RADIUS = 0.1
     default_params = {"max_accel": 1.0, "urchin_sharpness": 30.0, "dt": 0.05}
 
     def __init__(self, num_envs=1, *, num_urchins: int = 5, urchin_clearance: float = 0.25, **kwargs):
@@ -42,7 +44,9 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
         pos = torch.stack([goal + offset, goal - offset], dim=1)  # [n, 2 fish, 2]
         urchins = redraw_near(self, self.uniform(-1.0, 1.0, n, self.num_urchins, 2),
                               lambda points: torch.cat([pos, goal.unsqueeze(1)], dim=1), self.urchin_clearance)
-        return {"pos": pos, "vel": torch.zeros_like(pos), "goal": goal, "urchins": urchins}
+        not_yet = torch.zeros_like(pos[..., 0])  # [n, 2]
+        return {"pos": pos, "vel": torch.zeros_like(pos), "goal": goal, "urchins": urchins,
+                "steps_to_goal": not_yet, "arrived": not_yet.clone()}
 
     def closeness(self, pos, goal, urchins, params):
         """``c_i`` of every fish ``[n, 2]``."""
@@ -56,7 +60,13 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
         pos = state["pos"] + dt * vel
         goal, urchins = state["goal"], state["urchins"]
         c = self.closeness(pos, goal, urchins, params)
-        return {"pos": pos, "vel": vel, "goal": goal, "urchins": urchins}, c[:, 0] - c[:, 1], None
+        with torch.no_grad():  # who got there first
+            steps_to_goal = state["steps_to_goal"] + (1 - state["arrived"])
+            at_goal = ((pos - goal.unsqueeze(1)) ** 2).sum(-1) < self.GOAL_RADIUS**2
+            arrived = torch.maximum(state["arrived"], at_goal.to(pos.dtype))
+        next_state = {"pos": pos, "vel": vel, "goal": goal, "urchins": urchins, "steps_to_goal": steps_to_goal,
+                      "arrived": arrived}
+        return next_state, c[:, 0] - c[:, 1], None
 
     def observe(self, state, params, player):
         me, other = state["pos"][:, player], state["pos"][:, 1 - player]
@@ -67,5 +77,5 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
         return torch.tanh(2.0 * (state["goal"] - state["pos"][:, 1]) - 2.0 * state["vel"][:, 1])
 
     def player_wins(self, state, params):
-        distance = (state["pos"] - state["goal"].unsqueeze(1)).norm(dim=-1)
-        return distance[:, 0] < distance[:, 1]
+        arrived, steps = state["arrived"].bool(), state["steps_to_goal"]
+        return arrived[:, 0] & (~arrived[:, 1] | (steps[:, 0] < steps[:, 1]))
