@@ -6,8 +6,8 @@ import torch
 
 from torchrl_diffenvs.envs import make_env
 
-MUJOCO_TASKS = ["InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", "HalfCheetah-v5", "Hopper-v5",
-                "Walker2d-v5"]
+MUJOCO_TASKS = ["InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", "Swimmer-v5", "HalfCheetah-v5",
+                "Hopper-v5", "Walker2d-v5"]
 CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5"]
 
 
@@ -58,7 +58,10 @@ def step_fn(env, state_keys, param_key=None):
 @pytest.mark.parametrize("name", MUJOCO_TASKS)
 def test_gradcheck_one_step(name):
     env = make_env(name, num_envs=2, dtype=torch.float64, seed=0)
-    state = standing_state(env, 2, depth=0.01) if name in CONTACT_TASKS else env.initial_state(env.params, 2)
+    # contact active; joints mid-range: a limit's active set (which rows push, jointly solved) has
+    # kinks in the state (as MuJoCo's), see test_coupled_joint_limits_gradcheck for the limits
+    state = standing_state(env, 2, depth=0.01, mid_range=True) if name in CONTACT_TASKS else \
+        env.initial_state(env.params, 2)
     fn, extras = step_fn(env, list(state.keys()), param_key="body_mass")
     extras.update({k: v for k, v in state.items() if k not in ("qpos", "qvel")})
     action = (0.3 * torch.randn(2, env.action_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))
@@ -166,3 +169,34 @@ class _OpenLoop(torch.nn.Module):
         td["action"] = self.actions[:, self.t]
         self.t += 1
         return td
+
+
+def test_coupled_joint_limits_gradcheck():
+    """Swimmer-v5 with both motor joints pushed past their limits at once (two rows solved jointly,
+    each pushing): one step's gradient w.r.t. the state, the action and the masses."""
+    from torchrl_diffenvs.articulated.dynamics import _complementary_forces
+
+    env = make_env("Swimmer-v5", num_envs=2, dtype=torch.float64, seed=0)
+    state = env.initial_state(env.params, 2)
+    qpos = state["qpos"].clone()
+    qpos[:, 3:] = torch.tensor([[1.76, 1.77], [-1.77, -1.76]], dtype=torch.float64)  # past +-100 degrees
+    qvel = state["qvel"].clone()
+    qvel[:, 3:] = torch.tensor([[1.0, 2.0], [-2.0, -1.0]], dtype=torch.float64)  # pressing on
+    fn, _ = step_fn(env, ["qpos", "qvel"], param_key="body_mass")
+    action = torch.tensor([[0.5, 0.8], [-0.6, -0.9]], dtype=torch.float64)
+    calls = []
+    import torchrl_diffenvs.articulated.dynamics as dynamics
+
+    def spy(matrix, offset, allowed):
+        force = _complementary_forces(matrix, offset, allowed)
+        calls.append(((force > 1.0).sum(-1) == 2).all().item())
+        return force
+
+    dynamics._complementary_forces, original = spy, dynamics._complementary_forces
+    try:
+        inputs = (action.requires_grad_(), qpos.requires_grad_(), qvel.requires_grad_(),
+                  env.params["body_mass"].clone().requires_grad_())
+        assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+    finally:
+        dynamics._complementary_forces = original
+    assert calls and all(calls)  # every physics step had both limits pushing

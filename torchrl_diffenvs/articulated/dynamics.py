@@ -26,6 +26,7 @@ randomised or differentiated like any other input.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -118,6 +119,12 @@ class RigidBodyTree:
     contact_plane_normal: torch.Tensor  # [npoint, 3]
     contact_pairs: list[tuple[str, str]]  # (geom, plane) of each slot
     contact_pair_friction: np.ndarray  # [npair] MuJoCo's max of the two geoms' sliding friction
+    # fluid: each body's principal axes of inertia (its inertial frame) in the body frame
+    body_inertial_frame: torch.Tensor  # [nbody, 3, 3]
+
+    @property
+    def has_fluid(self) -> bool:
+        return self.model.density > 0 or self.model.viscosity > 0
 
     @property
     def nv(self) -> int:
@@ -198,6 +205,7 @@ class RigidBodyTree:
             contact_plane_point=t([p[4] for p in points]).reshape(-1, 3),
             contact_plane_normal=t([p[5] for p in points]).reshape(-1, 3),
             contact_pairs=pairs, contact_pair_friction=np.array(pair_friction),
+            body_inertial_frame=t(np.linalg.eigh(model.body_inertia)[1]),
         )
         tree.kin0 = forward_kinematics(tree, tree.qpos0.unsqueeze(0))
         return tree
@@ -221,12 +229,60 @@ def _contact_points(model: ArticulatedModel, g: int) -> list[tuple[np.ndarray, f
 
 
 def default_params(model: ArticulatedModel) -> dict[str, torch.Tensor]:
-    """The model file's physical parameters (float64, unbatched): the per-env ``params`` defaults."""
+    """The model file's physical parameters (float64, unbatched): the per-env ``params`` defaults
+    (with ``fluid_density`` and ``fluid_viscosity`` for a model in a fluid)."""
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
-    return {
+    params = {
         "body_mass": t(model.body_mass), "body_inertia": t(model.body_inertia), "gravity": t(model.gravity),
         "damping": t(model.damping), "armature": t(model.armature), "stiffness": t(model.stiffness),
     }
+    if model.density > 0 or model.viscosity > 0:
+        params.update(fluid_density=t(model.density), fluid_viscosity=t(model.viscosity))
+    return params
+
+
+_MINVAL = 1e-15  # MuJoCo's mjMINVAL
+
+
+def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, jac) -> torch.Tensor:
+    """``[N, nv]`` generalised force of MuJoCo's inertia-box fluid model (``mj_inertiaBoxFluidModel``).
+
+    Each body is a box with its mass and principal moments of inertia, moving in a still medium
+    of ``fluid_density`` and ``fluid_viscosity``: in the body's inertial frame, with ``b`` the box
+    sides, ``d = mean(b)``, ``v`` and ``w`` the linear (at the centre of mass) and angular velocity,
+
+        force_i  = -3 pi d viscosity v_i  - density / 2 * b_j b_k |v_i| v_i
+        torque_i = -pi d^3 viscosity w_i  - density / 64 * b_i (b_j^4 + b_k^4) |w_i| w_i
+
+    applied at the centre of mass. Smooth (``|x| x`` is C1), so gradients are defined everywhere.
+    """
+    mass, inertia = params["body_mass"], params["body_inertia"]
+    frame = tree.body_inertial_frame  # principal axes in the body frame, from the model file
+    moments = torch.diagonal(frame.transpose(-1, -2) @ inertia @ frame, dim1=-2, dim2=-1)  # [N, nbody, 3]
+    has_mass = mass > _MINVAL  # MuJoCo skips massless bodies (the world)
+    safe_mass = torch.where(has_mass, mass, torch.ones_like(mass)).unsqueeze(-1)
+    opposite = moments.sum(-1, keepdim=True) - 2 * moments  # I_j + I_k - I_i
+    box = torch.sqrt(torch.clamp(opposite, min=_MINVAL) / safe_mass * 6.0)
+    rot = kin.body_rot @ frame  # inertial frames in the world
+    com = kin.body_pos + (kin.body_rot @ tree.body_com.unsqueeze(-1)).squeeze(-1)
+    vel = (jac @ qvel[:, None, :, None]).squeeze(-1)  # [N, nbody, 6]: angular, linear at the world origin
+    omega = vel[..., :3]
+    local_w = (rot.transpose(-1, -2) @ omega.unsqueeze(-1)).squeeze(-1)
+    local_v = (rot.transpose(-1, -2) @ (vel[..., 3:] + _cross(omega, com)).unsqueeze(-1)).squeeze(-1)
+    density = params["fluid_density"][:, None, None]
+    viscosity = params["fluid_viscosity"][:, None, None]
+    diameter = box.mean(-1, keepdim=True)
+    b0, b1, b2 = box.unbind(-1)
+    area = torch.stack([b1 * b2, b0 * b2, b0 * b1], dim=-1)
+    fourth = box**4
+    spin = box * (fourth.sum(-1, keepdim=True) - fourth) / 64.0  # b_i (b_j^4 + b_k^4) / 64
+    force = -3 * math.pi * diameter * viscosity * local_v - 0.5 * density * area * local_v.abs() * local_v
+    torque = -math.pi * diameter**3 * viscosity * local_w - density * spin * local_w.abs() * local_w
+    mask = has_mass.to(force.dtype).unsqueeze(-1)
+    force_w = (rot @ force.unsqueeze(-1)).squeeze(-1) * mask
+    torque_w = (rot @ torque.unsqueeze(-1)).squeeze(-1) * mask
+    wrench = torch.cat([torque_w + _cross(com, force_w), force_w], dim=-1)  # at the world origin
+    return (jac.transpose(-1, -2) @ wrench.unsqueeze(-1)).squeeze(-1).sum(1)
 
 
 @dataclass
@@ -398,9 +454,11 @@ def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight
 
     For row ``i`` with distance ``r`` (negative when violated), velocity ``v = J qvel`` and
     unconstrained acceleration ``a0 = J qacc_smooth``: ``aref = -B v - K d(r) (r - margin)``,
-    ``R = (1 - d) / d * invweight0`` (:func:`dof_invweight0`) and ``f = max(0, -(a0 - aref) / (A + R))`` with
-    ``A = J M^-1 J^T``, applied as ``J^T f``. Rows are solved independently (MuJoCo solves active
-    rows jointly; the two agree whenever at most one limit of the model is active).
+    ``R = (1 - d) / d * invweight0`` (:func:`dof_invweight0`); the forces ``f >= 0`` of the active
+    rows solve MuJoCo's constraint problem jointly (the rows couple through ``A = J M^-1 J^T``):
+    the linear complementarity problem ``w = (A + R) f + (a0 - aref) >= 0``, ``f >= 0``,
+    ``f . w = 0``, solved exactly by principal pivoting (a fixed number of rounds, batched), and
+    applied as ``J^T f``. With one active row this is ``f = max(0, -(a0 - aref) / (A_ii + R_i))``.
     """
     if tree.limit_dof.numel() == 0:
         return torch.zeros_like(qvel)
@@ -414,10 +472,38 @@ def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight
     damping = 2 / (dmax * timeconst).clamp(min=_MINVAL)
     aref = -damping * sign * qvel[:, dof] - stiffness * imp * (dist - tree.limit_margin)
     regulariser = torch.clamp((1 - imp) * invweight0[:, dof] / imp, min=_MINVAL)
-    diag = mass_inv.diagonal(dim1=-2, dim2=-1)[:, dof]
-    force = torch.clamp(-(sign * smooth_acc[:, dof] - aref) / (diag + regulariser), min=0.0)
-    force = torch.where(active, force, torch.zeros_like(force))
+    coupling = sign[:, None] * sign[None, :] * mass_inv[:, dof][:, :, dof] + torch.diag_embed(regulariser)  # A + R
+    offset = sign * smooth_acc[:, dof] - aref  # a0 - aref
+    force = _complementary_forces(coupling, offset, active)
     return torch.zeros_like(qvel).index_add(1, dof, sign * force)
+
+
+def _complementary_forces(matrix: torch.Tensor, offset: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
+    """``f >= 0`` with ``w = matrix f + offset >= 0`` and ``f . w = 0`` over the ``allowed`` rows
+    (``f = 0`` elsewhere), ``matrix`` positive definite ``[N, L, L]``: principal pivoting.
+
+    Each round solves the rows of the current set exactly, then flips the first row that breaks
+    the conditions (Murty's least-index rule, which cannot cycle): a chosen row with a negative
+    force leaves, an allowed row with a negative ``w`` joins. ``2 L`` rounds (no data-dependent
+    exit, so it batches and compiles), then the final set is solved.
+    """
+    rows = offset.shape[-1]
+    eye = torch.eye(rows, dtype=matrix.dtype, device=matrix.device)
+    index = torch.arange(rows, device=offset.device)
+
+    def solve(chosen):
+        both = chosen.unsqueeze(-1) & chosen.unsqueeze(-2)
+        reduced = torch.where(both, matrix, eye)  # the chosen block, identity elsewhere
+        return torch.linalg.solve(reduced, torch.where(chosen, -offset, torch.zeros_like(offset)))
+
+    chosen = allowed & (offset < 0)  # the rows that push on their own
+    for _ in range(2 * rows):
+        force = solve(chosen)
+        slack = (matrix @ force.unsqueeze(-1)).squeeze(-1) + offset
+        broken = (chosen & (force < 0)) | (allowed & ~chosen & (slack < 0))
+        first = broken & (index == torch.where(broken, index, rows).min(-1, keepdim=True).values)
+        chosen = chosen ^ first
+    return torch.where(chosen, solve(chosen).clamp(min=0.0), torch.zeros_like(offset))
 
 
 def _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias, with_damping=False):
@@ -427,6 +513,8 @@ def _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias, with_damping=F
     uses (joint damping plus the contact's, see :func:`contact_force`).
     """
     passive = -params["damping"] * qvel - params["stiffness"] * (qpos - tree.qpos_spring)
+    if tree.has_fluid:
+        passive = passive + fluid_force(tree, kin, qvel, params, jac)
     force = actuator_force(tree, ctrl, tree.nv) + passive - bias
     damping = torch.diag_embed(params["damping"]) if with_damping else None
     if tree.contact_body.numel():

@@ -6,7 +6,8 @@ tensors. It follows MuJoCo's compiler where it matters for the dynamics:
 
 * ``<compiler>``: ``angle`` (degree by default), ``eulerseq``, ``inertiafromgeom``,
   ``settotalmass``; ``coordinate="local"`` only;
-* ``<option>``: ``timestep``, ``integrator`` (Euler, RK4), ``gravity``;
+* ``<option>``: ``timestep``, ``integrator`` (Euler, RK4), ``gravity``, ``density`` and
+  ``viscosity`` (MuJoCo's inertia-box fluid forces);
 * ``<default>`` classes (nested, inherited; ``class`` and ``childclass``);
 * bodies with ``pos`` and any orientation (``quat``, ``axisangle``, ``euler``, ``xyaxes``,
   ``zaxis``), ``<inertial>`` or inertia from geoms (sphere, capsule, cylinder, ellipsoid, box;
@@ -15,7 +16,7 @@ tensors. It follows MuJoCo's compiler where it matters for the dynamics:
   attributes, and ``<motor>`` actuators (gear, ctrlrange/ctrllimited, forcerange/forcelimited).
 
 Anything else that would change the dynamics (free/ball joints, tendons, equality constraints,
-other actuators, fluid forces, joint friction loss, ...) raises :class:`MJCFError` naming the
+other actuators, wind and the ellipsoid fluid model, joint friction loss, ...) raises :class:`MJCFError` naming the
 element, the attribute and the file. Purely visual things (materials, textures, lights, cameras,
 sites, colours, sensors) are ignored.
 """
@@ -86,6 +87,8 @@ class ArticulatedModel:
     timestep: float
     integrator: str  # "euler" | "rk4"
     gravity: np.ndarray  # [3]
+    density: float  # of the medium (MuJoCo's option density; 0: no fluid forces)
+    viscosity: float  # of the medium (option viscosity)
     # bodies [nbody] (0 = world)
     body_names: list[str]
     body_parent: np.ndarray  # int
@@ -288,6 +291,7 @@ class _Reader:
         handlers = {"compiler": self.compiler, "option": self.option, "default": None,
                     "worldbody": None, "actuator": None}
         self.timestep, self.integrator, self.gravity = 0.002, "euler", np.array([0.0, 0.0, -9.81])
+        self.density = self.viscosity = 0.0
         for child in self.root:
             if not isinstance(child.tag, str):  # comments
                 continue
@@ -345,9 +349,12 @@ class _Reader:
             raise self.fail(element, f"integrator {integrator!r} is not supported; supported: 'Euler', 'RK4'")
         self.integrator = integrator.lower()
         self.gravity = _floats(element.get("gravity", "0 0 -9.81"), 3, f"{self.path}: <option gravity>")
-        for attr in ("density", "viscosity"):
-            if float(element.get(attr, 0.0)) != 0.0:
-                raise self.fail(element, f"{attr}={element.get(attr)!r}: fluid forces are not supported")
+        # MuJoCo's inertia-box fluid model (articulated.dynamics.fluid_force); the geom-level
+        # ellipsoid model (fluidshape) and wind are not supported (unknown attributes raise)
+        self.density = float(element.get("density", 0.0))
+        self.viscosity = float(element.get("viscosity", 0.0))
+        if self.density < 0 or self.viscosity < 0:
+            raise self.fail(element, "density and viscosity must be >= 0")
 
     def default(self, element, parent):
         name = element.get("class", "main")
@@ -585,7 +592,7 @@ class _Reader:
 
         return ArticulatedModel(
             name=self.root.get("model", Path(self.path).stem), path=self.path, timestep=self.timestep,
-            integrator=self.integrator, gravity=self.gravity,
+            integrator=self.integrator, gravity=self.gravity, density=self.density, viscosity=self.viscosity,
             body_names=b["names"], body_parent=np.array(b["parent"], dtype=np.int64),
             body_pos=np.array(b["pos"]), body_rot=np.array(b["rot"]), body_mass=np.array(b["mass"]),
             body_com=np.array(b["com"]), body_inertia=np.array(b["inertia"]),

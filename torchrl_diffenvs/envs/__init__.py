@@ -18,6 +18,7 @@ from .mujoco import (
     InvertedPendulumV5Env,
     MuJoCoModelEnv,
     ReacherV5Env,
+    SwimmerV5Env,
     Walker2dV5Env,
 )
 from .pendulum import PendulumEnv
@@ -29,7 +30,7 @@ from .swimmer_race import SwimmerRaceEnv
 __all__ = [
     "DiffEnv", "MUJOCO_TASKS", "CartPoleEnv", "PendulumEnv", "MountainCarEnv", "ReacherEnv", "SwimmerEnv",
     "CartPoleV1Env", "PendulumV1Env", "MountainCarContinuousV0Env", "MuJoCoModelEnv", "InvertedPendulumV5Env",
-    "InvertedDoublePendulumV5Env", "ReacherV5Env", "HalfCheetahV5Env", "HopperV5Env", "Walker2dV5Env",
+    "InvertedDoublePendulumV5Env", "ReacherV5Env", "HalfCheetahV5Env", "HopperV5Env", "Walker2dV5Env", "SwimmerV5Env",
     "MultiAgentDiffEnv", "MultiSwimmerEnv", "is_multi_agent", "SwimmerRaceEnv", "TwoPlayerDiffEnv",
     "opponent_from_actor", "env_class", "env_config", "list_envs", "make_env", "register_env", "compile_physics", "eager_physics",
 ]

@@ -5,10 +5,12 @@ from .hopper import HopperV5Env
 from .inverted_double_pendulum import InvertedDoublePendulumV5Env
 from .inverted_pendulum import InvertedPendulumV5Env
 from .reacher import ReacherV5Env
+from .swimmer import SwimmerV5Env
 from .walker2d import Walker2dV5Env
 
 MUJOCO_TASKS = (
-    InvertedPendulumV5Env, InvertedDoublePendulumV5Env, ReacherV5Env, HalfCheetahV5Env, HopperV5Env, Walker2dV5Env,
+    InvertedPendulumV5Env, InvertedDoublePendulumV5Env, ReacherV5Env, SwimmerV5Env, HalfCheetahV5Env, HopperV5Env,
+    Walker2dV5Env,
 )
 
 __all__ = ["MuJoCoModelEnv", "MUJOCO_TASKS", *(cls.__name__ for cls in MUJOCO_TASKS)]

@@ -5,12 +5,13 @@ from .base import MuJoCoModelEnv
 
 
 class PlanarLocomotionEnv(MuJoCoModelEnv):
-    """A planar robot (root joints ``rootx``, ``rootz``, ``rooty``) rewarded for running forward.
+    """A planar robot (``qpos[0]`` its forward position) rewarded for moving forward.
 
     Reward ``forward_reward_weight * (x_after - x_before) / dt + healthy_reward * healthy
     - ctrl_cost_weight * |a|^2``; terminated when unhealthy (if ``terminate_when_unhealthy``);
-    observation ``[qpos[1:], clip(qvel, -clip_velocity, clip_velocity)]``, with ``qpos[0]`` too when
-    ``exclude_current_positions_from_observation=False``. ``healthy`` is always true for a task
+    observation ``[qpos[k:], clip(qvel, -clip_velocity, clip_velocity)]`` where the first
+    ``k = position_coordinates`` coordinates (1: ``x``; the swimmer's 2: ``x, y``) are left out
+    unless ``exclude_current_positions_from_observation=False``. ``healthy`` is always true for a task
     without healthy ranges (HalfCheetah). Start: ``qpos0 + U(-s, s)`` and ``qvel ~ U(-s, s)``
     (``qvel ~ s N(0, 1)`` where ``velocity_noise = "normal"``), ``s = reset_noise_scale``.
 
@@ -20,6 +21,7 @@ class PlanarLocomotionEnv(MuJoCoModelEnv):
     """
 
     velocity_noise = "uniform"
+    position_coordinates = 1  # leading qpos entries the observation leaves out
     clip_velocity: float | None = None
     healthy_ranges: dict = {}  # name -> what it bounds: "z" (qpos[1]), "angle" (qpos[2]), "state" (state[2:])
 
@@ -63,7 +65,7 @@ class PlanarLocomotionEnv(MuJoCoModelEnv):
     def observation(self, state, params):
         qpos, qvel = state["qpos"], state["qvel"]
         if self.exclude_current_positions:
-            qpos = qpos[:, 1:]
+            qpos = qpos[:, self.position_coordinates:]
         if self.clip_velocity is not None:
             qvel = torch.clamp(qvel, -self.clip_velocity, self.clip_velocity)
         return torch.cat([qpos, qvel], dim=-1)
