@@ -207,3 +207,39 @@ def test_contact_free_tasks_match_gymnasium(task, action_scale):
                 break
             td = nxt.clone()
     genv.close()
+
+
+def test_jointly_solved_limit_forces_match_brute_force_enumeration():
+    """The limit rows' complementarity problem against trying every set of pushing rows: random
+    positive definite couplings, offsets and allowed rows (6 rows, 200 problems), both the eager
+    path (only coupled envs pivot, early exit) and the fixed-round one torch.compile takes."""
+    import itertools
+
+    from torchrl_diffenvs.articulated.dynamics import _complementary_forces, _pivot
+
+    gen = torch.Generator().manual_seed(0)
+    n, rows = 200, 6
+    base = torch.randn(n, rows, rows, generator=gen, dtype=torch.float64)
+    matrix = base @ base.transpose(-1, -2) + 0.5 * torch.eye(rows, dtype=torch.float64)
+    offset = torch.randn(n, rows, generator=gen, dtype=torch.float64) * 3
+    allowed = torch.rand(n, rows, generator=gen) < 0.6
+    expected = torch.zeros(n, rows, dtype=torch.float64)
+    for i in range(n):
+        idx = [r for r in range(rows) if allowed[i, r]]
+        for size in range(len(idx) + 1):
+            found = False
+            for subset in itertools.combinations(idx, size):
+                f = torch.zeros(rows, dtype=torch.float64)
+                if subset:
+                    s = list(subset)
+                    f[s] = torch.linalg.solve(matrix[i][s][:, s], -offset[i, s])
+                w = matrix[i] @ f + offset[i]
+                if (f >= -1e-12).all() and (w[idx] >= -1e-9).all():
+                    expected[i], found = f, True
+                    break
+            if found:
+                break
+        assert found, i
+    torch.testing.assert_close(_complementary_forces(matrix, offset, allowed), expected, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(_pivot(matrix, offset, allowed, early_exit=False), expected, rtol=1e-9, atol=1e-9)
+    assert (expected > 0).sum(-1).max() >= 3  # several rows pushing at once

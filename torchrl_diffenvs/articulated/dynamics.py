@@ -480,13 +480,28 @@ def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight
 
 def _complementary_forces(matrix: torch.Tensor, offset: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
     """``f >= 0`` with ``w = matrix f + offset >= 0`` and ``f . w = 0`` over the ``allowed`` rows
-    (``f = 0`` elsewhere), ``matrix`` positive definite ``[N, L, L]``: principal pivoting.
+    (``f = 0`` elsewhere), ``matrix`` positive definite ``[N, L, L]``.
 
-    Each round solves the rows of the current set exactly, then flips the first row that breaks
-    the conditions (Murty's least-index rule, which cannot cycle): a chosen row with a negative
-    force leaves, an allowed row with a negative ``w`` joins. ``2 L`` rounds (no data-dependent
-    exit, so it batches and compiles), then the final set is solved.
+    With at most one allowed row it is ``max(0, -offset / matrix_ii)``; envs with several are
+    solved by principal pivoting: each round solves the rows of the current set exactly, then
+    flips the first row that breaks the conditions (Murty's least-index rule, which cannot cycle):
+    a chosen row with a negative force leaves, an allowed row with a negative ``w`` joins. Eagerly
+    only the envs with several allowed rows pivot, until no row breaks; under ``torch.compile``
+    every env takes ``2 L`` rounds (no data-dependent control flow).
     """
+    single = torch.where(allowed, (-offset / matrix.diagonal(dim1=-2, dim2=-1)).clamp(min=0.0),
+                         torch.zeros_like(offset))
+    if torch.compiler.is_compiling():
+        return _pivot(matrix, offset, allowed, early_exit=False)
+    coupled = allowed.sum(-1) >= 2
+    if not bool(coupled.any()):
+        return single
+    envs = coupled.nonzero().squeeze(-1)
+    solved = _pivot(matrix[envs], offset[envs], allowed[envs], early_exit=True)
+    return single.index_put((envs,), solved)
+
+
+def _pivot(matrix, offset, allowed, early_exit: bool) -> torch.Tensor:
     rows = offset.shape[-1]
     eye = torch.eye(rows, dtype=matrix.dtype, device=matrix.device)
     index = torch.arange(rows, device=offset.device)
@@ -501,6 +516,8 @@ def _complementary_forces(matrix: torch.Tensor, offset: torch.Tensor, allowed: t
         force = solve(chosen)
         slack = (matrix @ force.unsqueeze(-1)).squeeze(-1) + offset
         broken = (chosen & (force < 0)) | (allowed & ~chosen & (slack < 0))
+        if early_exit and not bool(broken.any()):
+            return torch.where(chosen, force.clamp(min=0.0), torch.zeros_like(offset))
         first = broken & (index == torch.where(broken, index, rows).min(-1, keepdim=True).values)
         chosen = chosen ^ first
     return torch.where(chosen, solve(chosen).clamp(min=0.0), torch.zeros_like(offset))
