@@ -406,3 +406,19 @@ def test_train_script_rejects_what_a_multi_agent_env_cannot_do(overrides, messag
 
     with pytest.raises(ConfigError, match=message):
         train_script.validate_config(make_cfg(*overrides))
+
+
+def test_advantages_across_ranks_are_standardised_per_agent():
+    """What the PPO learner does with several ranks: TorchRL's per-agent standardisation (the agent
+    dim excluded), here on one rank against the formula by hand."""
+    from torchrl_diffenvs.distributed import SINGLE_PROCESS
+    from torchrl_diffenvs.learners.ppo import standardize_advantage
+
+    advantage = torch.randn(40, 3, 1, generator=torch.Generator().manual_seed(0), dtype=F64)
+    advantage[:, 1] = advantage[:, 1] * 10 + 5  # one agent on another scale
+    out = standardize_advantage(advantage, SINGLE_PROCESS, (-2,))
+    for i in range(3):
+        a = advantage[:, i]
+        torch.testing.assert_close(out[:, i], (a - a.mean()) / a.std())
+    whole = standardize_advantage(advantage, SINGLE_PROCESS)
+    torch.testing.assert_close(whole, (advantage - advantage.mean()) / advantage.std())

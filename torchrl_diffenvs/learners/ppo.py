@@ -224,7 +224,8 @@ class PPOLearner(Learner):
         c = self.config
         if c.normalize_advantage and self.world.size > 1:
             key = self.loss.tensor_keys.advantage
-            batch.set(key, standardize_advantage(batch.get(key), self.world))
+            per_agent = (-2,) if self.keys.num_agents is not None else ()
+            batch.set(key, standardize_advantage(batch.get(key), self.world, per_agent))
         out = self.loss(batch)
         total = out["loss_objective"] + out["loss_critic"]
         if "loss_entropy" in out.keys():
@@ -298,11 +299,15 @@ class PPOLearner(Learner):
         self.collector.shutdown(close_env=False)
 
 
-def standardize_advantage(advantage: torch.Tensor, world: World) -> torch.Tensor:
+def standardize_advantage(advantage: torch.Tensor, world: World, exclude_dims: tuple[int, ...] = ()) -> torch.Tensor:
     """``(a - mean) / std`` with the mean and (unbiased) std of all ranks' minibatches together:
-    TorchRL's ``ClipPPOLoss(normalize_advantage=True)`` formula, on the union of the ranks' data."""
+    TorchRL's ``ClipPPOLoss(normalize_advantage=True)`` formula, on the union of the ranks' data.
+    ``exclude_dims`` keep their own statistics (``(-2,)``: per agent, as TorchRL's MAPPO/IPPO losses)."""
     union = world.gather(advantage)
-    return (advantage - union.mean()) / union.std().clamp_min(torch.finfo(torch.float).resolution)
+    excluded = {dim % union.ndim for dim in exclude_dims}
+    dims = [dim for dim in range(union.ndim) if dim not in excluded]
+    mean, std = union.mean(dims, keepdim=True), union.std(dims, keepdim=True)
+    return (advantage - mean) / std.clamp_min(torch.finfo(torch.float).resolution)
 
 
 class AllRanksValueNorm(RunningValueNorm):
