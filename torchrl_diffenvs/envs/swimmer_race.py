@@ -60,10 +60,11 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
         pos = state["pos"] + dt * vel
         goal, urchins = state["goal"], state["urchins"]
         c = self.closeness(pos, goal, urchins, params)
-        with torch.no_grad():  # who got there first
-            steps_to_goal = state["steps_to_goal"] + (1 - state["arrived"])
-            at_goal = ((pos - goal.unsqueeze(1)) ** 2).sum(-1) < self.GOAL_RADIUS**2
-            arrived = torch.maximum(state["arrived"], at_goal.to(pos.dtype))
+        # who got there first: counters (the arrival test is a comparison, so nothing depends on the
+        # actions through them; plain tensor ops keep the step differentiable in every state entry)
+        steps_to_goal = state["steps_to_goal"] + (1 - state["arrived"])
+        at_goal = ((pos - goal.unsqueeze(1)) ** 2).sum(-1) < self.GOAL_RADIUS**2
+        arrived = torch.maximum(state["arrived"], at_goal.to(pos.dtype))
         next_state = {"pos": pos, "vel": vel, "goal": goal, "urchins": urchins, "steps_to_goal": steps_to_goal,
                       "arrived": arrived}
         return next_state, c[:, 0] - c[:, 1], None
