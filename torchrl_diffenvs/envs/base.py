@@ -158,7 +158,7 @@ class DiffEnv(EnvBase):
         return TensorDict(values, batch_size=[n], device=self.device)
 
     def _make_specs(self) -> None:
-        n, dtype = self.num_envs, self.float_dtype
+        n = self.num_envs
         state = self.initial_state(self.params, n)
         obs = self.observation(state, self.params)
         self.observation_dim = obs.shape[-1]
