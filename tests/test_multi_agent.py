@@ -398,6 +398,7 @@ def test_mappo_uses_a_centralised_critic_and_ippo_a_decentralised_one():
     (["env=multi_swimmer", "loss=shac", "loss.critic_input=state"], "its critic reads the agents' observations"),
     (["env=pendulum", "loss=mappo"], "centralised_critic=true: env 'pendulum' has a single agent"),
     (["env=multi_swimmer", "loss=ppo", "env.options.num_agents=0"], "num_agents must be an integer >= 1"),
+    (["env=multi_swimmer", "loss=shac", "compile=true"], "compile=true: env 'multi_swimmer' is multi-agent"),
 ])
 def test_train_script_rejects_what_a_multi_agent_env_cannot_do(overrides, message):
     from test_train import make_cfg, train_script
@@ -422,3 +423,10 @@ def test_advantages_across_ranks_are_standardised_per_agent():
         torch.testing.assert_close(out[:, i], (a - a.mean()) / a.std())
     whole = standardize_advantage(advantage, SINGLE_PROCESS)
     torch.testing.assert_close(whole, (advantage - advantage.mean()) / advantage.std())
+
+
+def test_compile_physics_refuses_a_multi_agent_env_instead_of_doing_nothing():
+    from torchrl_diffenvs import compile_physics
+
+    with pytest.raises(ValueError, match="compile_physics: MultiSwimmerEnv's rollouts cannot take the lean path"):
+        compile_physics(make(num_envs=2))

@@ -409,6 +409,10 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
     """
     if isinstance(steps_per_chunk, bool) or not isinstance(steps_per_chunk, int) or steps_per_chunk < 1:
         raise ValueError(f"compile_physics: steps_per_chunk must be a positive integer, got {steps_per_chunk!r}")
+    why_not = fast_rollout_unsupported(env, None, {})
+    if why_not is not None:  # the compiled chunks replace the lean loop: without it nothing would compile
+        raise ValueError(f"compile_physics: {type(env).__name__}'s rollouts cannot take the lean path that the "
+                         f"compiled chunks replace ({why_not}); multi-agent envs roll out through EnvBase.rollout")
     env.__dict__["_compiled_physics"] = _CompiledPhysics(env, steps_per_chunk, compile_kwargs)
     return env
 

@@ -310,6 +310,9 @@ def validate_config(cfg: DictConfig) -> None:
                     privileged_inputs(env)
                 except ValueError as err:
                     problems.append(f"loss.critic_input=state: {err}")
+            if multi_agent and cfg.get("compile"):
+                problems.append(f"compile=true: env {env_name!r} is multi-agent; its rollouts take TorchRL's "
+                                "EnvBase.rollout, and the compiled chunks are for single-agent envs")
             if refresh is not None and not hasattr(env, "set_opponent"):
                 problems.append(f"selfplay.refresh_interval={refresh}: env {env_name!r} has no opponent to replace; "
                                 "self-play needs a two-player env (e.g. env=swimmer_race)")
