@@ -249,3 +249,18 @@ def test_bad_selfplay_settings_are_refused(overrides, message):
 
     with pytest.raises(ConfigError, match=message):
         train_script.validate_config(make_cfg(*overrides, "loss=shac"))
+
+
+@pytest.mark.parametrize("distribution", ["tanh_normal", "deterministic"])
+def test_a_snapshot_plays_the_actors_mean_action_from_its_own_side(distribution):
+    env = race(num_envs=3)
+    torch.manual_seed(0)
+    actor = make_actor(env, hidden=(8,), distribution=distribution).double()
+    env.set_opponent(actor)
+    td = env.reset()
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    seen_by_player_1 = td.clone().set("observation", env.observe(td["state"], td["params"], 1))
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        expected = actor(seen_by_player_1)["action"]
+    torch.testing.assert_close(env.opponent_action(td["state"], td["params"]), expected)
