@@ -187,8 +187,8 @@ def test_coupled_joint_limits_gradcheck():
     calls = []
     import torchrl_diffenvs.articulated.dynamics as dynamics
 
-    def spy(matrix, offset, allowed):
-        force = _complementary_forces(matrix, offset, allowed)
+    def spy(offset, allowed, diagonal, matrix_of):
+        force = _complementary_forces(offset, allowed, diagonal, matrix_of)
         calls.append(((force > 1.0).sum(-1) == 2).all().item())
         return force
 

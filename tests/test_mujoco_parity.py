@@ -240,6 +240,8 @@ def test_jointly_solved_limit_forces_match_brute_force_enumeration():
             if found:
                 break
         assert found, i
-    torch.testing.assert_close(_complementary_forces(matrix, offset, allowed), expected, rtol=1e-9, atol=1e-9)
+    diagonal = matrix.diagonal(dim1=-2, dim2=-1)
+    solved = _complementary_forces(offset, allowed, diagonal, lambda envs: matrix[envs])
+    torch.testing.assert_close(solved, expected, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(_pivot(matrix, offset, allowed, early_exit=False), expected, rtol=1e-9, atol=1e-9)
     assert (expected > 0).sum(-1).max() >= 3  # several rows pushing at once

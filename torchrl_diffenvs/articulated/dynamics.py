@@ -472,15 +472,22 @@ def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight
     damping = 2 / (dmax * timeconst).clamp(min=_MINVAL)
     aref = -damping * sign * qvel[:, dof] - stiffness * imp * (dist - tree.limit_margin)
     regulariser = torch.clamp((1 - imp) * invweight0[:, dof] / imp, min=_MINVAL)
-    coupling = sign[:, None] * sign[None, :] * mass_inv[:, dof][:, :, dof] + torch.diag_embed(regulariser)  # A + R
     offset = sign * smooth_acc[:, dof] - aref  # a0 - aref
-    force = _complementary_forces(coupling, offset, active)
+    diagonal = mass_inv.diagonal(dim1=-2, dim2=-1)[:, dof] + regulariser  # of A + R
+
+    def coupling(envs) -> torch.Tensor:  # A + R of these envs (built only where rows couple)
+        block = mass_inv[envs][:, dof][:, :, dof]
+        return sign[:, None] * sign[None, :] * block + torch.diag_embed(regulariser[envs])
+
+    force = _complementary_forces(offset, active, diagonal, coupling)
     return torch.zeros_like(qvel).index_add(1, dof, sign * force)
 
 
-def _complementary_forces(matrix: torch.Tensor, offset: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
+def _complementary_forces(offset: torch.Tensor, allowed: torch.Tensor, diagonal: torch.Tensor,
+                          matrix_of) -> torch.Tensor:
     """``f >= 0`` with ``w = matrix f + offset >= 0`` and ``f . w = 0`` over the ``allowed`` rows
-    (``f = 0`` elsewhere), ``matrix`` positive definite ``[N, L, L]``.
+    (``f = 0`` elsewhere), for a positive definite ``matrix`` ``[N, L, L]`` with ``diagonal``
+    ``[N, L]``; ``matrix_of(envs)`` builds the matrices of the envs ``envs`` indexes.
 
     With at most one allowed row it is ``max(0, -offset / matrix_ii)``; envs with several are
     solved by principal pivoting: each round solves the rows of the current set exactly, then
@@ -489,15 +496,14 @@ def _complementary_forces(matrix: torch.Tensor, offset: torch.Tensor, allowed: t
     only the envs with several allowed rows pivot, until no row breaks; under ``torch.compile``
     every env takes ``2 L`` rounds (no data-dependent control flow).
     """
-    single = torch.where(allowed, (-offset / matrix.diagonal(dim1=-2, dim2=-1)).clamp(min=0.0),
-                         torch.zeros_like(offset))
     if torch.compiler.is_compiling():
-        return _pivot(matrix, offset, allowed, early_exit=False)
+        return _pivot(matrix_of(slice(None)), offset, allowed, early_exit=False)
+    single = torch.where(allowed, (-offset / diagonal).clamp(min=0.0), torch.zeros_like(offset))
     coupled = allowed.sum(-1) >= 2
     if not bool(coupled.any()):
         return single
     envs = coupled.nonzero().squeeze(-1)
-    solved = _pivot(matrix[envs], offset[envs], allowed[envs], early_exit=True)
+    solved = _pivot(matrix_of(envs), offset[envs], allowed[envs], early_exit=True)
     return single.index_put((envs,), solved)
 
 

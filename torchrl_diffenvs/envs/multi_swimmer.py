@@ -3,7 +3,7 @@ import torch
 
 from .multi_agent import MultiAgentDiffEnv
 from .registry import register_env
-from .swimmer import check_pond_options, redraw_near
+from .swimmer import check_pond_options, redraw_near, swimmer_reward
 
 
 def others(x: torch.Tensor) -> torch.Tensor:
@@ -58,9 +58,7 @@ class MultiSwimmerEnv(MultiAgentDiffEnv):
         vel = state["vel"] + dt * accel * action
         pos = state["pos"] + dt * vel
         goal, urchins = state["goal"], state["urchins"]
-        reward = torch.exp(-0.5 * ((pos - goal) ** 2).sum(-1))  # [n, A]
-        urchin_dist2 = ((pos.unsqueeze(-2) - urchins.unsqueeze(-3)) ** 2).sum(-1)  # [n, A, K]
-        reward = reward * (1 - torch.exp(-params["urchin_sharpness"][:, None, None] * urchin_dist2)).prod(-1)
+        reward = swimmer_reward(pos, goal, urchins, params["urchin_sharpness"])  # [n, A]
         fish_dist2 = ((pos.unsqueeze(-2) - others(pos)) ** 2).sum(-1)  # [n, A, A - 1]
         reward = reward * (1 - torch.exp(-params["fish_sharpness"][:, None, None] * fish_dist2)).prod(-1)
         return {"pos": pos, "vel": vel, "goal": goal, "urchins": urchins}, reward, None

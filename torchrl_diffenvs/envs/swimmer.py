@@ -45,9 +45,7 @@ class SwimmerEnv(DiffEnv):
         vel = state["vel"] + dt * params["max_accel"].unsqueeze(-1) * action
         pos = state["pos"] + dt * vel
         goal, urchins = state["goal"], state["urchins"]
-        reward = torch.exp(-0.5 * ((pos - goal) ** 2).sum(-1))
-        urchin_dist2 = ((pos.unsqueeze(-2) - urchins) ** 2).sum(-1)
-        reward = reward * (1 - torch.exp(-params["urchin_sharpness"].unsqueeze(-1) * urchin_dist2)).prod(-1)
+        reward = swimmer_reward(pos, goal, urchins, params["urchin_sharpness"])
         return {"pos": pos, "vel": vel, "goal": goal, "urchins": urchins}, reward, None
 
     def observation(self, state, params):
@@ -85,3 +83,16 @@ def check_pond_options(task: str, *, num_urchins, observe_urchins=True, **cleara
         raise ValueError(f"{task}: {name} must lie in [0, 1), got {value!r}")
     if not isinstance(observe_urchins, bool):
         raise ValueError(f"{task}: observe_urchins must be true or false, got {observe_urchins!r}")
+
+
+def swimmer_reward(pos: torch.Tensor, goal: torch.Tensor, urchins: torch.Tensor, sharpness: torch.Tensor) -> torch.Tensor:
+    """``exp(-0.5 |p - g|^2) * prod_k (1 - exp(-sharpness |p - u_k|^2))`` of every fish.
+
+    ``pos`` and ``goal`` ``[n, *fish, 2]`` (no fish dim for the single swimmer), ``urchins``
+    ``[n, K, 2]`` shared by the fish, ``sharpness`` ``[n]``; returns ``[n, *fish]``.
+    """
+    fish_dims = pos.dim() - 2
+    urchins = urchins.reshape(urchins.shape[0], *([1] * fish_dims), *urchins.shape[1:])
+    urchin_dist2 = ((pos.unsqueeze(-2) - urchins) ** 2).sum(-1)  # [n, *fish, K]
+    sharpness = sharpness.reshape(-1, *([1] * (fish_dims + 1)))
+    return torch.exp(-0.5 * ((pos - goal) ** 2).sum(-1)) * (1 - torch.exp(-sharpness * urchin_dist2)).prod(-1)

@@ -5,7 +5,7 @@ import torch
 
 from .opponent import TwoPlayerDiffEnv
 from .registry import register_env
-from .swimmer import check_pond_options, redraw_near
+from .swimmer import check_pond_options, redraw_near, swimmer_reward
 
 
 @register_env(drawer="torchrl_diffenvs.rendering.tasks:MULTI_SWIMMER",
@@ -48,18 +48,12 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
         return {"pos": pos, "vel": torch.zeros_like(pos), "goal": goal, "urchins": urchins,
                 "steps_to_goal": not_yet, "arrived": not_yet.clone()}
 
-    def closeness(self, pos, goal, urchins, params):
-        """``c_i`` of every fish ``[n, 2]``."""
-        near_goal = torch.exp(-0.5 * ((pos - goal.unsqueeze(1)) ** 2).sum(-1))
-        urchin_dist2 = ((pos.unsqueeze(-2) - urchins.unsqueeze(1)) ** 2).sum(-1)  # [n, 2, K]
-        return near_goal * (1 - torch.exp(-params["urchin_sharpness"][:, None, None] * urchin_dist2)).prod(-1)
-
     def play(self, state, actions, params):
         dt, accel = params["dt"][:, None, None], params["max_accel"][:, None, None]
         vel = state["vel"] + dt * accel * actions
         pos = state["pos"] + dt * vel
         goal, urchins = state["goal"], state["urchins"]
-        c = self.closeness(pos, goal, urchins, params)
+        c = swimmer_reward(pos, goal.unsqueeze(1), urchins, params["urchin_sharpness"])  # c_i of both fish
         # who got there first: counters (the arrival test is a comparison, so nothing depends on the
         # actions through them; plain tensor ops keep the step differentiable in every state entry)
         steps_to_goal = state["steps_to_goal"] + (1 - state["arrived"])

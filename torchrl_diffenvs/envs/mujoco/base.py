@@ -10,8 +10,9 @@ task extras. Params (per env, float or ``[num_envs, ...]``): the model's ``body_
 ``body_inertia [nbody, 3, 3]``, ``gravity [3]``, ``damping``/``armature``/``stiffness [nv]``; for
 models with ground contact ``contact_stiffness``, ``contact_damping``, ``contact_width``,
 ``friction_velocity`` and ``contact_friction [ncontact]`` (one per geom-plane pair, MuJoCo's
-sliding friction by default); and the task's constants (reward weights, healthy ranges, reset
-noise). Truncation follows Gymnasium's ``TimeLimit`` (as the classic Gymnasium tasks).
+sliding friction by default); for models in a fluid (``<option density/viscosity>``, Swimmer)
+``fluid_density`` and ``fluid_viscosity``; and the task's constants (reward weights, healthy
+ranges, reset noise). Truncation follows Gymnasium's ``TimeLimit`` (as the classic Gymnasium tasks).
 """
 from __future__ import annotations
 
