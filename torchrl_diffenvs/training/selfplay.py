@@ -45,6 +45,7 @@ class SelfPlay:
         self.current: int | None = None  # index in the pool of the opponent now playing
         self.next_refresh = 0
         self.refreshes = 0
+        self._holder = None
 
     def step(self, env_steps: int) -> bool:
         """Refreshes the opponent if ``env_steps`` reached the schedule; returns whether it did."""
@@ -60,9 +61,10 @@ class SelfPlay:
         return True
 
     def _play(self, snapshot: dict) -> None:
-        opponent = copy.deepcopy(self.policy)
-        opponent.load_state_dict(snapshot)
-        self.env.set_opponent(opponent)  # copies and freezes it
+        if self._holder is None:  # a policy-shaped module to load snapshots into (made once)
+            self._holder = copy.deepcopy(self.policy)
+        self._holder.load_state_dict(snapshot)
+        self.env.set_opponent(self._holder)  # copies and freezes it
 
     def metrics(self) -> dict[str, float]:
         """``opponent_age``: refreshes since the playing snapshot was taken (0: the latest)."""
