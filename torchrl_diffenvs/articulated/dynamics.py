@@ -5,7 +5,9 @@ serves the TorchRL step, the lean rollout path, ``torch.compile``, CPU and CUDA,
 float64. The physics follows MuJoCo's definitions so that contact-free models match MuJoCo to
 rounding error:
 
-* kinematics: MuJoCo's joint composition (hinge about its anchor, slide along its axis, ``ref``);
+* kinematics: MuJoCo's joint composition (hinge about its anchor, slide along its axis, ``ref``;
+  a ball joint's unit quaternion about its anchor; a free joint's world position and quaternion),
+  and MuJoCo's dof motion axes (a ball or free joint turns about its body's own axes);
 * mass matrix and bias forces (Coriolis, centrifugal, gravity) from spatial vectors expressed in
   the world frame at the origin: with every body Jacobian ``J_b`` (6 x nv, angular part first),
   ``M = sum_b J_b^T I_b J_b + diag(armature)`` and ``bias = sum_b J_b^T (I_b a_b + v_b x* I_b v_b)``
@@ -17,7 +19,8 @@ rounding error:
   time, MuJoCo's coupled solve otherwise;
 * smooth penalty contact between geoms and ground planes (:func:`contact_force`), not MuJoCo's
   convex solver: see :mod:`torchrl_diffenvs.articulated` for the difference;
-* MuJoCo's integrators: semi-implicit Euler with implicit joint damping, and classic RK4.
+* MuJoCo's integrators: semi-implicit Euler with implicit joint damping, and classic RK4, both
+  moving quaternions as ``mj_integratePos`` does (:func:`integrate_position`).
 
 Physical parameters come per env in a mapping (``body_mass [N, nbody]``, ``body_inertia
 [N, nbody, 3, 3]``, ``damping``/``armature``/``stiffness [N, nv]``, ``gravity [N, 3]``,
@@ -38,8 +41,8 @@ import torch.nn.functional as F
 from .mjcf import ArticulatedModel
 
 __all__ = [
-    "RigidBodyTree", "Kinematics", "StepResult", "forward_kinematics", "mass_matrix_and_bias", "accelerations", "step",
-    "constraint_force", "site_positions", "default_params",
+    "RigidBodyTree", "Kinematics", "StepResult", "forward_kinematics", "integrate_position", "mass_matrix_and_bias",
+    "accelerations", "step", "constraint_force", "site_positions", "default_params", "body_contact_forces",
 ]
 
 Params = Mapping[str, torch.Tensor]
@@ -87,12 +90,17 @@ class RigidBodyTree:
     body_rot: torch.Tensor  # [nbody, 3, 3]
     body_com: torch.Tensor  # [nbody, 3]
     body_joints: list[list[int]]  # joints of each body, in order
-    joint_is_hinge: list[bool]
-    joint_axis: torch.Tensor  # [nv, 3] body frame
-    joint_pos: torch.Tensor  # [nv, 3]
-    joint_skew: torch.Tensor  # [nv, 3, 3] skew(axis), for Rodrigues
-    qpos0: torch.Tensor  # [nv]
-    qpos_spring: torch.Tensor
+    joint_type: list[str]  # "hinge" | "slide" | "ball" | "free"
+    joint_qposadr: list[int]
+    joint_dofadr: list[int]
+    joint_axis: torch.Tensor  # [njnt, 3] body frame
+    joint_pos: torch.Tensor  # [njnt, 3]
+    joint_skew: torch.Tensor  # [njnt, 3, 3] skew(axis), for Rodrigues
+    qpos0: torch.Tensor  # [nq]
+    qpos_spring: torch.Tensor  # [nq]
+    dof_qpos: torch.Tensor  # [nv] long: the coordinate of each hinge/slide dof (springs, limits); 0 elsewhere
+    dof_has_spring: torch.Tensor  # [nv]: 1 for hinge/slide dofs (springs act on them), 0 for ball/free dofs
+    position_segments: list[tuple]  # how qvel integrates into qpos (see integrate_position)
     body_dof_mask: torch.Tensor  # [nbody, nv]: dof d moves body b
     dof_pre_mask: torch.Tensor  # [nv, nv]: dof d' moves the frame dof d is attached to (d' before d)
     # joint limits (rows for the lower and upper side of every limited joint)
@@ -131,6 +139,10 @@ class RigidBodyTree:
         return self.model.nv
 
     @property
+    def nq(self) -> int:
+        return self.model.nq
+
+    @property
     def nbody(self) -> int:
         return self.model.nbody
 
@@ -138,8 +150,18 @@ class RigidBodyTree:
     def from_model(cls, model: ArticulatedModel, dtype=torch.float64, device="cpu") -> RigidBodyTree:
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
         idx = lambda a: torch.as_tensor(np.asarray(a, dtype=np.int64), device=device)  # noqa: E731
-        nb, nv = model.nbody, model.nv
-        body_joints = [[j for j in range(nv) if model.joint_body[j] == b] for b in range(nb)]
+        nb, nv, njnt = model.nbody, model.nv, model.njnt
+        body_joints = [[j for j in range(njnt) if model.joint_body[j] == b] for b in range(nb)]
+        # the dofs of each joint in groups whose motion axes move together: a free joint's
+        # translation, then its rotation; every other joint is one group
+        groups = []  # (body, dofs)
+        for j in range(njnt):
+            first, kind, b = int(model.joint_dofadr[j]), model.joint_type[j], int(model.joint_body[j])
+            if kind == "free":
+                groups += [(b, list(range(first, first + 3))), (b, list(range(first + 3, first + 6)))]
+            else:
+                groups.append((b, list(range(first, first + (3 if kind == "ball" else 1)))))
+        body_dofs = [[d for g, dofs in groups if g == b for d in dofs] for b in range(nb)]
         # dof d moves body b when d belongs to b or to one of its ancestors
         moves = np.zeros((nb, nv))
         pre = np.zeros((nv, nv))
@@ -149,17 +171,35 @@ class RigidBodyTree:
                 chain.append(a)
                 a = model.body_parent[a]
             for a in chain:
-                moves[b, body_joints[a]] = 1.0
-        for d in range(nv):
-            b = model.joint_body[d]
-            pre[d] = moves[model.body_parent[b]]
-            pre[d, [j for j in body_joints[b] if j < d]] = 1.0
+                moves[b, body_dofs[a]] = 1.0
+        # pre[d]: the dofs that move the frame d's axis is attached to: the parent's, and the earlier
+        # groups of its own body (not its own group: MuJoCo's cdof_dot of a ball joint uses the parent's
+        # velocity; the group's own rotation drops out of the bias force, w x w = 0)
+        for i, (b, dofs) in enumerate(groups):
+            earlier = [d for g, ds in groups[:i] if g == b for d in ds]
+            for d in dofs:
+                pre[d] = moves[model.body_parent[b]]
+                pre[d, earlier] = 1.0
         axis = model.joint_axis
         skew = np.stack([np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]]) for a in axis]) \
-            if nv else np.zeros((0, 3, 3))
+            if njnt else np.zeros((0, 3, 3))
+        dof_qpos, dof_has_spring = np.zeros(nv, dtype=np.int64), np.zeros(nv)
+        segments = []  # ("linear", qpos start, dof start, length) | ("quaternion", qpos start, dof start)
+        for j in range(njnt):
+            kind, qa, da = model.joint_type[j], int(model.joint_qposadr[j]), int(model.joint_dofadr[j])
+            if kind in ("hinge", "slide"):
+                dof_qpos[da], dof_has_spring[da] = qa, 1.0
+            if kind == "free":
+                segments += [("linear", qa, da, 3), ("quaternion", qa + 3, da + 3)]
+            elif kind == "ball":
+                segments.append(("quaternion", qa, da))
+            elif segments and segments[-1][0] == "linear" and segments[-1][1] + segments[-1][3] == qa:
+                segments[-1] = ("linear", segments[-1][1], segments[-1][2], segments[-1][3] + 1)
+            else:
+                segments.append(("linear", qa, da, 1))
         # joint limits: one row per side
-        rows = [(j, side) for j in range(nv) if model.limited[j] for side in (0, 1)]
-        limit_dof = [j for j, _ in rows]
+        rows = [(j, side) for j in range(njnt) if model.limited[j] for side in (0, 1)]
+        limit_dof = [int(model.joint_dofadr[j]) for j, _ in rows]
         # contact points against each plane of the world body
         points, pairs, pair_friction = [], [], []
         planes = [g for g in range(len(model.geom_names)) if model.geom_type[g] == "plane"]
@@ -184,9 +224,11 @@ class RigidBodyTree:
         tree = cls(
             model=model, body_parent=[int(p) for p in model.body_parent], body_pos=t(model.body_pos),
             body_rot=t(model.body_rot), body_com=t(model.body_com), body_joints=body_joints,
-            joint_is_hinge=[k == "hinge" for k in model.joint_type], joint_axis=t(axis).reshape(nv, 3),
-            joint_pos=t(model.joint_pos).reshape(nv, 3), joint_skew=t(skew), qpos0=t(model.qpos0),
-            qpos_spring=t(model.qpos_spring), body_dof_mask=t(moves), dof_pre_mask=t(pre),
+            joint_type=list(model.joint_type), joint_qposadr=[int(a) for a in model.joint_qposadr],
+            joint_dofadr=[int(a) for a in model.joint_dofadr], joint_axis=t(axis).reshape(njnt, 3),
+            joint_pos=t(model.joint_pos).reshape(njnt, 3), joint_skew=t(skew), qpos0=t(model.qpos0),
+            qpos_spring=t(model.qpos_spring), dof_qpos=idx(dof_qpos), dof_has_spring=t(dof_has_spring),
+            position_segments=segments, body_dof_mask=t(moves), dof_pre_mask=t(pre),
             limit_dof=idx(limit_dof), limit_sign=t([1.0 if s == 0 else -1.0 for _, s in rows]),
             limit_value=t([model.joint_range[j, s] for j, s in rows]),
             limit_margin=t([model.limit_margin[j] for j, _ in rows]),
@@ -195,7 +237,7 @@ class RigidBodyTree:
                             for j, _ in rows]).reshape(len(rows), 2),
             limit_solimp=t([model.limit_solimp[j] for j, _ in rows]).reshape(len(rows), 5),
             kin0=None,
-            actuator_dof=idx(model.actuator_joint), actuator_gear=t(model.actuator_gear),
+            actuator_dof=idx(model.joint_dofadr[model.actuator_joint]), actuator_gear=t(model.actuator_gear),
             ctrl_low=t(np.where(model.ctrl_limited, model.ctrl_range[:, 0], -np.inf)),
             ctrl_high=t(np.where(model.ctrl_limited, model.ctrl_range[:, 1], np.inf)),
             force_low=t(np.where(model.force_limited, model.force_range[:, 0], -np.inf)),
@@ -234,7 +276,8 @@ def default_params(model: ArticulatedModel) -> dict[str, torch.Tensor]:
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
     params = {
         "body_mass": t(model.body_mass), "body_inertia": t(model.body_inertia), "gravity": t(model.gravity),
-        "damping": t(model.damping), "armature": t(model.armature), "stiffness": t(model.stiffness),
+        # stiffness per dof, as damping (a joint's stiffness on its dof; ball and free joints have none)
+        "damping": t(model.damping), "armature": t(model.armature), "stiffness": t(model.stiffness[model.dof_joint]),
     }
     if model.density > 0 or model.viscosity > 0:
         params.update(fluid_density=t(model.density), fluid_viscosity=t(model.viscosity))
@@ -294,8 +337,62 @@ class Kinematics:
     motion: torch.Tensor  # [N, nv, 6] each dof's motion subspace (angular, linear at the world origin)
 
 
+def quaternion_to_matrix(quat: torch.Tensor) -> torch.Tensor:
+    """``[.., 4]`` quaternions ``(w, x, y, z)`` (normalised here, as MuJoCo does) -> ``[.., 3, 3]``."""
+    w, x, y, z = (quat / torch.linalg.vector_norm(quat, dim=-1, keepdim=True)).unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(*quat.shape[:-1], 3, 3)
+
+
+def _quaternion_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], dim=-1)
+
+
+def integrate_quaternion(quat: torch.Tensor, omega: torch.Tensor, dt: float) -> torch.Tensor:
+    """MuJoCo's ``mju_quatIntegrate``: rotate ``quat`` (normalised first) by the body-frame angular
+    velocity ``omega`` for ``dt``: ``quat * (cos(|w| dt / 2), sin(|w| dt / 2) w / |w|)``.
+
+    Smooth at ``omega = 0`` (``sin(|w| dt / 2) / |w|`` is written through ``sinc``).
+    """
+    speed = torch.sqrt((omega * omega).sum(-1, keepdim=True).clamp(min=_MINVAL * _MINVAL))
+    half = 0.5 * dt * speed
+    rotation = torch.cat([torch.cos(half), omega * (0.5 * dt) * torch.sinc(half / math.pi)], dim=-1)
+    unit = quat / torch.linalg.vector_norm(quat, dim=-1, keepdim=True)
+    return _quaternion_product(unit, rotation)
+
+
+def integrate_position(tree: RigidBodyTree, qpos: torch.Tensor, qvel: torch.Tensor, dt: float) -> torch.Tensor:
+    """MuJoCo's ``mj_integratePos``: ``qpos [N, nq]`` moved by ``qvel [N, nv]`` for ``dt``.
+
+    Hinge, slide and a free joint's translation add ``dt * qvel``; ball joints and a free joint's
+    rotation turn their quaternion (:func:`integrate_quaternion`).
+    """
+    if tree.nq == tree.nv:  # hinges and slides only
+        return qpos + dt * qvel
+    parts = []
+    for segment in tree.position_segments:
+        if segment[0] == "linear":
+            _, qa, da, n = segment
+            parts.append(qpos[:, qa:qa + n] + dt * qvel[:, da:da + n])
+        else:
+            _, qa, da = segment
+            parts.append(integrate_quaternion(qpos[:, qa:qa + 4], qvel[:, da:da + 3], dt))
+    return torch.cat(parts, dim=-1)
+
+
 def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
-    """Body poses and dof motion subspaces for ``qpos [N, nv]`` (MuJoCo's mj_kinematics)."""
+    """Body poses and dof motion subspaces for ``qpos [N, nq]`` (MuJoCo's mj_kinematics and cdof).
+
+    A free joint sets its body's world pose from ``qpos`` (position, quaternion); its dofs move the
+    body along the world axes and turn it about its own axes. A ball joint turns its body about its
+    anchor by the quaternion; its dofs turn it about the body's axes.
+    """
     n = qpos.shape[0]
     eye = torch.eye(3, dtype=qpos.dtype, device=qpos.device).expand(n, 3, 3)
     rots, poss = [eye], [torch.zeros(n, 3, dtype=qpos.dtype, device=qpos.device)]
@@ -307,17 +404,33 @@ def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
         rot = parent_rot @ tree.body_rot[b]
         pos = parent_pos + parent_rot @ tree.body_pos[b]
         for j in tree.body_joints[b]:
-            axis = rot @ tree.joint_axis[j]
-            if tree.joint_is_hinge[j]:
+            kind, qa, da = tree.joint_type[j], tree.joint_qposadr[j], tree.joint_dofadr[j]
+            if kind == "hinge":
+                axis = rot @ tree.joint_axis[j]
                 anchor = pos + rot @ tree.joint_pos[j]
                 k = tree.joint_skew[j]
-                local = eye + sin[:, j, None, None] * k + (1 - cos[:, j, None, None]) * (k @ k)  # Rodrigues
+                local = eye + sin[:, qa, None, None] * k + (1 - cos[:, qa, None, None]) * (k @ k)  # Rodrigues
                 rot = rot @ local
                 pos = anchor - rot @ tree.joint_pos[j]
-                motion[j] = torch.cat([axis, _cross(anchor, axis)], dim=-1)
+                motion[da] = torch.cat([axis, _cross(anchor, axis)], dim=-1)
+            elif kind == "slide":
+                axis = rot @ tree.joint_axis[j]
+                pos = pos + axis * q[:, qa, None]
+                motion[da] = torch.cat([torch.zeros_like(axis), axis], dim=-1)
             else:
-                pos = pos + axis * q[:, j, None]
-                motion[j] = torch.cat([torch.zeros_like(axis), axis], dim=-1)
+                if kind == "free":  # the body's world pose is the joint's coordinates
+                    pos, rot = qpos[:, qa:qa + 3], quaternion_to_matrix(qpos[:, qa + 3:qa + 7])
+                    anchor, turn = pos, da + 3
+                    for i in range(3):
+                        linear = eye[:, :, i]
+                        motion[da + i] = torch.cat([torch.zeros_like(linear), linear], dim=-1)
+                else:
+                    anchor, turn = pos + rot @ tree.joint_pos[j], da
+                    rot = rot @ quaternion_to_matrix(qpos[:, qa:qa + 4])
+                    pos = anchor - rot @ tree.joint_pos[j]
+                for i in range(3):
+                    axis = rot[:, :, i]
+                    motion[turn + i] = torch.cat([axis, _cross(anchor, axis)], dim=-1)
         rots.append(rot)
         poss.append(pos)
     motion_t = torch.stack(motion, dim=1) if tree.nv else qpos.new_zeros(n, 0, 6)
@@ -372,6 +485,52 @@ def actuator_force(tree: RigidBodyTree, ctrl: torch.Tensor, nv: int) -> torch.Te
     return out.index_add(1, tree.actuator_dof, force * tree.actuator_gear)
 
 
+class _ContactForces(NamedTuple):
+    point: torch.Tensor  # [N, P, 3] where each force acts (the point of the sphere nearest the plane)
+    force: torch.Tensor  # [N, P, 3] on the body, world frame
+    normal: torch.Tensor  # [P, 3]
+    normal_force: torch.Tensor  # [N, P]
+    touching: torch.Tensor  # [N, P]
+    damping: torch.Tensor  # [N, 1]
+    mu: torch.Tensor  # [N, P]
+    slip: torch.Tensor  # [N, P]
+
+
+def _contact_points_and_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params, point_jac) -> _ContactForces:
+    """The smooth contact model (see :func:`contact_force`) at every contact point."""
+    rot = kin.body_rot[:, tree.contact_body]  # [N, P, 3, 3]
+    centre = kin.body_pos[:, tree.contact_body] + (rot @ tree.contact_local.unsqueeze(-1)).squeeze(-1)
+    normal = tree.contact_plane_normal
+    dist = ((centre - tree.contact_plane_point) * normal).sum(-1) - tree.contact_radius  # [N, P]
+    point = centre - tree.contact_radius.unsqueeze(-1) * normal
+    body_vel = (point_jac @ qvel[:, None, :, None]).squeeze(-1)
+    vel = body_vel[..., 3:] + _cross(body_vel[..., :3], point)  # velocity of the body point at the contact
+    normal_vel = (vel * normal).sum(-1)
+    tangent_vel = vel - normal_vel.unsqueeze(-1) * normal
+    width = params["contact_width"].unsqueeze(-1)
+    depth = F.softplus(-dist / width) * width
+    touching = torch.sigmoid(-dist / width)
+    stiffness, damping = params["contact_stiffness"].unsqueeze(-1), params["contact_damping"].unsqueeze(-1)
+    normal_force = torch.clamp(stiffness * depth - damping * touching * normal_vel, min=0.0)
+    mu = params["contact_friction"][:, tree.contact_slot]
+    eps = params["friction_velocity"].unsqueeze(-1)
+    slip = torch.sqrt((tangent_vel * tangent_vel).sum(-1) + eps * eps)
+    force = normal_force.unsqueeze(-1) * (normal - (mu / slip).unsqueeze(-1) * tangent_vel)
+    return _ContactForces(point, force, normal, normal_force, touching, damping, mu, slip)
+
+
+def body_contact_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params, about: torch.Tensor) -> torch.Tensor:
+    """``[N, nbody, 6]``: the ground's contact wrench on every body (torque, force; world frame),
+    the torque taken about the point ``about [N, 3]`` (MuJoCo's ``cfrc_ext`` takes it about the
+    subtree centre of mass of the body's root)."""
+    out = qvel.new_zeros(qvel.shape[0], tree.nbody, 6)
+    if tree.contact_body.numel() == 0:
+        return out
+    c = _contact_points_and_forces(tree, kin, qvel, params, body_jacobians(tree, kin)[:, tree.contact_body])
+    wrench = torch.cat([_cross(c.point - about.unsqueeze(1), c.force), c.force], dim=-1)
+    return out.index_add(1, tree.contact_body, wrench)
+
+
 def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, jac, with_damping=False):
     """``[N, nv]`` generalised force of the smooth ground contacts.
 
@@ -389,25 +548,10 @@ def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, para
     if tree.contact_body.numel() == 0:
         zero = qvel.new_zeros(qvel.shape)
         return (zero, qvel.new_zeros(*qvel.shape, qvel.shape[-1])) if with_damping else zero
-    rot = kin.body_rot[:, tree.contact_body]  # [N, P, 3, 3]
-    centre = kin.body_pos[:, tree.contact_body] + (rot @ tree.contact_local.unsqueeze(-1)).squeeze(-1)
-    normal = tree.contact_plane_normal
-    dist = ((centre - tree.contact_plane_point) * normal).sum(-1) - tree.contact_radius  # [N, P]
-    point = centre - tree.contact_radius.unsqueeze(-1) * normal
     point_jac = jac[:, tree.contact_body]  # [N, P, 6, nv]
-    body_vel = (point_jac @ qvel[:, None, :, None]).squeeze(-1)
-    vel = body_vel[..., 3:] + _cross(body_vel[..., :3], point)  # velocity of the body point at the contact
-    normal_vel = (vel * normal).sum(-1)
-    tangent_vel = vel - normal_vel.unsqueeze(-1) * normal
-    width = params["contact_width"].unsqueeze(-1)
-    depth = F.softplus(-dist / width) * width
-    touching = torch.sigmoid(-dist / width)
-    stiffness, damping = params["contact_stiffness"].unsqueeze(-1), params["contact_damping"].unsqueeze(-1)
-    normal_force = torch.clamp(stiffness * depth - damping * touching * normal_vel, min=0.0)
-    mu = params["contact_friction"][:, tree.contact_slot]
-    eps = params["friction_velocity"].unsqueeze(-1)
-    slip = torch.sqrt((tangent_vel * tangent_vel).sum(-1) + eps * eps)
-    force = normal_force.unsqueeze(-1) * (normal - (mu / slip).unsqueeze(-1) * tangent_vel)
+    c = _contact_points_and_forces(tree, kin, qvel, params, point_jac)
+    point, force, normal, damping, touching = c.point, c.force, c.normal, c.damping, c.touching
+    normal_force, mu, slip = c.normal_force, c.mu, c.slip
     spatial = torch.cat([_cross(point, force), force], dim=-1)  # wrench about the world origin
     generalised = (point_jac.transpose(-1, -2) @ spatial.unsqueeze(-1)).squeeze(-1).sum(1)
     if not with_damping:
@@ -446,7 +590,13 @@ def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
     jac0 = body_jacobians(tree, kin0)
     inertia = _spatial_inertia(tree, kin0, params)
     mass = (jac0.transpose(-1, -2) @ inertia @ jac0).sum(1) + torch.diag_embed(params["armature"])
-    return torch.linalg.inv(mass).diagonal(dim1=-2, dim2=-1)
+    weight = torch.linalg.inv(mass).diagonal(dim1=-2, dim2=-1)
+    # MuJoCo averages over a ball joint's dofs and over each half (translation, rotation) of a free joint's
+    for kind, da in zip(tree.joint_type, tree.joint_dofadr):
+        for first in {"ball": (da,), "free": (da, da + 3)}.get(kind, ()):
+            mean = weight[:, first:first + 3].mean(-1, keepdim=True)
+            weight = torch.cat([weight[:, :first], mean.expand(-1, 3), weight[:, first + 3:]], dim=-1)
+    return weight
 
 
 def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight0) -> torch.Tensor:
@@ -463,7 +613,7 @@ def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight
     if tree.limit_dof.numel() == 0:
         return torch.zeros_like(qvel)
     dof, sign = tree.limit_dof, tree.limit_sign
-    dist = sign * (qpos[:, dof] - tree.limit_value)
+    dist = sign * (qpos[:, tree.dof_qpos[dof]] - tree.limit_value)
     active = dist < tree.limit_margin
     imp = _impedance(tree.limit_solimp, dist - tree.limit_margin)
     timeconst, dampratio = tree.limit_solref.unbind(-1)
@@ -535,7 +685,9 @@ def _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias, with_damping=F
     ``with_damping``: also the velocity damping of these forces that an implicit integrator
     uses (joint damping plus the contact's, see :func:`contact_force`).
     """
-    passive = -params["damping"] * qvel - params["stiffness"] * (qpos - tree.qpos_spring)
+    # springs act on hinge and slide coordinates (ball and free joints have none, see the loader)
+    stretch = (qpos - tree.qpos_spring)[:, tree.dof_qpos] * tree.dof_has_spring
+    passive = -params["damping"] * qvel - params["stiffness"] * stretch
     if tree.has_fluid:
         passive = passive + fluid_force(tree, kin, qvel, params, jac)
     force = actuator_force(tree, ctrl, tree.nv) + passive - bias
@@ -602,19 +754,19 @@ def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integ
     if integrator == "euler":
         qacc = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt, invweight0=w0)
         new_qvel = qvel + dt * qacc
-        return StepResult(qpos + dt * new_qvel, new_qvel, qpos, qvel)
+        return StepResult(integrate_position(tree, qpos, new_qvel, dt), new_qvel, qpos, qvel)
     if integrator != "rk4":
         raise ValueError(f"unknown integrator {integrator!r}; valid: 'euler', 'rk4'")
     # MuJoCo's mj_RungeKutta with the classic tableau
     acc1 = accelerations(tree, qpos, qvel, ctrl, params, invweight0=w0)
     vel2 = qvel + 0.5 * dt * acc1
-    acc2 = accelerations(tree, qpos + 0.5 * dt * qvel, vel2, ctrl, params, invweight0=w0)
+    acc2 = accelerations(tree, integrate_position(tree, qpos, qvel, 0.5 * dt), vel2, ctrl, params, invweight0=w0)
     vel3 = qvel + 0.5 * dt * acc2
-    acc3 = accelerations(tree, qpos + 0.5 * dt * vel2, vel3, ctrl, params, invweight0=w0)
+    acc3 = accelerations(tree, integrate_position(tree, qpos, vel2, 0.5 * dt), vel3, ctrl, params, invweight0=w0)
     vel4 = qvel + dt * acc3
-    pos4 = qpos + dt * vel3
+    pos4 = integrate_position(tree, qpos, vel3, dt)
     acc4 = accelerations(tree, pos4, vel4, ctrl, params, invweight0=w0)
-    new_qpos = qpos + dt / 6 * (qvel + 2 * vel2 + 2 * vel3 + vel4)
+    new_qpos = integrate_position(tree, qpos, (qvel + 2 * vel2 + 2 * vel3 + vel4) / 6, dt)
     new_qvel = qvel + dt / 6 * (acc1 + 2 * acc2 + 2 * acc3 + acc4)
     return StepResult(new_qpos, new_qvel, pos4, vel4)
 

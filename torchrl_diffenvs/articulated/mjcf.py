@@ -12,10 +12,11 @@ tensors. It follows MuJoCo's compiler where it matters for the dynamics:
 * bodies with ``pos`` and any orientation (``quat``, ``axisangle``, ``euler``, ``xyaxes``,
   ``zaxis``), ``<inertial>`` or inertia from geoms (sphere, capsule, cylinder, ellipsoid, box;
   ``mass`` or ``density``), hinge and slide joints (armature, damping, stiffness, springref, ref,
-  range/limited with solreflimit/solimplimit and margin), geoms (``fromto`` too) with their contact
+  range/limited with solreflimit/solimplimit and margin), free and ball joints (``<freejoint>``
+  too; armature and damping; quaternion coordinates as MuJoCo's), geoms (``fromto`` too) with their contact
   attributes, and ``<motor>`` actuators (gear, ctrlrange/ctrllimited, forcerange/forcelimited).
 
-Anything else that would change the dynamics (free/ball joints, tendons, equality constraints,
+Anything else that would change the dynamics (limits or springs on ball joints, tendons, equality constraints,
 other actuators, wind and the ellipsoid fluid model, joint friction loss, ...) raises :class:`MJCFError` naming the
 element, the attribute and the file. Purely visual things (materials, textures, lights, cameras,
 sites, colours, sensors) are ignored.
@@ -55,6 +56,7 @@ _READ = {
         "solref", "solimp", "margin", "solmix", "priority",
     } | _ORIENT,
     "motor": {"joint", "gear", "ctrlrange", "ctrllimited", "forcerange", "forcelimited"},
+    "freejoint": set(),
 }
 _IGNORED_ATTRS = {
     "compiler": {"meshdir", "texturedir", "assetdir"},
@@ -76,10 +78,13 @@ _DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)
 class ArticulatedModel:
     """A kinematic tree of rigid bodies, read from an MJCF file (float64 numpy arrays).
 
-    Index 0 of the body arrays is the world. Every joint is a hinge or a slide (one qpos and one
-    dof each, in file order, as MuJoCo numbers them). Frames are given relative to the parent
-    body, orientations as rotation matrices; inertias are full 3x3 tensors about the body's
-    centre of mass, in the body frame.
+    Index 0 of the body arrays is the world. Joints, their coordinates (``qpos``, ``nq``) and
+    their degrees of freedom (``qvel``, ``nv``) are numbered in file order as MuJoCo numbers them:
+    a hinge or a slide has one coordinate and one dof; a ball joint a unit quaternion ``(w, x, y,
+    z)`` (4) and an angular velocity in the body frame (3); a free joint a world position and a
+    quaternion (7) and a world linear velocity and a body-frame angular velocity (6). Frames are
+    given relative to the parent body, orientations as rotation matrices; inertias are full 3x3
+    tensors about the body's centre of mass, in the body frame.
     """
 
     name: str
@@ -97,18 +102,22 @@ class ArticulatedModel:
     body_mass: np.ndarray
     body_com: np.ndarray  # [nbody, 3] centre of mass in the body frame
     body_inertia: np.ndarray  # [nbody, 3, 3] about the com, body frame
-    # joints [njnt] == dofs
+    # joints [njnt]
     joint_names: list[str]
-    joint_type: list[str]  # "hinge" | "slide"
+    joint_type: list[str]  # "hinge" | "slide" | "ball" | "free"
     joint_body: np.ndarray  # int
-    joint_axis: np.ndarray  # [njnt, 3] unit, body frame
+    joint_axis: np.ndarray  # [njnt, 3] unit, body frame (hinge, slide)
     joint_pos: np.ndarray  # [njnt, 3] anchor, body frame
-    qpos0: np.ndarray  # MuJoCo's ``ref``: the joint value at which the body sits at its file pose
-    qpos_spring: np.ndarray  # ``springref``
-    stiffness: np.ndarray
+    joint_qposadr: np.ndarray  # int: the joint's first coordinate in qpos
+    joint_dofadr: np.ndarray  # int: its first dof in qvel
+    qpos0: np.ndarray  # [nq] MuJoCo's ``ref`` (a free joint: its body's file pose): the body sits at its file pose
+    qpos_spring: np.ndarray  # [nq] ``springref``
+    stiffness: np.ndarray  # [njnt]
+    # dofs [nv]
     damping: np.ndarray
     armature: np.ndarray
-    limited: np.ndarray  # bool
+    dof_joint: np.ndarray  # int
+    limited: np.ndarray  # bool [njnt]
     joint_range: np.ndarray  # [njnt, 2]
     limit_margin: np.ndarray
     limit_solref: np.ndarray  # [njnt, 2]
@@ -142,9 +151,15 @@ class ArticulatedModel:
 
     @property
     def nq(self) -> int:
-        return len(self.joint_names)
+        return len(self.qpos0)
 
-    nv = nq
+    @property
+    def nv(self) -> int:
+        return len(self.damping)
+
+    @property
+    def njnt(self) -> int:
+        return len(self.joint_names)
 
     @property
     def nu(self) -> int:
@@ -198,6 +213,24 @@ def quat_to_mat(q) -> np.ndarray:
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
     ])
+
+
+def mat_to_quat(rot: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (MuJoCo's mju_mat2Quat)."""
+    w = math.sqrt(max(0.0, 1.0 + rot[0, 0] + rot[1, 1] + rot[2, 2])) / 2.0
+    if w > 1e-4:
+        q = np.array([w, (rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w),
+                      (rot[1, 0] - rot[0, 1]) / (4 * w)])
+    else:  # a half turn: take the axis from the largest diagonal entry
+        i = int(np.argmax(np.diag(rot)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        v = np.zeros(3)
+        v[i] = math.sqrt(max(0.0, 1.0 + rot[i, i] - rot[j, j] - rot[k, k])) / 2.0
+        v[j] = (rot[j, i] + rot[i, j]) / (4 * v[i])
+        v[k] = (rot[k, i] + rot[i, k]) / (4 * v[i])
+        q = np.array([(rot[k, j] - rot[j, k]) / (4 * v[i]), *v])
+        q = -q if q[0] < 0 else q
+    return q / np.linalg.norm(q)
 
 
 def axis_angle_to_mat(axis, angle: float) -> np.ndarray:
@@ -410,7 +443,7 @@ class _Reader:
                 self.body(child, parent=body, cls=cls)
             elif child.tag == "geom":
                 self.geom(child, body, cls)
-            elif child.tag == "joint":
+            elif child.tag in ("joint", "freejoint"):
                 if body == 0:
                     raise self.fail(child, "a joint cannot belong to the world body")
                 self.joint(child, body, cls)
@@ -420,8 +453,6 @@ class _Reader:
                                    _floats(child.get("pos", "0 0 0"), 3, where)))
             elif child.tag == "inertial":
                 pass  # read by body()
-            elif child.tag in ("freejoint",):
-                raise self.fail(child, "free joints are not supported yet (hinge and slide joints only)")
             else:
                 raise self.fail(child, "element not supported inside a body (it would change the dynamics)")
 
@@ -437,8 +468,13 @@ class _Reader:
         self.bodies["rot"].append(self.orientation(element, element.attrib))
         for key in ("mass", "com", "inertia"):  # filled in below, once the children are read
             self.bodies[key].append(None)
-        first_geom = len(self.geoms)
+        first_geom, first_joint = len(self.geoms), len(self.joints)
         self.body_children(element, index, cls)
+        own = [joint for joint in self.joints[first_joint:] if joint["body"] == index]
+        for j, joint in enumerate(own[:-1]):
+            if joint["type"] in ("ball", "free"):
+                # MuJoCo takes a ball joint's dof axes from the body's final orientation ("no subsequent rotations")
+                raise self.fail(joint["element"], f"a {joint['type']} joint must be the last joint of its body")
         inertial = element.find("inertial")
         use_geoms = self.inertia_from_geom == "true" or (self.inertia_from_geom == "auto" and inertial is None)
         if use_geoms:
@@ -482,14 +518,18 @@ class _Reader:
         return mass, com, inertia
 
     def joint(self, element, body: int, cls: str):
-        a = self.attrs(element, "joint", cls)
-        self.check_attrs(element)
-        for attr in a:
-            if attr not in _READ["joint"] | _VISUAL:
-                raise self.fail(element, f"attribute {attr!r} (from its default class) is not supported")
+        if element.tag == "freejoint":  # MuJoCo's shortcut for a free joint without springs or dampers
+            self.check_attrs(element, "freejoint")
+            a = {"name": element.get("name", f"joint{len(self.joints)}"), "type": "free"}
+        else:
+            a = self.attrs(element, "joint", cls)
+            self.check_attrs(element)
+            for attr in a:
+                if attr not in _READ["joint"] | _VISUAL:
+                    raise self.fail(element, f"attribute {attr!r} (from its default class) is not supported")
         kind = a.get("type", "hinge")
-        if kind not in ("hinge", "slide"):
-            raise self.fail(element, f"joint type {kind!r} is not supported yet; supported: hinge, slide")
+        if kind not in ("hinge", "slide", "ball", "free"):
+            raise self.fail(element, f"joint type {kind!r} is not supported; supported: hinge, slide, ball, free")
         if float(a.get("frictionloss", 0.0)) != 0.0:
             raise self.fail(element, "frictionloss (dry joint friction) is not supported")
         where = f"{self.path}: <joint {a.get('name', '')}>"
@@ -497,18 +537,38 @@ class _Reader:
         rng = _floats(a.get("range", "0 0"), 2, where) * scale
         limited = a.get("limited", "auto")
         limited = (rng[0] < rng[1]) if limited == "auto" else limited == "true"
+        if kind in ("ball", "free"):
+            # MuJoCo limits a ball joint's rotation angle (a cone) and its springs act on quaternions: neither is
+            # modelled here, and a free joint can be neither
+            if limited:
+                raise self.fail(element, f"limits on a {kind} joint are not supported (set limited='false')")
+            if float(a.get("stiffness", 0.0)) != 0.0:
+                raise self.fail(element, f"stiffness on a {kind} joint is not supported")
+            if kind == "free" and self.bodies["parent"][body] != 0:
+                raise self.fail(element, "a free joint must belong to a child of the world body (as MuJoCo requires)")
         if limited and not rng[0] < rng[1]:
             raise self.fail(element, f"a limited joint needs range with lower < upper, got {a.get('range')!r}")
         axis = _floats(a.get("axis", "0 0 1"), 3, where)
+        if kind == "free":  # its coordinates start at the body's file pose; its anchor is the body origin
+            pos = np.zeros(3)
+            ref = np.concatenate([self.bodies["pos"][body], mat_to_quat(self.bodies["rot"][body])])
+            spring = ref
+        elif kind == "ball":
+            pos = _floats(a.get("pos", "0 0 0"), 3, where)
+            ref = spring = np.array([1.0, 0.0, 0.0, 0.0])
+        else:
+            pos = _floats(a.get("pos", "0 0 0"), 3, where)
+            ref = np.array([float(a.get("ref", 0.0)) * scale])
+            spring = np.array([float(a.get("springref", 0.0)) * scale])
         self.joints.append(dict(
             name=a.get("name", f"joint{len(self.joints)}"), type=kind, body=body,
-            axis=axis / np.linalg.norm(axis), pos=_floats(a.get("pos", "0 0 0"), 3, where),
-            ref=float(a.get("ref", 0.0)) * scale, springref=float(a.get("springref", 0.0)) * scale,
+            axis=axis / np.linalg.norm(axis), pos=pos, ref=ref, springref=spring,
             stiffness=float(a.get("stiffness", 0.0)), damping=float(a.get("damping", 0.0)),
             armature=float(a.get("armature", 0.0)), limited=limited, range=rng,
             margin=float(a.get("margin", 0.0)),
             solref=_floats(a.get("solreflimit", "0.02 1"), 2, where),
             solimp=self.solimp(a.get("solimplimit"), where),
+            element=element,
         ))
 
     @staticmethod
@@ -567,6 +627,8 @@ class _Reader:
         names = [j["name"] for j in self.joints]
         if a["joint"] not in names:
             raise self.fail(element, f"unknown joint {a['joint']!r}; joints: {names}")
+        if self.joints[names.index(a["joint"])]["type"] not in ("hinge", "slide"):
+            raise self.fail(element, "motors on ball and free joints are not supported (hinge and slide only)")
 
         def limits(flag, rng):
             values = _floats(a.get(rng, "0 0"), 2, where)
@@ -590,6 +652,10 @@ class _Reader:
         def col(items, key, dtype=np.float64, shape=()):
             return np.array([it[key] for it in items], dtype=dtype).reshape(len(items), *shape)
 
+        ndof = [{"hinge": 1, "slide": 1, "ball": 3, "free": 6}[x["type"]] for x in j]
+        per_dof = lambda key: np.array([x[key] for x, n in zip(j, ndof) for _ in range(n)], dtype=np.float64)  # noqa: E731
+        coordinates = lambda key: np.concatenate([x[key] for x in j]) if j else np.zeros(0)  # noqa: E731
+
         return ArticulatedModel(
             name=self.root.get("model", Path(self.path).stem), path=self.path, timestep=self.timestep,
             integrator=self.integrator, gravity=self.gravity, density=self.density, viscosity=self.viscosity,
@@ -598,8 +664,12 @@ class _Reader:
             body_com=np.array(b["com"]), body_inertia=np.array(b["inertia"]),
             joint_names=[x["name"] for x in j], joint_type=[x["type"] for x in j],
             joint_body=col(j, "body", np.int64), joint_axis=col(j, "axis", shape=(3,)),
-            joint_pos=col(j, "pos", shape=(3,)), qpos0=col(j, "ref"), qpos_spring=col(j, "springref"),
-            stiffness=col(j, "stiffness"), damping=col(j, "damping"), armature=col(j, "armature"),
+            joint_pos=col(j, "pos", shape=(3,)),
+            joint_qposadr=np.cumsum([0] + [len(x["ref"]) for x in j])[:-1].astype(np.int64),
+            joint_dofadr=np.cumsum([0] + ndof)[:-1].astype(np.int64),
+            qpos0=coordinates("ref"), qpos_spring=coordinates("springref"),
+            stiffness=col(j, "stiffness"), damping=per_dof("damping"), armature=per_dof("armature"),
+            dof_joint=np.repeat(np.arange(len(j)), ndof).astype(np.int64),
             limited=col(j, "limited", bool), joint_range=col(j, "range", shape=(2,)),
             limit_margin=col(j, "margin"), limit_solref=col(j, "solref", shape=(2,)),
             limit_solimp=col(j, "solimp", shape=(5,)),
