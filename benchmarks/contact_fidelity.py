@@ -15,9 +15,24 @@ import numpy as np
 import torch
 
 from torchrl_diffenvs import make_env
-from torchrl_diffenvs.checks import Settings, parse_cli
+from torchrl_diffenvs.checks import Settings, checked, each, one_of, parse_cli
 
-CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5"]
+CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"]
+# where each task keeps its torso's forward position, height and orientation in qpos, and its first joint angle:
+# the planar runners a hinge angle; the Ant a free joint's quaternion
+PLANAR = {"x": 0, "z": 1, "angle": 2, "joints": 3}
+LAYOUT = {"Ant-v5": {"x": 0, "z": 2, "quaternion": 3, "joints": 7}}
+
+
+def _tilt_gap(task, theirs, ours):
+    """Per step, the torso orientation gap (rad): a hinge angle difference, or a quaternion's rotation angle."""
+    layout = LAYOUT.get(task, PLANAR)
+    if "angle" in layout:
+        return np.abs(theirs[:, layout["angle"]] - ours[:, layout["angle"]])
+    q = layout["quaternion"]
+    a, b = theirs[:, q:q + 4], ours[:, q:q + 4]
+    cos_half = np.abs((a * b).sum(-1)) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
+    return 2 * np.arccos(np.clip(cos_half, -1.0, 1.0))
 
 
 def _gym(task):
@@ -41,7 +56,8 @@ def fidelity(task, seconds_rest=2.0, seconds_open_loop=1.0):
         genv.step(np.zeros(env.action_dim))
         td["action"] = torch.zeros(1, env.action_dim, dtype=torch.float64)
         td = env.step(td)["next"].clone()
-    rest = (genv.unwrapped.data.qpos[1], td["state", "qpos"][0, 1].item())
+    layout = LAYOUT.get(task, PLANAR)
+    rest = (genv.unwrapped.data.qpos[layout["z"]], td["state", "qpos"][0, layout["z"]].item())
     genv, (env, td) = _gym(task), _ours(task)
     rng, theirs, ours = np.random.default_rng(0), [], []
     for _ in range(int(round(seconds_open_loop / env.dt))):
@@ -54,22 +70,25 @@ def fidelity(task, seconds_rest=2.0, seconds_open_loop=1.0):
     theirs, ours = np.array(theirs), np.array(ours)
     return {
         "rest_z_mujoco": rest[0], "rest_z_ours": rest[1],
-        "x_gap": abs(theirs[-1, 0] - ours[-1, 0]), "z_gap_max": np.abs(theirs[:, 1] - ours[:, 1]).max(),
-        "angle_gap_max": np.abs(theirs[:, 2] - ours[:, 2]).max(),
-        "joint_rms_gap": float(np.sqrt(((theirs[:, 3:] - ours[:, 3:]) ** 2).mean())),
+        "x_gap": abs(theirs[-1, layout["x"]] - ours[-1, layout["x"]]),
+        "z_gap_max": np.abs(theirs[:, layout["z"]] - ours[:, layout["z"]]).max(),
+        "angle_gap_max": _tilt_gap(task, theirs, ours).max(),
+        "joint_rms_gap": float(np.sqrt(((theirs[:, layout["joints"]:] - ours[:, layout["joints"]:]) ** 2).mean())),
     }
 
 
 @dataclass(frozen=True)
 class ContactFidelitySettings(Settings):
-    """No arguments."""
+    """tasks=[HalfCheetah-v5,Ant-v5]: which contact tasks (all by default)."""
+
+    tasks: tuple = checked(tuple(CONTACT_TASKS), each(one_of(CONTACT_TASKS)))
 
 
 def main(argv=None):
-    parse_cli(ContactFidelitySettings, argv, __doc__)  # no arguments; -h prints the description
+    settings = parse_cli(ContactFidelitySettings, argv, __doc__)
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore")
-    for task in CONTACT_TASKS:
+    for task in settings.tasks:
         print(task, {k: round(float(v), 4) for k, v in fidelity(task).items()}, flush=True)
 
 

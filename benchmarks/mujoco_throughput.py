@@ -33,7 +33,7 @@ import _common as C  # noqa: E402
 
 from torchrl_diffenvs.checks import parse_cli  # noqa: E402
 
-TASKS = ("HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5")
+TASKS = ("HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5", "Ant-v5")
 WINDOW = 8  # H of the forward+backward window
 
 

@@ -7,8 +7,13 @@ import torch
 from torchrl_diffenvs.envs import make_env
 
 MUJOCO_TASKS = ["InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", "Swimmer-v5", "HalfCheetah-v5",
-                "Hopper-v5", "Walker2d-v5"]
-CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5"]
+                "Hopper-v5", "Walker2d-v5", "Ant-v5"]
+CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"]
+
+
+def height_coordinate(env) -> int:
+    """The qpos (and qvel) entry that moves the whole robot up: a planar runner's rootz slide, the Ant's free z."""
+    return 2 if env.model.joint_type[0] == "free" else 1
 
 
 def standing_state(env, n, depth=0.0, mid_range=False):
@@ -23,15 +28,19 @@ def standing_state(env, n, depth=0.0, mid_range=False):
     state = env.initial_state(env.params, n)
     if mid_range:
         model = env.model
-        middle = torch.as_tensor(model.joint_range.mean(1), dtype=state["qpos"].dtype)
-        limited = torch.as_tensor(model.limited)
-        state["qpos"] = torch.where(limited, middle + 0.01 * state["qpos"], state["qpos"])
+        qpos = state["qpos"].clone()
+        for j in range(model.njnt):
+            if model.limited[j]:
+                a = int(model.joint_qposadr[j])
+                qpos[:, a] = float(model.joint_range[j].mean()) + 0.01 * qpos[:, a]
+        state["qpos"] = qpos
     kin = forward_kinematics(env.tree, state["qpos"])
     tree = env.tree
     centre = kin.body_pos[:, tree.contact_body] + (kin.body_rot[:, tree.contact_body] @ tree.contact_local.unsqueeze(-1)).squeeze(-1)
     lowest = (centre[..., 2] - tree.contact_radius).min(dim=1).values
     qpos = state["qpos"].clone()
-    qpos[:, 1] = qpos[:, 1] - lowest - depth  # rootz slides the whole robot
+    z = height_coordinate(env)
+    qpos[:, z] = qpos[:, z] - lowest - depth  # rootz (the free joint's z) moves the whole robot
     state["qpos"] = qpos
     return state
 
@@ -57,14 +66,15 @@ def step_fn(env, state_keys, param_key=None):
 
 @pytest.mark.parametrize("name", MUJOCO_TASKS)
 def test_gradcheck_one_step(name):
-    env = make_env(name, num_envs=2, dtype=torch.float64, seed=0)
+    n = 1 if name == "Ant-v5" else 2  # the Ant's step is 20 force evaluations (RK4, frame_skip 5): one env
+    env = make_env(name, num_envs=n, dtype=torch.float64, seed=0)
     # contact active; joints mid-range: a limit's active set (which rows push, jointly solved) has
     # kinks in the state (as MuJoCo's), see test_coupled_joint_limits_gradcheck for the limits
-    state = standing_state(env, 2, depth=0.01, mid_range=True) if name in CONTACT_TASKS else \
-        env.initial_state(env.params, 2)
+    state = standing_state(env, n, depth=0.01, mid_range=True) if name in CONTACT_TASKS else \
+        env.initial_state(env.params, n)
     fn, extras = step_fn(env, list(state.keys()), param_key="body_mass")
     extras.update({k: v for k, v in state.items() if k not in ("qpos", "qvel")})
-    action = (0.3 * torch.randn(2, env.action_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))
+    action = (0.3 * torch.randn(n, env.action_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))
     inputs = (action.requires_grad_(), state["qpos"].clone().requires_grad_(), state["qvel"].clone().requires_grad_(),
               env.params["body_mass"].clone().requires_grad_())
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
@@ -95,7 +105,7 @@ def test_15_step_rollout_matches_finite_differences_through_contact(name):
         params = params0.clone()
         params["contact_stiffness"] = stiffness
         params["contact_friction"] = friction
-        return rollout_return(env, {"qpos": qpos, "qvel": qvel}, actions, params)
+        return rollout_return(env, {**state0, "qpos": qpos, "qvel": qvel}, actions, params)
 
     inputs = [actions, state0["qpos"], state0["qvel"], params0["contact_stiffness"], params0["contact_friction"]]
     inputs = [x.clone().requires_grad_() for x in inputs]
@@ -123,23 +133,25 @@ def test_gradients_finite_at_touchdown_rest_and_deep_penetration(name, depth):
     env = make_env(name, num_envs=3, dtype=torch.float32, seed=0)
     state = standing_state(env, 3, depth=depth)
     state["qvel"] = torch.zeros_like(state["qvel"])
-    state["qvel"][:, 1] = -1.0  # moving into the floor
+    z = height_coordinate(env)
+    state["qvel"][:, z] = -1.0  # moving into the floor
     action = torch.zeros(3, env.action_dim, requires_grad=True)
     qpos = state["qpos"].clone().requires_grad_()
-    next_state, reward, _ = env.transition({"qpos": qpos, "qvel": state["qvel"]}, action, env.params)
+    next_state, reward, _ = env.transition({**state, "qpos": qpos, "qvel": state["qvel"]}, action, env.params)
     (reward.sum() + next_state["qpos"].sum() + next_state["qvel"].sum()).backward()
     assert torch.isfinite(next_state["qvel"]).all()
     assert torch.isfinite(action.grad).all() and torch.isfinite(qpos.grad).all()
     if depth > 0:  # the floor pushes back: the torso accelerates upwards
-        assert (next_state["qvel"][:, 1] > state["qvel"][:, 1]).all()
+        assert (next_state["qvel"][:, z] > state["qvel"][:, z]).all()
 
 
 @pytest.mark.parametrize("name", CONTACT_TASKS)
 def test_long_random_rollouts_stay_finite(name):
-    """1000 steps (one full HalfCheetah episode) of random actions in float32 never produce NaN."""
+    """Random actions in float32 never produce NaN: a full HalfCheetah episode (1000 steps), 300 steps
+    of Hopper and Walker2d (they fall and reset), 150 of the Ant (20 force evaluations per step)."""
     env = make_env(name, num_envs=16, seed=0, max_episode_steps=1000)
     with torch.no_grad():
-        td = env.rollout(1000 if name == "HalfCheetah-v5" else 300, break_when_any_done=False)
+        td = env.rollout({"HalfCheetah-v5": 1000, "Ant-v5": 150}.get(name, 300), break_when_any_done=False)
     assert torch.isfinite(td["next", "observation"]).all()
     assert torch.isfinite(td["next", "reward"]).all()
 
@@ -200,3 +212,62 @@ def test_coupled_joint_limits_gradcheck():
     finally:
         dynamics._complementary_forces = original
     assert calls and all(calls)  # every physics step had both limits pushing
+
+
+def hand_soft_healthy(qpos, qvel, z_low, angle_low, angle_high, width, z_high=None, state_bound=None):
+    """The surrogate by hand: a product of logistic functions of each finite bound's margin."""
+    s = lambda m: 1.0 / (1.0 + torch.exp(-m / width))  # noqa: E731
+    out = s(qpos[:, 1] - z_low) * s(qpos[:, 2] - angle_low) * s(angle_high - qpos[:, 2])
+    if z_high is not None:
+        out = out * s(z_high - qpos[:, 1])
+    if state_bound is not None:
+        rest = torch.cat([qpos, qvel], -1)[:, 2:]
+        out = out * (s(rest + state_bound) * s(state_bound - rest)).prod(-1)
+    return out
+
+
+@pytest.mark.parametrize("name", ["Hopper-v5", "Walker2d-v5"])
+def test_healthy_gradient_width_keeps_rewards_and_gives_the_surrogate_gradient(name):
+    width = 0.05
+    exact = make_env(name, num_envs=6, dtype=torch.float64, seed=0)
+    smooth = make_env(name, num_envs=6, dtype=torch.float64, seed=0, healthy_gradient_width=width)
+    params = exact.params
+    state = exact.initial_state(params, 6)
+    # torso heights and angles on both sides of each healthy bound, within a few widths of it
+    z_low, a_high = float(params["healthy_z_low"][0]), float(params["healthy_angle_high"][0])
+    qpos = state["qpos"].clone()
+    qpos[:, 1] = z_low + torch.tensor([0.3, 0.02, -0.01, 0.05, 0.2, 0.04], dtype=torch.float64)
+    qpos[:, 2] = a_high + torch.tensor([-0.5, -0.03, -0.1, 0.01, -0.02, -a_high], dtype=torch.float64)
+    action = 0.3 * torch.ones(6, exact.action_dim, dtype=torch.float64)
+
+    def reward_of(env, qpos):
+        return env.transition({"qpos": qpos, "qvel": state["qvel"]}, action, params)[1]
+
+    q_exact = qpos.clone().requires_grad_()
+    q_smooth = qpos.clone().requires_grad_()
+    r_exact, r_smooth = reward_of(exact, q_exact), reward_of(smooth, q_smooth)
+    torch.testing.assert_close(r_smooth, r_exact, rtol=0, atol=0)  # values stay Gymnasium's
+    g_exact, = torch.autograd.grad(r_exact.sum(), q_exact)
+    g_smooth, = torch.autograd.grad(r_smooth.sum(), q_smooth)
+
+    # the difference is the healthy bonus's surrogate gradient at the *next* state
+    next_state, _, _ = exact.transition({"qpos": q_exact, "qvel": state["qvel"]}, action, params)
+    hand = hand_soft_healthy(
+        next_state["qpos"], next_state["qvel"], z_low, float(params["healthy_angle_low"][0]), a_high, width,
+        z_high=float(params["healthy_z_high"][0]) if name == "Walker2d-v5" else None,
+        state_bound=100.0 if name == "Hopper-v5" else None)
+    g_hand, = torch.autograd.grad(float(params["healthy_reward"][0]) * hand.sum(), q_exact)
+    torch.testing.assert_close(g_smooth - g_exact, g_hand, rtol=1e-7, atol=1e-10)
+    assert (g_hand[:, 1:3].abs() > 1e-3).any()  # the envs near a bound do feel it
+    torch.testing.assert_close(smooth.soft_healthy(next_state["qpos"], next_state["qvel"], params), hand)
+
+
+@pytest.mark.parametrize("width", [-0.1, float("nan"), float("inf"), True, "0.1"])
+def test_healthy_gradient_width_rejects_bad_values(width):
+    with pytest.raises(ValueError, match="healthy_gradient_width must be a finite number >= 0"):
+        make_env("Hopper-v5", num_envs=1, healthy_gradient_width=width)
+
+
+def test_healthy_gradient_width_needs_a_healthy_bonus():
+    with pytest.raises(ValueError, match="HalfCheetah-v5 has none"):
+        make_env("HalfCheetah-v5", num_envs=1, healthy_gradient_width=0.1)

@@ -209,4 +209,5 @@ REACHER = MuJoCoView("xy", (-0.35, 0.35, -0.35, 0.35), ("fingertip",), goal=("ta
 HALF_CHEETAH = MuJoCoView("xz", (-1.5, 1.5, -0.3, 1.5), ("torso",), follow="torso", reward_range=(-1.0, 5.0))
 HOPPER = MuJoCoView("xz", (-1.5, 1.5, -0.2, 1.8), ("torso",), follow="torso", reward_range=(0.0, 4.0))
 WALKER2D = MuJoCoView("xz", (-1.5, 1.5, -0.2, 1.8), ("torso",), follow="torso", reward_range=(0.0, 5.0))
+ANT = MuJoCoView("xz", (-2.0, 2.0, -0.3, 1.6), ("torso",), follow="torso", reward_range=(-1.0, 3.0))
 SWIMMER_V5 = MuJoCoView("xy", (-2.5, 2.5, -2.0, 2.0), ("torso",), follow="torso", reward_range=(-0.1, 0.4))

@@ -1,4 +1,5 @@
 """Tasks built on MuJoCo model files (Gymnasium's v5 MuJoCo envs), simulated in pure torch."""
+from .ant import AntV5Env
 from .base import MuJoCoModelEnv
 from .half_cheetah import HalfCheetahV5Env
 from .hopper import HopperV5Env
@@ -10,7 +11,7 @@ from .walker2d import Walker2dV5Env
 
 MUJOCO_TASKS = (
     InvertedPendulumV5Env, InvertedDoublePendulumV5Env, ReacherV5Env, SwimmerV5Env, HalfCheetahV5Env, HopperV5Env,
-    Walker2dV5Env,
+    Walker2dV5Env, AntV5Env,
 )
 
 __all__ = ["MuJoCoModelEnv", "MUJOCO_TASKS", *(cls.__name__ for cls in MUJOCO_TASKS)]

@@ -13,15 +13,15 @@ class PlanarLocomotionEnv(MuJoCoModelEnv):
     observation ``[qpos[k:], clip(qvel, -clip_velocity, clip_velocity)]`` where the first
     ``k = position_coordinates`` coordinates (1: ``x``; the swimmer's 2: ``x, y``) are left out
     unless ``exclude_current_positions_from_observation=False``. ``healthy`` is always true for a task
-    without healthy ranges (HalfCheetah).
+    without healthy ranges (HalfCheetah). Start: ``qpos0 + U(-s, s)`` and ``qvel ~ U(-s, s)``
+    (``qvel ~ s N(0, 1)`` where ``velocity_noise = "normal"``), ``s = reset_noise_scale``.
 
     The healthy bonus is a step function of the state, so its exact gradient is zero and a fall is
     invisible to the analytic gradient. ``healthy_gradient_width=w > 0`` keeps every reward value
     exact (Gymnasium's) but lets the bonus carry the gradient of a smooth surrogate: the product,
     over every finite healthy bound, of ``sigmoid(margin / w)`` (``margin`` the distance to the
     bound, inside positive), as a straight-through estimator: ``bonus + soft - soft.detach()``.
-    Gradient learners then feel the bonus within about ``w`` of a bound; returns are unchanged. Start: ``qpos0 + U(-s, s)`` and ``qvel ~ U(-s, s)``
-    (``qvel ~ s N(0, 1)`` where ``velocity_noise = "normal"``), ``s = reset_noise_scale``.
+    Gradient learners then feel the bonus within about ``w`` of a bound; returns are unchanged.
 
     Dynamics: MuJoCo's model and integrator, with a smooth penalty contact instead of MuJoCo's
     soft-constraint solver (see the README, "Articulated robots"): trajectories differ from

@@ -1,0 +1,89 @@
+"""Gymnasium's ``Ant-v5`` (ant.xml): a four-legged robot on a free joint, with smooth ground contact."""
+import torch
+
+from ...articulated.dynamics import body_contact_forces, forward_kinematics
+from ..registry import register_env
+from .base import MuJoCoModelEnv
+
+
+@register_env(drawer="torchrl_diffenvs.rendering.mujoco:ANT")
+class AntV5Env(MuJoCoModelEnv):
+    """Walk forward (+x) on four legs (8 hinge motors, ``ctrl`` in ``[-1, 1]``; the torso on a free joint).
+
+    As Gymnasium's v5: reward ``forward_reward_weight * vx + healthy_reward * healthy
+    - ctrl_cost_weight |a|^2 - contact_cost_weight |clip(cfrc_ext)|^2``, ``vx`` the torso's x
+    displacement per ``dt`` (0.05 s: RK4 at 0.01 s, 5 steps); healthy while the state is finite
+    and the torso height ``qpos[2]`` is in ``[0.2, 1]`` (closed, as Gymnasium's); terminated when
+    unhealthy; truncated after 1000 steps; observation ``[qpos[2:], qvel, clip(cfrc_ext[1:])]``
+    (13 + 14 + 78 = 105; 27 with ``include_cfrc_ext_in_observation=False``, 2 more with
+    ``exclude_current_positions_from_observation=False``); start ``qpos0 + U(-0.1, 0.1)`` (the
+    quaternion too, unnormalised, as Gymnasium's), ``qvel ~ 0.1 N(0, 1)``.
+
+    ``cfrc_ext`` is MuJoCo's per-body external contact wrench (torque about the Ant's centre of
+    mass, force; world frame), here from the smooth contact model instead of MuJoCo's solver, so
+    its values and the trajectories differ from Gymnasium's once a leg touches the ground (the
+    contact-free dynamics equal MuJoCo's, see the README). As Gymnasium does, the torso position
+    and ``cfrc_ext`` are read where ``mj_step`` leaves them (the last RK4 stage): they travel as
+    ``("state", "torso_xy")`` and ``("state", "cfrc_ext")``; ``cfrc_ext`` is 0 after a reset.
+    """
+
+    name = "Ant-v5"
+    model_file = "ant.xml"
+    frame_skip = 5
+    # the Ant weighs 0.9 kg (HalfCheetah 14): a softer, less damped floor keeps explicit RK4 at 0.01 s stable
+    contact_params = {"contact_stiffness": 2e3, "contact_damping": 20.0, "contact_width": 0.002,
+                      "friction_velocity": 0.01}
+    task_params = {
+        "forward_reward_weight": 1.0, "ctrl_cost_weight": 0.5, "contact_cost_weight": 5e-4, "healthy_reward": 1.0,
+        "terminate_when_unhealthy": 1.0, "healthy_z_low": 0.2, "healthy_z_high": 1.0,
+        "contact_force_low": -1.0, "contact_force_high": 1.0, "reset_noise_scale": 0.1,
+    }
+
+    def __init__(self, num_envs: int = 1, *, exclude_current_positions_from_observation: bool = True,
+                 include_cfrc_ext_in_observation: bool = True, **kwargs):
+        self.exclude_current_positions = bool(exclude_current_positions_from_observation)
+        self.include_cfrc_ext = bool(include_cfrc_ext_in_observation)
+        super().__init__(num_envs, **kwargs)
+        self._torso = self.model.body_index("torso")
+
+    def contact_wrenches(self, qpos, qvel, params):
+        """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` from the smooth contact: about the centre of mass."""
+        kin = forward_kinematics(self.tree, qpos)
+        mass = params["body_mass"]
+        com = kin.body_pos + (kin.body_rot @ self.tree.body_com.unsqueeze(-1)).squeeze(-1)
+        centre = (mass.unsqueeze(-1) * com).sum(1) / mass.sum(1, keepdim=True)  # every body's root is the torso
+        return body_contact_forces(self.tree, kin, qvel, params, about=centre)
+
+    def initial_state(self, params, n):
+        noise = params["reset_noise_scale"].unsqueeze(-1)
+        qpos = self.init_qpos(n) + (2 * self.uniform(0.0, 1.0, n, self.model.nq) - 1) * noise
+        qvel = self.normal(n, self.model.nv) * noise
+        return {"qpos": qpos, "qvel": qvel, "torso_xy": qpos[:, :2],
+                "cfrc_ext": qpos.new_zeros(n, self.model.nbody, 6)}
+
+    def contact_forces(self, state, params):
+        """Gymnasium's ``contact_forces``: ``cfrc_ext`` clipped to the contact force range."""
+        low, high = params["contact_force_low"], params["contact_force_high"]
+        return torch.clamp(state["cfrc_ext"], low[:, None, None], high[:, None, None])
+
+    def transition(self, state, action, params):
+        result = self.simulate(state, action, params)
+        torso_xy = forward_kinematics(self.tree, result.eval_qpos).body_pos[:, self._torso, :2]
+        cfrc_ext = self.contact_wrenches(result.eval_qpos, result.eval_qvel, params)
+        next_state = {"qpos": result.qpos, "qvel": result.qvel, "torso_xy": torso_xy, "cfrc_ext": cfrc_ext}
+        x_velocity = (torso_xy[:, 0] - state["torso_xy"][:, 0]) / self.dt
+        z = result.qpos[:, 2]
+        finite = torch.isfinite(torch.cat([result.qpos, result.qvel], dim=-1)).all(-1)
+        healthy = finite & (params["healthy_z_low"] <= z) & (z <= params["healthy_z_high"])
+        contact_cost = params["contact_cost_weight"] * (self.contact_forces(next_state, params) ** 2).sum((-1, -2))
+        reward = (params["forward_reward_weight"] * x_velocity + params["healthy_reward"] * healthy.to(z.dtype)
+                  - params["ctrl_cost_weight"] * (action**2).sum(-1) - contact_cost)
+        terminated = ~healthy & (params["terminate_when_unhealthy"] > 0)
+        return next_state, reward, terminated
+
+    def observation(self, state, params):
+        qpos = state["qpos"][:, 2:] if self.exclude_current_positions else state["qpos"]
+        parts = [qpos, state["qvel"]]
+        if self.include_cfrc_ext:
+            parts.append(self.contact_forces(state, params)[:, 1:].flatten(1))
+        return torch.cat(parts, dim=-1)
