@@ -216,7 +216,8 @@ def quat_to_mat(q) -> np.ndarray:
 
 
 def mat_to_quat(rot: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (MuJoCo's mju_mat2Quat)."""
+    """Rotation matrix -> unit quaternion ``(w, x, y, z)``, ``w >= 0`` (a free joint's start: MuJoCo
+    keeps the file's quaternion, which may be the negated one, the same rotation)."""
     w = math.sqrt(max(0.0, 1.0 + rot[0, 0] + rot[1, 1] + rot[2, 2])) / 2.0
     if w > 1e-4:
         q = np.array([w, (rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w),
@@ -471,7 +472,7 @@ class _Reader:
         first_geom, first_joint = len(self.geoms), len(self.joints)
         self.body_children(element, index, cls)
         own = [joint for joint in self.joints[first_joint:] if joint["body"] == index]
-        for j, joint in enumerate(own[:-1]):
+        for joint in own[:-1]:
             if joint["type"] in ("ball", "free"):
                 # MuJoCo takes a ball joint's dof axes from the body's final orientation ("no subsequent rotations")
                 raise self.fail(joint["element"], f"a {joint['type']} joint must be the last joint of its body")
