@@ -226,11 +226,12 @@ def hand_soft_healthy(qpos, qvel, z_low, angle_low, angle_high, width, z_high=No
     return out
 
 
-@pytest.mark.parametrize("name", ["Hopper-v5", "Walker2d-v5"])
-def test_healthy_gradient_width_keeps_rewards_and_gives_the_surrogate_gradient(name):
+@pytest.mark.parametrize("name,scale", [("Hopper-v5", 1.0), ("Walker2d-v5", 30.0)])
+def test_healthy_gradient_width_keeps_rewards_and_gives_the_surrogate_gradient(name, scale):
     width = 0.05
     exact = make_env(name, num_envs=6, dtype=torch.float64, seed=0)
-    smooth = make_env(name, num_envs=6, dtype=torch.float64, seed=0, healthy_gradient_width=width)
+    smooth = make_env(name, num_envs=6, dtype=torch.float64, seed=0, healthy_gradient_width=width,
+                      healthy_gradient_scale=scale)
     params = exact.params
     state = exact.initial_state(params, 6)
     # torso heights and angles on both sides of each healthy bound, within a few widths of it
@@ -256,16 +257,17 @@ def test_healthy_gradient_width_keeps_rewards_and_gives_the_surrogate_gradient(n
         next_state["qpos"], next_state["qvel"], z_low, float(params["healthy_angle_low"][0]), a_high, width,
         z_high=float(params["healthy_z_high"][0]) if name == "Walker2d-v5" else None,
         state_bound=100.0 if name == "Hopper-v5" else None)
-    g_hand, = torch.autograd.grad(float(params["healthy_reward"][0]) * hand.sum(), q_exact)
+    g_hand, = torch.autograd.grad(scale * float(params["healthy_reward"][0]) * hand.sum(), q_exact)
     torch.testing.assert_close(g_smooth - g_exact, g_hand, rtol=1e-7, atol=1e-10)
     assert (g_hand[:, 1:3].abs() > 1e-3).any()  # the envs near a bound do feel it
     torch.testing.assert_close(smooth.soft_healthy(next_state["qpos"], next_state["qvel"], params), hand)
 
 
-@pytest.mark.parametrize("width", [-0.1, float("nan"), float("inf"), True, "0.1"])
-def test_healthy_gradient_width_rejects_bad_values(width):
-    with pytest.raises(ValueError, match="healthy_gradient_width must be a finite number >= 0"):
-        make_env("Hopper-v5", num_envs=1, healthy_gradient_width=width)
+@pytest.mark.parametrize("option", ["healthy_gradient_width", "healthy_gradient_scale"])
+@pytest.mark.parametrize("value", [-0.1, float("nan"), float("inf"), True, "0.1"])
+def test_healthy_gradient_options_reject_bad_values(option, value):
+    with pytest.raises(ValueError, match=f"{option} must be a finite number >= 0"):
+        make_env("Hopper-v5", num_envs=1, **{option: value})
 
 
 def test_healthy_gradient_width_needs_a_healthy_bonus():

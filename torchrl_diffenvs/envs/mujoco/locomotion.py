@@ -20,8 +20,10 @@ class PlanarLocomotionEnv(MuJoCoModelEnv):
     invisible to the analytic gradient. ``healthy_gradient_width=w > 0`` keeps every reward value
     exact (Gymnasium's) but lets the bonus carry the gradient of a smooth surrogate: the product,
     over every finite healthy bound, of ``sigmoid(margin / w)`` (``margin`` the distance to the
-    bound, inside positive), as a straight-through estimator: ``bonus + soft - soft.detach()``.
+    bound, inside positive), as a straight-through estimator: ``bonus + k (soft - soft.detach())``.
     Gradient learners then feel the bonus within about ``w`` of a bound; returns are unchanged.
+    ``healthy_gradient_scale=k`` (1 by default) weighs that gradient: a fall costs every later
+    bonus (about ``healthy_reward / (1 - gamma)``), not one step's.
 
     Dynamics: MuJoCo's model and integrator, with a smooth penalty contact instead of MuJoCo's
     soft-constraint solver (see the README, "Articulated robots"): trajectories differ from
@@ -34,7 +36,7 @@ class PlanarLocomotionEnv(MuJoCoModelEnv):
     healthy_ranges: dict = {}  # name -> what it bounds: "z" (qpos[1]), "angle" (qpos[2]), "state" (state[2:])
 
     def __init__(self, num_envs: int = 1, *, exclude_current_positions_from_observation: bool = True,
-                 healthy_gradient_width: float = 0.0, **kwargs):
+                 healthy_gradient_width: float = 0.0, healthy_gradient_scale: float = 1.0, **kwargs):
         self.exclude_current_positions = bool(exclude_current_positions_from_observation)
         width = healthy_gradient_width
         if isinstance(width, bool) or not isinstance(width, (int, float)) or not 0.0 <= width < float("inf"):
@@ -43,7 +45,11 @@ class PlanarLocomotionEnv(MuJoCoModelEnv):
         if width > 0 and not self.healthy_ranges:
             raise ValueError(f"{self.name}: healthy_gradient_width applies to tasks with a healthy bonus "
                              f"(Hopper-v5, Walker2d-v5); {self.name} has none")
+        scale = healthy_gradient_scale
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0.0 <= scale < float("inf"):
+            raise ValueError(f"{self.name}: healthy_gradient_scale must be a finite number >= 0, got {scale!r}")
         self.healthy_gradient_width = float(width)
+        self.healthy_gradient_scale = float(scale)
         super().__init__(num_envs, **kwargs)
 
     def initial_state(self, params, n):
@@ -95,7 +101,8 @@ class PlanarLocomotionEnv(MuJoCoModelEnv):
             bonus = healthy.to(reward.dtype)
             if self.healthy_gradient_width > 0:
                 soft = self.soft_healthy(result.qpos, result.qvel, params)
-                bonus = bonus + (soft - soft.detach())  # the exact value, the surrogate's gradient
+                # the exact value, the (scaled) surrogate's gradient
+                bonus = bonus + self.healthy_gradient_scale * (soft - soft.detach())
             reward = reward + params["healthy_reward"] * bonus
             terminated = ~healthy & (params["terminate_when_unhealthy"] > 0)
         return {"qpos": result.qpos, "qvel": result.qvel}, reward, terminated
