@@ -325,7 +325,26 @@ def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params
     force_w = (rot @ force.unsqueeze(-1)).squeeze(-1) * mask
     torque_w = (rot @ torque.unsqueeze(-1)).squeeze(-1) * mask
     wrench = torch.cat([torque_w + _cross(com, force_w), force_w], dim=-1)  # at the world origin
-    return (jac.transpose(-1, -2) @ wrench.unsqueeze(-1)).squeeze(-1).sum(1)
+    return _sum_transposed(jac, wrench)
+
+
+def _sum_transposed(jac: torch.Tensor, vec: torch.Tensor) -> torch.Tensor:
+    """``sum_b jac_b^T vec_b`` for ``jac [N, B, k, nv]``, ``vec [N, B, k]``: ``[N, nv]``.
+
+    One batched product over the stacked rows (``B * k`` long) instead of ``N * B`` tiny ones:
+    per-op overhead, not arithmetic, dominates these small matrices on a CPU.
+    """
+    jac = jac.expand(vec.shape[0], *jac.shape[1:])  # a batch-1 Jacobian serves every env
+    n, b, k, nv = jac.shape
+    return (vec.reshape(n, 1, b * k) @ jac.reshape(n, b * k, nv)).squeeze(1)
+
+
+def _sum_congruent(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
+    """``sum_b left_b^T right_b`` for two ``[N, B, k, nv]``: ``[N, nv, nv]``, one batched product."""
+    n, b, k, nv = right.shape
+    if left.shape[0] == 1:  # one Jacobian for every env (dof_invweight0's, at qpos0): broadcast, no copy
+        return left.reshape(b * k, nv).transpose(0, 1) @ right.reshape(n, b * k, nv)
+    return left.reshape(n, b * k, nv).transpose(1, 2) @ right.reshape(n, b * k, nv)
 
 
 @dataclass
@@ -463,7 +482,7 @@ def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Para
     inertia = _spatial_inertia(tree, kin, params)
     jac = body_jacobians(tree, kin) if jac is None else jac
     inertia_jac = inertia @ jac
-    mass = (jac.transpose(-1, -2) @ inertia_jac).sum(1)
+    mass = _sum_congruent(jac, inertia_jac)
     mass = mass + torch.diag_embed(params["armature"])
     # velocity-product accelerations; gravity enters as an upward acceleration of the world
     body_vel = (jac @ qvel[:, None, :, None]).squeeze(-1)  # [N, nbody, 6]
@@ -474,7 +493,7 @@ def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Para
     body_acc = gravity.unsqueeze(1) + tree.body_dof_mask @ motion_dot
     momentum = (inertia @ body_vel.unsqueeze(-1)).squeeze(-1)
     force = (inertia @ body_acc.unsqueeze(-1)).squeeze(-1) + cross_force(body_vel, momentum)
-    bias = (jac.transpose(-1, -2) @ force.unsqueeze(-1)).squeeze(-1).sum(1)
+    bias = _sum_transposed(jac, force)
     return mass, bias
 
 
@@ -553,17 +572,19 @@ def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, para
     point, force, normal, damping, touching = c.point, c.force, c.normal, c.damping, c.touching
     normal_force, mu, slip = c.normal_force, c.mu, c.slip
     spatial = torch.cat([_cross(point, force), force], dim=-1)  # wrench about the world origin
-    generalised = (point_jac.transpose(-1, -2) @ spatial.unsqueeze(-1)).squeeze(-1).sum(1)
+    generalised = _sum_transposed(point_jac, spatial)
     if not with_damping:
         return generalised
     # linear velocity Jacobian of each contact point: v = v_O + w x p = v_O - p x w
     lin_jac = point_jac[..., 3:, :] - _skew(point) @ point_jac[..., :3, :]  # [N, P, 3, nv]
-    nn = normal.unsqueeze(-1) * normal.unsqueeze(-2)
+    # each point damps its normal velocity with a = c * touching (while pushing) and its tangential
+    # velocity with b = mu f_n / slip: J^T (a n n^T + b (I - n n^T)) J = b J^T J + (a - b) u u^T, u = J^T n
     pushing = (normal_force > 0).to(qvel.dtype)
-    eye = torch.eye(3, dtype=qvel.dtype, device=qvel.device)
-    point_damping = ((damping * touching * pushing)[..., None, None] * nn
-                     + (mu * normal_force / slip)[..., None, None] * (eye - nn))
-    damping_matrix = (lin_jac.transpose(-1, -2) @ point_damping @ lin_jac).sum(1)
+    normal_rate = damping * touching * pushing
+    tangent_rate = mu * normal_force / slip
+    u = (lin_jac * normal.unsqueeze(-1)).sum(-2)  # [N, P, nv]
+    damping_matrix = (_sum_congruent(lin_jac * tangent_rate[..., None, None], lin_jac)
+                      + (u * (normal_rate - tangent_rate).unsqueeze(-1)).transpose(1, 2) @ u)
     return generalised, damping_matrix
 
 
@@ -589,7 +610,7 @@ def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
     kin0 = tree.kin0
     jac0 = body_jacobians(tree, kin0)
     inertia = _spatial_inertia(tree, kin0, params)
-    mass = (jac0.transpose(-1, -2) @ inertia @ jac0).sum(1) + torch.diag_embed(params["armature"])
+    mass = _sum_congruent(jac0, inertia @ jac0) + torch.diag_embed(params["armature"])
     weight = torch.linalg.inv(mass).diagonal(dim1=-2, dim2=-1)
     # MuJoCo averages over a ball joint's dofs and over each half (translation, rotation) of a free joint's
     for kind, da in zip(tree.joint_type, tree.joint_dofadr):
