@@ -92,7 +92,7 @@ def test_every_registered_env_and_loss_has_a_config():
     assert loss_files == set(LOSSES) | set(PRESETS)
     assert not (CONFIGS / "env").exists(), "env sections come from the task registrations"
     for name in list_envs():
-        cfg = make_cfg(f"env={name}", "loss=shac")
+        cfg = make_cfg(f"env={name}", "loss=shac", "~tuned")  # (a tuned file may set env options)
         assert OmegaConf.to_container(cfg.env) == env_config(name)
     # a tuned file only for a pair that exists
     for path in (CONFIGS / "tuned").glob("*.yaml"):
@@ -158,6 +158,19 @@ def test_each_loss_carries_its_budget(loss, budget):
     cfg = make_cfg("env=swimmer", f"loss={loss}")
     assert cfg.train.total_env_steps == budget
     assert cfg.env.num_envs == (8 if loss == "sac" else 64)  # SAC: few envs, many updates per env step
+
+
+def test_a_tuned_file_sets_env_options_of_the_training_envs():
+    """configs/tuned/Hopper-v5_shac.yaml turns on the healthy bonus's surrogate gradient; the
+    command line still wins."""
+    from torchrl_diffenvs.training.config import make_env_from_config
+
+    env = make_env_from_config(make_cfg("env=Hopper-v5", "loss=shac"), num_envs=2, seed=0)
+    assert (env.healthy_gradient_width, env.healthy_gradient_scale) == (0.1, 30.0)
+    env = make_env_from_config(make_cfg("env=Hopper-v5", "loss=shac", "env.options.healthy_gradient_scale=1"),
+                               num_envs=2, seed=0)
+    assert env.healthy_gradient_scale == 1.0
+    assert make_env_from_config(make_cfg("env=Hopper-v5", "loss=ppo"), num_envs=2, seed=0).healthy_gradient_width == 0
 
 
 def test_tuned_defaults_override_the_loss_defaults_but_not_the_command_line():
