@@ -334,7 +334,6 @@ def _sum_transposed(jac: torch.Tensor, vec: torch.Tensor) -> torch.Tensor:
     One batched product over the stacked rows (``B * k`` long) instead of ``N * B`` tiny ones:
     per-op overhead, not arithmetic, dominates these small matrices on a CPU.
     """
-    jac = jac.expand(vec.shape[0], *jac.shape[1:])  # a batch-1 Jacobian serves every env
     n, b, k, nv = jac.shape
     return (vec.reshape(n, 1, b * k) @ jac.reshape(n, b * k, nv)).squeeze(1)
 
@@ -602,7 +601,8 @@ def _impedance(solimp: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
 
 
 def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
-    """MuJoCo's ``dof_invweight0 [N, nv]``: ``diag(M^-1)`` at ``qpos0`` for these params' masses.
+    """MuJoCo's ``dof_invweight0 [N, nv]``: ``diag(M^-1)`` at ``qpos0`` for these params' masses
+    (averaged over a ball joint's three dofs and over each half of a free joint's, as MuJoCo's).
 
     MuJoCo computes it when it compiles the model (``mj_setConst``), so a model file with other
     masses gets other values; here it follows the per-env params, as a model compiled with them.

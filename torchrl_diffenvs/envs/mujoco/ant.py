@@ -44,11 +44,10 @@ class AntV5Env(MuJoCoModelEnv):
         self.exclude_current_positions = bool(exclude_current_positions_from_observation)
         self.include_cfrc_ext = bool(include_cfrc_ext_in_observation)
         super().__init__(num_envs, **kwargs)
-        self._torso = self.model.body_index("torso")
 
     def contact_wrenches(self, qpos, qvel, params):
         """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` from the smooth contact: about the centre of mass."""
-        kin = forward_kinematics(self.tree, qpos)
+        kin = forward_kinematics(self.tree, qpos)  # once per env step, at the state mj_step leaves behind
         mass = params["body_mass"]
         com = kin.body_pos + (kin.body_rot @ self.tree.body_com.unsqueeze(-1)).squeeze(-1)
         centre = (mass.unsqueeze(-1) * com).sum(1) / mass.sum(1, keepdim=True)  # every body's root is the torso
@@ -68,7 +67,7 @@ class AntV5Env(MuJoCoModelEnv):
 
     def transition(self, state, action, params):
         result = self.simulate(state, action, params)
-        torso_xy = forward_kinematics(self.tree, result.eval_qpos).body_pos[:, self._torso, :2]
+        torso_xy = result.eval_qpos[:, :2]  # the free joint's coordinates are the torso's world position
         cfrc_ext = self.contact_wrenches(result.eval_qpos, result.eval_qvel, params)
         next_state = {"qpos": result.qpos, "qvel": result.qvel, "torso_xy": torso_xy, "cfrc_ext": cfrc_ext}
         x_velocity = (torso_xy[:, 0] - state["torso_xy"][:, 0]) / self.dt
