@@ -214,6 +214,49 @@ def test_coupled_joint_limits_gradcheck():
     assert calls and all(calls)  # every physics step had both limits pushing
 
 
+@pytest.mark.parametrize("name", ["HalfCheetah-v5", "Ant-v5"])
+def test_contact_damping_matrix_is_built_from_the_point_jacobians(name):
+    """The implicit Euler's contact damping ``C`` equals ``sum_p J_p^T (a n n^T + b (I - n n^T)) J_p``
+    with each contact point's velocity Jacobian ``J_p`` taken by autograd through the forward
+    kinematics (of the position reached by moving with qvel ``v`` for unit time, at ``v = 0``; the
+    Ant's free joint turns in 3D), ``a`` the normal damping while pushing, ``b = mu f_n / slip``;
+    C is symmetric positive semi-definite."""
+    from torchrl_diffenvs.articulated.dynamics import (_contact_points_and_forces, contact_force, forward_kinematics,
+                                                       integrate_position)
+
+    env = make_env(name, num_envs=3, dtype=torch.float64, seed=0)
+    tree, params = env.tree, env.params
+    state = standing_state(env, 3, depth=0.01, mid_range=True)
+    qpos = state["qpos"]
+    qvel = torch.randn(state["qvel"].shape, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    kin = forward_kinematics(tree, qpos)
+    _, damping = contact_force(tree, kin, qvel, params, with_damping=True)
+    c = _contact_points_and_forces(tree, kin, qvel, params)
+
+    # each force acts at the sphere's lowest point: the body point there, fixed in its body frame
+    rot0 = kin.body_rot[:, tree.contact_body]
+    lowest = tree.contact_local - (rot0.transpose(-1, -2) @ (tree.contact_radius.unsqueeze(-1) * c.normal)
+                                   .unsqueeze(-1)).squeeze(-1)
+
+    def points(q):
+        k = forward_kinematics(tree, q)
+        rot = k.body_rot[:, tree.contact_body]
+        return k.body_pos[:, tree.contact_body] + (rot @ lowest.unsqueeze(-1)).squeeze(-1)
+
+    torch.testing.assert_close(points(qpos), c.point)
+    move = lambda v: points(integrate_position(tree, qpos, v, 1.0)).sum(0)  # noqa: E731  (envs independent)
+    jac = torch.autograd.functional.jacobian(move, torch.zeros_like(qvel)).permute(2, 0, 1, 3)  # [N, P, 3, nv]
+    n = c.normal  # [P, 3]
+    nn = n.unsqueeze(-1) * n.unsqueeze(-2)
+    a = c.damping * c.touching * (c.normal_force > 0)
+    b = c.mu * c.normal_force / c.slip
+    rate = a[..., None, None] * nn + b[..., None, None] * (torch.eye(3, dtype=torch.float64) - nn)
+    expected = (jac.transpose(-1, -2) @ rate @ jac).sum(1)
+    assert (c.normal_force > 0).any() and expected.abs().max() > 1.0
+    torch.testing.assert_close(damping, expected, rtol=1e-10, atol=1e-9)
+    assert torch.linalg.eigvalsh(damping).min() > -1e-9
+
+
 def hand_soft_healthy(qpos, qvel, z_low, angle_low, angle_high, width, z_high=None, state_bound=None):
     """The surrogate by hand: a product of logistic functions of each finite bound's margin."""
     s = lambda m: 1.0 / (1.0 + torch.exp(-m / width))  # noqa: E731

@@ -78,7 +78,7 @@ def test_fluid_forces_match_mujocos_passive_force():
     """Swimmer-v5's medium: our inertia-box fluid force equals MuJoCo's ``qfrc_passive`` (the
     swimmer has no joint springs or dampers, so that is all fluid) at random states, also with
     other densities and viscosities set as params and in the compiled model."""
-    from torchrl_diffenvs.articulated.dynamics import body_jacobians, fluid_force
+    from torchrl_diffenvs.articulated.dynamics import fluid_force
 
     model, mm = load_mjcf(gymnasium_asset("swimmer.xml")), mj_model("swimmer.xml")
     assert not mm.dof_damping.any() and not mm.jnt_stiffness.any()
@@ -95,7 +95,7 @@ def test_fluid_forces_match_mujocos_passive_force():
             data.qvel[:] = rng.normal(size=mm.nv) * 2
             mujoco.mj_forward(mm, data)
             kin = forward_kinematics(tree, torch.tensor(data.qpos[None]))
-            ours = fluid_force(tree, kin, torch.tensor(data.qvel[None]), params, body_jacobians(tree, kin))
+            ours = fluid_force(tree, kin, torch.tensor(data.qvel[None]), params)
             assert np.abs(data.qfrc_passive).max() > 1e-3
             np.testing.assert_allclose(ours[0].numpy(), data.qfrc_passive, rtol=1e-10, atol=1e-10)
 

@@ -9,10 +9,12 @@ rounding error:
   a ball joint's unit quaternion about its anchor; a free joint's world position and quaternion),
   and MuJoCo's dof motion axes (a ball or free joint turns about its body's own axes);
 * mass matrix and bias forces (Coriolis, centrifugal, gravity) from spatial vectors expressed in
-  the world frame at the origin: with every body Jacobian ``J_b`` (6 x nv, angular part first),
-  ``M = sum_b J_b^T I_b J_b + diag(armature)`` and ``bias = sum_b J_b^T (I_b a_b + v_b x* I_b v_b)``
-  with ``a_b`` the velocity-product acceleration (the recursive Newton-Euler terms, as masked sums
-  over the tree instead of a Python recursion over bodies);
+  the world frame at the origin, where velocities add along the tree: with ``S_d`` the motion
+  axis of dof ``d`` and ``Ic_d`` the summed inertia of the bodies it moves, the composite-rigid-body
+  algorithm's ``M_ij = S_i . Ic_j S_j`` (dof ``i`` moving dof ``j``'s body) plus ``diag(armature)``,
+  and ``bias_d = S_d . sum_b (I_b a_b + v_b x* I_b v_b)`` over the bodies ``d`` moves, with ``a_b``
+  the velocity-product acceleration (the recursive Newton-Euler terms); every sum over the tree is
+  one masked product, not a Python recursion over bodies;
 * passive forces ``-damping qvel - stiffness (qpos - springref)``, motors ``gear * clamp(ctrl)``;
 * joint limits as MuJoCo's soft constraints (solref/solimp impedance, reference acceleration,
   regulariser from ``dof_invweight0``), solved row by row: exact when one limit is active at a
@@ -103,6 +105,8 @@ class RigidBodyTree:
     position_segments: list[tuple]  # how qvel integrates into qpos (see integrate_position)
     body_dof_mask: torch.Tensor  # [nbody, nv]: dof d moves body b
     dof_pre_mask: torch.Tensor  # [nv, nv]: dof d' moves the frame dof d is attached to (d' before d)
+    dof_support: torch.Tensor  # [nv, nv]: dof i moves the body of dof j (where M_ij = S_i . Ic_j S_j)
+    contact_dof_mask: torch.Tensor  # [npoint, nv]: dof d moves the body of contact point p
     # joint limits (rows for the lower and upper side of every limited joint)
     limit_dof: torch.Tensor  # [nlimit] long
     limit_sign: torch.Tensor  # [nlimit] +1 lower side, -1 upper side (the constraint Jacobian)
@@ -180,6 +184,7 @@ class RigidBodyTree:
             for d in dofs:
                 pre[d] = moves[model.body_parent[b]]
                 pre[d, earlier] = 1.0
+        dof_body = [b for b, dofs in groups for _ in dofs]
         axis = model.joint_axis
         skew = np.stack([np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]]) for a in axis]) \
             if njnt else np.zeros((0, 3, 3))
@@ -229,6 +234,8 @@ class RigidBodyTree:
             joint_pos=t(model.joint_pos).reshape(njnt, 3), joint_skew=t(skew), qpos0=t(model.qpos0),
             qpos_spring=t(model.qpos_spring), dof_qpos=idx(dof_qpos), dof_has_spring=t(dof_has_spring),
             position_segments=segments, body_dof_mask=t(moves), dof_pre_mask=t(pre),
+            dof_support=t(moves[dof_body].T.reshape(nv, nv)),
+            contact_dof_mask=t(moves[[p[0] for p in points]].reshape(len(points), nv)),
             limit_dof=idx(limit_dof), limit_sign=t([1.0 if s == 0 else -1.0 for _, s in rows]),
             limit_value=t([model.joint_range[j, s] for j, s in rows]),
             limit_margin=t([model.limit_margin[j] for j, _ in rows]),
@@ -287,7 +294,7 @@ def default_params(model: ArticulatedModel) -> dict[str, torch.Tensor]:
 _MINVAL = 1e-15  # MuJoCo's mjMINVAL
 
 
-def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, jac) -> torch.Tensor:
+def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params) -> torch.Tensor:
     """``[N, nv]`` generalised force of MuJoCo's inertia-box fluid model (``mj_inertiaBoxFluidModel``).
 
     Each body is a box with its mass and principal moments of inertia, moving in a still medium
@@ -308,7 +315,7 @@ def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params
     box = torch.sqrt(torch.clamp(opposite, min=_MINVAL) / safe_mass * 6.0)
     rot = kin.body_rot @ frame  # inertial frames in the world
     com = kin.body_pos + (kin.body_rot @ tree.body_com.unsqueeze(-1)).squeeze(-1)
-    vel = (jac @ qvel[:, None, :, None]).squeeze(-1)  # [N, nbody, 6]: angular, linear at the world origin
+    vel = body_velocities(tree, kin, qvel)  # [N, nbody, 6]: angular, linear at the world origin
     omega = vel[..., :3]
     local_w = (rot.transpose(-1, -2) @ omega.unsqueeze(-1)).squeeze(-1)
     local_v = (rot.transpose(-1, -2) @ (vel[..., 3:] + _cross(omega, com)).unsqueeze(-1)).squeeze(-1)
@@ -325,25 +332,27 @@ def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params
     force_w = (rot @ force.unsqueeze(-1)).squeeze(-1) * mask
     torque_w = (rot @ torque.unsqueeze(-1)).squeeze(-1) * mask
     wrench = torch.cat([torque_w + _cross(com, force_w), force_w], dim=-1)  # at the world origin
-    return _sum_transposed(jac, wrench)
+    return generalised_force(tree.body_dof_mask, kin, wrench)
 
 
-def _sum_transposed(jac: torch.Tensor, vec: torch.Tensor) -> torch.Tensor:
-    """``sum_b jac_b^T vec_b`` for ``jac [N, B, k, nv]``, ``vec [N, B, k]``: ``[N, nv]``.
-
-    One batched product over the stacked rows (``B * k`` long) instead of ``N * B`` tiny ones:
-    per-op overhead, not arithmetic, dominates these small matrices on a CPU.
-    """
-    n, b, k, nv = jac.shape
-    return (vec.reshape(n, 1, b * k) @ jac.reshape(n, b * k, nv)).squeeze(1)
+def _tree_sum(mask: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``out[:, a] = sum_b mask[a, b] x[:, b]`` for ``x [N, B, k]``: a sum along the tree (which
+    bodies a dof moves, which dofs move a body) as one product; einsum folds ``N`` into one
+    matrix product, where ``mask @ x`` would broadcast into ``N`` tiny ones (2x slower on a CPU)."""
+    return torch.einsum("ab,nbk->nak", mask, x)
 
 
-def _sum_congruent(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
-    """``sum_b left_b^T right_b`` for two ``[N, B, k, nv]``: ``[N, nv, nv]``, one batched product."""
-    n, b, k, nv = right.shape
-    if left.shape[0] == 1:  # one Jacobian for every env (dof_invweight0's, at qpos0): broadcast, no copy
-        return left.reshape(b * k, nv).transpose(0, 1) @ right.reshape(n, b * k, nv)
-    return left.reshape(n, b * k, nv).transpose(1, 2) @ right.reshape(n, b * k, nv)
+def body_velocities(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor) -> torch.Tensor:
+    """``[N, nbody, 6]`` spatial velocity of every body (angular, linear at the world origin):
+    the sum of ``S_d qvel_d`` over the dofs that move it."""
+    return _tree_sum(tree.body_dof_mask, kin.motion * qvel.unsqueeze(-1))
+
+
+def generalised_force(dof_mask: torch.Tensor, kin: Kinematics, wrench: torch.Tensor) -> torch.Tensor:
+    """``[N, nv]`` generalised force of wrenches ``[N, K, 6]`` (torque about the world origin, force)
+    on bodies or body points, with ``dof_mask [K, nv]`` saying which dofs move each: ``J^T w``, as
+    ``S_d . (sum of the wrenches on what dof d moves)``."""
+    return (kin.motion * _tree_sum(dof_mask.transpose(0, 1), wrench)).sum(-1)
 
 
 @dataclass
@@ -468,32 +477,43 @@ def _spatial_inertia(tree: RigidBodyTree, kin: Kinematics, params: Params) -> to
     return torch.cat([top, bottom], dim=-2)
 
 
-def body_jacobians(tree: RigidBodyTree, kin: Kinematics) -> torch.Tensor:
-    """``[N, nbody, 6, nv]``: the spatial velocity of every body (at the origin) per unit qvel."""
-    return tree.body_dof_mask[None, :, None, :] * kin.motion.transpose(-1, -2).unsqueeze(1)
+def _composite_mass_matrix(tree: RigidBodyTree, motion: torch.Tensor, composite: torch.Tensor) -> torch.Tensor:
+    """The composite-rigid-body algorithm's ``M_ij = S_i . (Ic_j S_j)`` ``[N, nv, nv]`` from the
+    dof motion axes ``[N or 1, nv, 6]`` and ``composite [N, nv, 6, 6]``, ``Ic_j`` the summed
+    inertia of everything dof ``j`` moves (world frame, about the origin).
+
+    The formula holds where dof ``i`` moves dof ``j``'s body; the other triangle follows by
+    symmetry, and dofs on separate branches do not couple.
+    """
+    momentum = (composite @ motion.unsqueeze(-1)).squeeze(-1)  # Ic_j S_j
+    lower = (motion @ momentum.transpose(-1, -2)) * tree.dof_support  # S_i . Ic_j S_j where i moves j
+    return lower + lower.transpose(-1, -2) * (1 - tree.dof_support)  # mirrored where j does not move i
 
 
-def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Params, jac=None):
+def _joint_space_inertia(tree: RigidBodyTree, motion: torch.Tensor, inertia: torch.Tensor) -> torch.Tensor:
+    """The mass matrix ``[N, nv, nv]`` (no armature) of the bodies' inertias ``[N, nbody, 6, 6]``."""
+    n, nbody = inertia.shape[:2]
+    composite = _tree_sum(tree.body_dof_mask.transpose(0, 1), inertia.reshape(n, nbody, 36))
+    return _composite_mass_matrix(tree, motion, composite.reshape(n, -1, 6, 6))
+
+
+def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Params):
     """Joint-space mass matrix ``[N, nv, nv]`` (armature included) and bias force ``[N, nv]``.
 
     The bias force is MuJoCo's ``qfrc_bias``: Coriolis, centrifugal and gravity terms.
     """
     inertia = _spatial_inertia(tree, kin, params)
-    jac = body_jacobians(tree, kin) if jac is None else jac
-    inertia_jac = inertia @ jac
-    mass = _sum_congruent(jac, inertia_jac)
-    mass = mass + torch.diag_embed(params["armature"])
+    mass = _joint_space_inertia(tree, kin.motion, inertia) + torch.diag_embed(params["armature"])
     # velocity-product accelerations; gravity enters as an upward acceleration of the world
-    body_vel = (jac @ qvel[:, None, :, None]).squeeze(-1)  # [N, nbody, 6]
     dof_motion = kin.motion * qvel.unsqueeze(-1)  # [N, nv, 6]
-    pre_vel = tree.dof_pre_mask @ dof_motion
+    body_vel = _tree_sum(tree.body_dof_mask, dof_motion)  # [N, nbody, 6]
+    pre_vel = _tree_sum(tree.dof_pre_mask, dof_motion)
     motion_dot = cross_motion(pre_vel, dof_motion)  # [N, nv, 6] d(S_d)/dt qvel_d
     gravity = torch.cat([torch.zeros_like(params["gravity"]), -params["gravity"]], dim=-1)
-    body_acc = gravity.unsqueeze(1) + tree.body_dof_mask @ motion_dot
+    body_acc = gravity.unsqueeze(1) + _tree_sum(tree.body_dof_mask, motion_dot)
     momentum = (inertia @ body_vel.unsqueeze(-1)).squeeze(-1)
     force = (inertia @ body_acc.unsqueeze(-1)).squeeze(-1) + cross_force(body_vel, momentum)
-    bias = _sum_transposed(jac, force)
-    return mass, bias
+    return mass, generalised_force(tree.body_dof_mask, kin, force)
 
 
 def actuator_force(tree: RigidBodyTree, ctrl: torch.Tensor, nv: int) -> torch.Tensor:
@@ -514,14 +534,14 @@ class _ContactForces(NamedTuple):
     slip: torch.Tensor  # [N, P]
 
 
-def _contact_points_and_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params, point_jac) -> _ContactForces:
+def _contact_points_and_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params) -> _ContactForces:
     """The smooth contact model (see :func:`contact_force`) at every contact point."""
     rot = kin.body_rot[:, tree.contact_body]  # [N, P, 3, 3]
     centre = kin.body_pos[:, tree.contact_body] + (rot @ tree.contact_local.unsqueeze(-1)).squeeze(-1)
     normal = tree.contact_plane_normal
     dist = ((centre - tree.contact_plane_point) * normal).sum(-1) - tree.contact_radius  # [N, P]
     point = centre - tree.contact_radius.unsqueeze(-1) * normal
-    body_vel = (point_jac @ qvel[:, None, :, None]).squeeze(-1)
+    body_vel = body_velocities(tree, kin, qvel)[:, tree.contact_body]
     vel = body_vel[..., 3:] + _cross(body_vel[..., :3], point)  # velocity of the body point at the contact
     normal_vel = (vel * normal).sum(-1)
     tangent_vel = vel - normal_vel.unsqueeze(-1) * normal
@@ -544,12 +564,12 @@ def body_contact_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Para
     out = qvel.new_zeros(qvel.shape[0], tree.nbody, 6)
     if tree.contact_body.numel() == 0:
         return out
-    c = _contact_points_and_forces(tree, kin, qvel, params, body_jacobians(tree, kin)[:, tree.contact_body])
+    c = _contact_points_and_forces(tree, kin, qvel, params)
     wrench = torch.cat([_cross(c.point - about.unsqueeze(1), c.force), c.force], dim=-1)
     return out.index_add(1, tree.contact_body, wrench)
 
 
-def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, jac, with_damping=False):
+def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, with_damping=False):
     """``[N, nv]`` generalised force of the smooth ground contacts.
 
     Each contact point (a capsule end, a sphere, a box corner) with signed distance ``d`` to a
@@ -566,25 +586,40 @@ def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, para
     if tree.contact_body.numel() == 0:
         zero = qvel.new_zeros(qvel.shape)
         return (zero, qvel.new_zeros(*qvel.shape, qvel.shape[-1])) if with_damping else zero
-    point_jac = jac[:, tree.contact_body]  # [N, P, 6, nv]
-    c = _contact_points_and_forces(tree, kin, qvel, params, point_jac)
+    c = _contact_points_and_forces(tree, kin, qvel, params)
     point, force, normal, damping, touching = c.point, c.force, c.normal, c.damping, c.touching
     normal_force, mu, slip = c.normal_force, c.mu, c.slip
     spatial = torch.cat([_cross(point, force), force], dim=-1)  # wrench about the world origin
-    generalised = _sum_transposed(point_jac, spatial)
+    generalised = generalised_force(tree.contact_dof_mask, kin, spatial)
     if not with_damping:
         return generalised
-    # linear velocity Jacobian of each contact point: v = v_O + w x p = v_O - p x w
-    lin_jac = point_jac[..., 3:, :] - _skew(point) @ point_jac[..., :3, :]  # [N, P, 3, nv]
     # each point damps its normal velocity with a = c * touching (while pushing) and its tangential
     # velocity with b = mu f_n / slip: J^T (a n n^T + b (I - n n^T)) J = b J^T J + (a - b) u u^T, u = J^T n
     pushing = (normal_force > 0).to(qvel.dtype)
     normal_rate = damping * touching * pushing
-    tangent_rate = mu * normal_force / slip
-    u = (lin_jac * normal.unsqueeze(-1)).sum(-2)  # [N, P, nv]
-    damping_matrix = (_sum_congruent(lin_jac * tangent_rate[..., None, None], lin_jac)
-                      + (u * (normal_rate - tangent_rate).unsqueeze(-1)).transpose(1, 2) @ u)
+    tangent_rate = mu * normal_force / slip  # [N, P]
+    damping_matrix = _point_mass_matrix(tree, kin, point, tangent_rate)
+    unit_force = torch.cat([_cross(point, normal.expand_as(point)), normal.expand_as(point)], dim=-1)
+    u = (unit_force @ kin.motion.transpose(1, 2)) * tree.contact_dof_mask  # [N, P, nv]: J_p^T n
+    damping_matrix = damping_matrix + (u * (normal_rate - tangent_rate).unsqueeze(-1)).transpose(1, 2) @ u
     return generalised, damping_matrix
+
+
+def _point_mass_matrix(tree: RigidBodyTree, kin: Kinematics, point: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``sum_p weight_p J_p^T J_p`` ``[N, nv, nv]``, ``J_p`` the linear velocity Jacobian of contact
+    point ``p`` (``point [N, P, 3]``, ``weight [N, P]``): the mass matrix of point masses ``weight_p``
+    at the points, whose summed spatial inertias only need the sums of ``w``, ``w p`` and ``w p p^T``
+    (rotational part ``|p|^2 I - p p^T``, coupling ``skew(p)``, translational ``I``)."""
+    w = weight.unsqueeze(-1)
+    moments = torch.cat([w, w * point, (w.unsqueeze(-1) * point.unsqueeze(-1) * point.unsqueeze(-2)).flatten(-2)], -1)
+    summed = _tree_sum(tree.contact_dof_mask.transpose(0, 1), moments)  # [N, nv, 13] over the points each dof moves
+    mass, first, second = summed[..., :1, None], summed[..., 1:4], summed[..., 4:].unflatten(-1, (3, 3))
+    eye = torch.eye(3, dtype=point.dtype, device=point.device)
+    trace = second.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+    coupling = _skew(first)
+    composite = torch.cat([torch.cat([trace * eye - second, coupling], dim=-1),
+                           torch.cat([-coupling, mass * eye], dim=-1)], dim=-2)
+    return _composite_mass_matrix(tree, kin.motion, composite)
 
 
 def _impedance(solimp: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
@@ -608,9 +643,8 @@ def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
     masses gets other values; here it follows the per-env params, as a model compiled with them.
     """
     kin0 = tree.kin0
-    jac0 = body_jacobians(tree, kin0)
     inertia = _spatial_inertia(tree, kin0, params)
-    mass = _sum_congruent(jac0, inertia @ jac0) + torch.diag_embed(params["armature"])
+    mass = _joint_space_inertia(tree, kin0.motion, inertia) + torch.diag_embed(params["armature"])
     weight = torch.linalg.inv(mass).diagonal(dim1=-2, dim2=-1)
     # MuJoCo averages over a ball joint's dofs and over each half (translation, rotation) of a free joint's
     for kind, da in zip(tree.joint_type, tree.joint_dofadr):
@@ -700,7 +734,7 @@ def _pivot(matrix, offset, allowed, early_exit: bool) -> torch.Tensor:
     return torch.where(chosen, solve(chosen).clamp(min=0.0), torch.zeros_like(offset))
 
 
-def _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias, with_damping=False):
+def _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=False):
     """Motors + passive joint forces + ground contact - bias: every force but the joint limits.
 
     ``with_damping``: also the velocity damping of these forces that an implicit integrator
@@ -710,11 +744,11 @@ def _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias, with_damping=F
     stretch = (qpos - tree.qpos_spring)[:, tree.dof_qpos] * tree.dof_has_spring
     passive = -params["damping"] * qvel - params["stiffness"] * stretch
     if tree.has_fluid:
-        passive = passive + fluid_force(tree, kin, qvel, params, jac)
+        passive = passive + fluid_force(tree, kin, qvel, params)
     force = actuator_force(tree, ctrl, tree.nv) + passive - bias
     damping = torch.diag_embed(params["damping"]) if with_damping else None
     if tree.contact_body.numel():
-        contact = contact_force(tree, kin, qvel, params, jac, with_damping=with_damping)
+        contact = contact_force(tree, kin, qvel, params, with_damping=with_damping)
         if with_damping:
             contact, contact_damping = contact
             damping = damping + contact_damping
@@ -732,10 +766,9 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     ``invweight0``: :func:`dof_invweight0` of ``params`` when the caller has it (computed if not).
     """
     kin = forward_kinematics(tree, qpos)
-    jac = body_jacobians(tree, kin)
-    mass, bias = mass_matrix_and_bias(tree, kin, qvel, params, jac)
+    mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
     implicit = implicit_damping_dt is not None
-    force = _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias, with_damping=implicit)
+    force = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=implicit)
     if implicit:
         force, damping = force
     if tree.limit_dof.numel():
@@ -795,9 +828,8 @@ def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integ
 def constraint_force(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params) -> torch.Tensor:
     """MuJoCo's ``qfrc_constraint [N, nv]`` at a state: the joint-limit forces (contact is a smooth force here)."""
     kin = forward_kinematics(tree, qpos)
-    jac = body_jacobians(tree, kin)
-    mass, bias = mass_matrix_and_bias(tree, kin, qvel, params, jac)
-    force = _smooth_force(tree, kin, jac, qpos, qvel, ctrl, params, bias)
+    mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
+    force = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias)
     mass_inv = torch.linalg.inv(mass)
     smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
     return limit_force(tree, qpos, qvel, smooth_acc, mass_inv, dof_invweight0(tree, params))
