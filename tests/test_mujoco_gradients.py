@@ -306,6 +306,35 @@ def test_healthy_gradient_width_keeps_rewards_and_gives_the_surrogate_gradient(n
     torch.testing.assert_close(smooth.soft_healthy(next_state["qpos"], next_state["qvel"], params), hand)
 
 
+def test_ant_healthy_gradient_width_keeps_rewards_and_gives_the_surrogate_gradient():
+    """The Ant's bonus (torso height in [0.2, 1]): same rewards; the gradient gains the surrogate's."""
+    width, scale = 0.05, 10.0
+    exact = make_env("Ant-v5", num_envs=4, dtype=torch.float64, seed=0)
+    smooth = make_env("Ant-v5", num_envs=4, dtype=torch.float64, seed=0, healthy_gradient_width=width,
+                      healthy_gradient_scale=scale)
+    params = exact.params
+    state = exact.initial_state(params, 4)
+    qpos = state["qpos"].clone()
+    qpos[:, 2] = torch.tensor([0.22, 0.5, 0.98, 1.01], dtype=torch.float64)  # near each bound, and between
+    qvel = torch.zeros_like(state["qvel"])
+    action = 0.3 * torch.ones(4, exact.action_dim, dtype=torch.float64)
+
+    def reward_of(env, q):
+        return env.transition({**state, "qpos": q, "qvel": qvel}, action, params)[1]
+
+    q_exact, q_smooth = qpos.clone().requires_grad_(), qpos.clone().requires_grad_()
+    r_exact, r_smooth = reward_of(exact, q_exact), reward_of(smooth, q_smooth)
+    torch.testing.assert_close(r_smooth, r_exact, rtol=0, atol=0)
+    g_exact, = torch.autograd.grad(r_exact.sum(), q_exact)
+    g_smooth, = torch.autograd.grad(r_smooth.sum(), q_smooth)
+    next_qpos = exact.transition({**state, "qpos": q_exact, "qvel": qvel}, action, params)[0]["qpos"]
+    z = next_qpos[:, 2]
+    hand = torch.sigmoid((z - 0.2) / width) * torch.sigmoid((1.0 - z) / width)
+    g_hand, = torch.autograd.grad(scale * hand.sum(), q_exact)
+    torch.testing.assert_close(g_smooth - g_exact, g_hand, rtol=1e-7, atol=1e-10)
+    assert (g_hand[[0, 2, 3]].abs().amax(-1) > 0.1).all()  # the envs near a bound do feel it
+
+
 @pytest.mark.parametrize("option", ["healthy_gradient_width", "healthy_gradient_scale"])
 @pytest.mark.parametrize("value", [-0.1, float("nan"), float("inf"), True, "0.1"])
 def test_healthy_gradient_options_reject_bad_values(option, value):

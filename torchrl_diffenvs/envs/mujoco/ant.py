@@ -4,10 +4,11 @@ import torch
 from ...articulated.dynamics import body_contact_forces, forward_kinematics
 from ..registry import register_env
 from .base import MuJoCoModelEnv
+from .healthy import HealthySurrogate
 
 
 @register_env(drawer="torchrl_diffenvs.rendering.mujoco:ANT")
-class AntV5Env(MuJoCoModelEnv):
+class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     """Walk forward (+x) on four legs (8 hinge motors, ``ctrl`` in ``[-1, 1]``; the torso on a free joint).
 
     As Gymnasium's v5: reward ``forward_reward_weight * vx + healthy_reward * healthy
@@ -25,6 +26,9 @@ class AntV5Env(MuJoCoModelEnv):
     contact-free dynamics equal MuJoCo's, see the README). As Gymnasium does, the torso position
     and ``cfrc_ext`` are read where ``mj_step`` leaves them (the last RK4 stage): they travel as
     ``("state", "torso_xy")`` and ``("state", "cfrc_ext")``; ``cfrc_ext`` is 0 after a reset.
+
+    ``healthy_gradient_width`` / ``healthy_gradient_scale``: a surrogate gradient for the healthy
+    bonus at the torso height's bounds (:class:`~.healthy.HealthySurrogate`).
     """
 
     name = "Ant-v5"
@@ -38,11 +42,15 @@ class AntV5Env(MuJoCoModelEnv):
         "terminate_when_unhealthy": 1.0, "healthy_z_low": 0.2, "healthy_z_high": 1.0,
         "contact_force_low": -1.0, "contact_force_high": 1.0, "reset_noise_scale": 0.1,
     }
+    healthy_ranges = {"z": "z"}
+    height_coordinate = 2  # the free joint's z
 
     def __init__(self, num_envs: int = 1, *, exclude_current_positions_from_observation: bool = True,
-                 include_cfrc_ext_in_observation: bool = True, **kwargs):
+                 include_cfrc_ext_in_observation: bool = True, healthy_gradient_width: float = 0.0,
+                 healthy_gradient_scale: float = 1.0, **kwargs):
         self.exclude_current_positions = bool(exclude_current_positions_from_observation)
         self.include_cfrc_ext = bool(include_cfrc_ext_in_observation)
+        self._set_healthy_gradient(healthy_gradient_width, healthy_gradient_scale)
         super().__init__(num_envs, **kwargs)
 
     def contact_wrenches(self, qpos, qvel, params):
@@ -75,7 +83,8 @@ class AntV5Env(MuJoCoModelEnv):
         finite = torch.isfinite(torch.cat([result.qpos, result.qvel], dim=-1)).all(-1)
         healthy = finite & (params["healthy_z_low"] <= z) & (z <= params["healthy_z_high"])
         contact_cost = params["contact_cost_weight"] * (self.contact_forces(next_state, params) ** 2).sum((-1, -2))
-        reward = (params["forward_reward_weight"] * x_velocity + params["healthy_reward"] * healthy.to(z.dtype)
+        bonus = self.healthy_bonus(healthy, result.qpos, result.qvel, params)
+        reward = (params["forward_reward_weight"] * x_velocity + bonus
                   - params["ctrl_cost_weight"] * (action**2).sum(-1) - contact_cost)
         terminated = ~healthy & (params["terminate_when_unhealthy"] > 0)
         return next_state, reward, terminated
