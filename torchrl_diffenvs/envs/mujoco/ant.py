@@ -43,6 +43,7 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
         "contact_force_low": -1.0, "contact_force_high": 1.0, "reset_noise_scale": 0.1,
     }
     healthy_ranges = {"z": "z"}
+    healthy_closed = True
     height_coordinate = 2  # the free joint's z
 
     def __init__(self, num_envs: int = 1, *, exclude_current_positions_from_observation: bool = True,
@@ -79,9 +80,8 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
         cfrc_ext = self.contact_wrenches(result.eval_qpos, result.eval_qvel, params)
         next_state = {"qpos": result.qpos, "qvel": result.qvel, "torso_xy": torso_xy, "cfrc_ext": cfrc_ext}
         x_velocity = (torso_xy[:, 0] - state["torso_xy"][:, 0]) / self.dt
-        z = result.qpos[:, 2]
         finite = torch.isfinite(torch.cat([result.qpos, result.qvel], dim=-1)).all(-1)
-        healthy = finite & (params["healthy_z_low"] <= z) & (z <= params["healthy_z_high"])
+        healthy = finite & self.healthy(result.qpos, result.qvel, params)
         contact_cost = params["contact_cost_weight"] * (self.contact_forces(next_state, params) ** 2).sum((-1, -2))
         bonus = self.healthy_bonus(healthy, result.qpos, result.qvel, params)
         reward = (params["forward_reward_weight"] * x_velocity + bonus

@@ -1,5 +1,5 @@
-"""The healthy bonus's surrogate gradient, shared by the tasks that end when the robot falls
-(Hopper-v5, Walker2d-v5, Ant-v5)."""
+"""The healthy check and its bonus's surrogate gradient, shared by the tasks that end when the
+robot falls (Hopper-v5, Walker2d-v5, Ant-v5)."""
 import torch
 import torch.nn.functional as F
 
@@ -18,10 +18,12 @@ class HealthySurrogate:
 
     A task names its bounds in ``healthy_ranges`` (``name -> what``: ``"z"`` the torso height
     ``qpos[height_coordinate]``, ``"angle"`` ``qpos[2]``, ``"state"`` ``[qpos, qvel][2:]``), read
-    from the params ``healthy_<name>_low`` / ``healthy_<name>_high``.
+    from the params ``healthy_<name>_low`` / ``healthy_<name>_high``; Gymnasium checks them as open
+    intervals, the Ant's as closed ones (``healthy_closed``).
     """
 
     healthy_ranges: dict = {}
+    healthy_closed = False
     height_coordinate = 1  # the qpos entry of the torso height: a planar runner's rootz, the Ant's free z
 
     def _set_healthy_gradient(self, width, scale) -> None:
@@ -47,6 +49,14 @@ class HealthySurrogate:
                 yield qpos[:, self.height_coordinate:self.height_coordinate + 1], low, high
             else:
                 yield qpos[:, 2:3], low, high
+
+    def healthy(self, qpos, qvel, params):
+        """``[N]`` bool: Gymnasium's checks of the task's healthy ranges."""
+        ok = torch.ones_like(qpos[:, 0], dtype=torch.bool)
+        for value, low, high in self._healthy_bounds(qpos, qvel, params):
+            inside = (low <= value) & (value <= high) if self.healthy_closed else (low < value) & (value < high)
+            ok = ok & inside.all(-1)
+        return ok
 
     def soft_healthy(self, qpos, qvel, params):
         """``[N]`` in ``(0, 1)``: the smooth surrogate of the healthy check (``healthy_gradient_width``).

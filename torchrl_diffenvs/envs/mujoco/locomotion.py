@@ -43,13 +43,6 @@ class PlanarLocomotionEnv(HealthySurrogate, MuJoCoModelEnv):
             qvel = (2 * self.uniform(0.0, 1.0, n, self.model.nv) - 1) * noise
         return {"qpos": qpos, "qvel": qvel}
 
-    def healthy(self, qpos, qvel, params):
-        """``[N]`` bool: Gymnasium's open-interval checks of the task's healthy ranges."""
-        ok = torch.ones_like(qpos[:, 0], dtype=torch.bool)
-        for value, low, high in self._healthy_bounds(qpos, qvel, params):
-            ok = ok & ((low < value) & (value < high)).all(-1)
-        return ok
-
     def transition(self, state, action, params):
         result = self.simulate(state, action, params)
         x_velocity = (result.qpos[:, 0] - state["qpos"][:, 0]) / self.dt
