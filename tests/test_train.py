@@ -269,11 +269,28 @@ def read_wandb_history(run_file: Path) -> dict[str, list]:
     with a 7-byte header: crc32 (4), length (2), type (1: full, 2: first, 3: middle, 4: last)),
     each record one ``wandb_internal_pb2.Record`` protobuf.
     """
+    from google.protobuf.message import DecodeError
+
+    # W&B's service process may still be writing the file's tail after wandb.finish() returns (seen
+    # once in CI under load: a half-written record): read again until the run's exit record is in
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            history, complete = _parse_wandb_log(run_file.read_bytes())
+        except DecodeError:
+            history, complete = None, False
+        if complete or time.monotonic() > deadline:
+            assert complete, f"{run_file} has no complete exit record after 30 s"
+            return history
+        time.sleep(0.5)
+
+
+def _parse_wandb_log(data: bytes) -> tuple[dict[str, list], bool]:
+    """``(history, whether the exit record was read)`` of a W&B run file's bytes."""
     from wandb.proto import wandb_internal_pb2
 
-    data = run_file.read_bytes()
     assert data[:4] == b":W&B"
-    block, pos, pending, history = 32768, 7, b"", {}
+    block, pos, pending, history, complete = 32768, 7, b"", {}, False
     while pos + 7 <= len(data):
         if block - pos % block < 7:  # the block's tail is padding
             pos += block - pos % block
@@ -285,11 +302,13 @@ def read_wandb_history(run_file: Path) -> dict[str, list]:
             continue
         record = wandb_internal_pb2.Record()
         record.ParseFromString(pending + chunk if kind == 4 else chunk)
-        if record.WhichOneof("record_type") == "history":
+        record_type = record.WhichOneof("record_type")
+        complete = complete or record_type == "exit"
+        if record_type == "history":
             for item in record.history.item:
                 key = item.key or "/".join(item.nested_key)
                 history.setdefault(key, []).append(json.loads(item.value_json))
-    return history
+    return history, complete
 
 
 def test_offline_wandb_run_writes_its_run_directory_with_the_metrics(tmp_path):
