@@ -51,6 +51,17 @@ Params = Mapping[str, torch.Tensor]
 _MINVAL = 1e-15  # MuJoCo's mjMINVAL
 
 
+# The _ex variants do not raise on a singular matrix (they return inf/nan for that env only): one
+# diverged env of a batch must not take the others, or the run, down with it; the env base class
+# flags and resets it.
+def _solve(matrix: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+    return torch.linalg.solve_ex(matrix, rhs)[0]
+
+
+def _inverse(matrix: torch.Tensor) -> torch.Tensor:
+    return torch.linalg.inv_ex(matrix)[0]
+
+
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     # torch.linalg.cross dispatches per call; this is cheaper for the many tiny [.., 3] crosses here
     a0, a1, a2 = a.unbind(-1)
@@ -291,9 +302,6 @@ def default_params(model: ArticulatedModel) -> dict[str, torch.Tensor]:
     return params
 
 
-_MINVAL = 1e-15  # MuJoCo's mjMINVAL
-
-
 def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params) -> torch.Tensor:
     """``[N, nv]`` generalised force of MuJoCo's inertia-box fluid model (``mj_inertiaBoxFluidModel``).
 
@@ -314,8 +322,8 @@ def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params
     opposite = moments.sum(-1, keepdim=True) - 2 * moments  # I_j + I_k - I_i
     box = torch.sqrt(torch.clamp(opposite, min=_MINVAL) / safe_mass * 6.0)
     rot = kin.body_rot @ frame  # inertial frames in the world
-    com = kin.body_pos + (kin.body_rot @ tree.body_com.unsqueeze(-1)).squeeze(-1)
-    vel = body_velocities(tree, kin, qvel)  # [N, nbody, 6]: angular, linear at the world origin
+    com = kin.body_pos + (kin.body_rot @ tree.body_com.unsqueeze(-1)).squeeze(-1) - kin.origin.unsqueeze(1)
+    vel = body_velocities(tree, kin, qvel)  # [N, nbody, 6]: angular, linear at kin.origin
     omega = vel[..., :3]
     local_w = (rot.transpose(-1, -2) @ omega.unsqueeze(-1)).squeeze(-1)
     local_v = (rot.transpose(-1, -2) @ (vel[..., 3:] + _cross(omega, com)).unsqueeze(-1)).squeeze(-1)
@@ -331,7 +339,7 @@ def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params
     mask = has_mass.to(force.dtype).unsqueeze(-1)
     force_w = (rot @ force.unsqueeze(-1)).squeeze(-1) * mask
     torque_w = (rot @ torque.unsqueeze(-1)).squeeze(-1) * mask
-    wrench = torch.cat([torque_w + _cross(com, force_w), force_w], dim=-1)  # at the world origin
+    wrench = torch.cat([torque_w + _cross(com, force_w), force_w], dim=-1)  # about kin.origin
     return generalised_force(tree.body_dof_mask, kin, wrench)
 
 
@@ -343,13 +351,13 @@ def _tree_sum(mask: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 
 def body_velocities(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor) -> torch.Tensor:
-    """``[N, nbody, 6]`` spatial velocity of every body (angular, linear at the world origin):
+    """``[N, nbody, 6]`` spatial velocity of every body (angular, linear at ``kin.origin``):
     the sum of ``S_d qvel_d`` over the dofs that move it."""
     return _tree_sum(tree.body_dof_mask, kin.motion * qvel.unsqueeze(-1))
 
 
 def generalised_force(dof_mask: torch.Tensor, kin: Kinematics, wrench: torch.Tensor) -> torch.Tensor:
-    """``[N, nv]`` generalised force of wrenches ``[N, K, 6]`` (torque about the world origin, force)
+    """``[N, nv]`` generalised force of wrenches ``[N, K, 6]`` (torque about ``kin.origin``, force)
     on bodies or body points, with ``dof_mask [K, nv]`` saying which dofs move each: ``J^T w``, as
     ``S_d . (sum of the wrenches on what dof d moves)``."""
     return (kin.motion * _tree_sum(dof_mask.transpose(0, 1), wrench)).sum(-1)
@@ -357,11 +365,17 @@ def generalised_force(dof_mask: torch.Tensor, kin: Kinematics, wrench: torch.Ten
 
 @dataclass
 class Kinematics:
-    """World-frame poses for one batch of configurations."""
+    """World-frame poses for one batch of configurations.
+
+    Spatial vectors (motion subspaces, body velocities, inertias, wrenches) are expressed in world
+    axes about ``origin``, a reference point that moves with the robot (its first body's
+    position), so that their lever arms stay short wherever the robot is.
+    """
 
     body_rot: torch.Tensor  # [N, nbody, 3, 3]
-    body_pos: torch.Tensor  # [N, nbody, 3] body frame origins
-    motion: torch.Tensor  # [N, nv, 6] each dof's motion subspace (angular, linear at the world origin)
+    body_pos: torch.Tensor  # [N, nbody, 3] body frame origins (world)
+    motion: torch.Tensor  # [N, nv, 6] each dof's motion subspace (angular, linear at ``origin``)
+    origin: torch.Tensor  # [N, 3] the reference point of the spatial vectors (world)
 
 
 def quaternion_to_matrix(quat: torch.Tensor) -> torch.Tensor:
@@ -424,6 +438,7 @@ def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
     eye = torch.eye(3, dtype=qpos.dtype, device=qpos.device).expand(n, 3, 3)
     rots, poss = [eye], [torch.zeros(n, 3, dtype=qpos.dtype, device=qpos.device)]
     motion = [None] * tree.nv
+    turning = []  # (dof, world axis, world anchor) of the rotational dofs, placed once the origin is known
     q = qpos - tree.qpos0
     sin, cos = torch.sin(q), torch.cos(q)
     for b in range(1, tree.nbody):
@@ -439,7 +454,7 @@ def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
                 local = eye + sin[:, qa, None, None] * k + (1 - cos[:, qa, None, None]) * (k @ k)  # Rodrigues
                 rot = rot @ local
                 pos = anchor - rot @ tree.joint_pos[j]
-                motion[da] = torch.cat([axis, _cross(anchor, axis)], dim=-1)
+                turning.append((da, axis, anchor))
             elif kind == "slide":
                 axis = rot @ tree.joint_axis[j]
                 pos = pos + axis * q[:, qa, None]
@@ -456,18 +471,24 @@ def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
                     rot = rot @ quaternion_to_matrix(qpos[:, qa:qa + 4])
                     pos = anchor - rot @ tree.joint_pos[j]
                 for i in range(3):
-                    axis = rot[:, :, i]
-                    motion[turn + i] = torch.cat([axis, _cross(anchor, axis)], dim=-1)
+                    turning.append((turn + i, rot[:, :, i], anchor))
         rots.append(rot)
         poss.append(pos)
+    # The spatial quantities are taken about the first body's position, not the world origin: a
+    # runner 100 m down the track would otherwise carry lever arms of 100 m into every inertia
+    # (m |c|^2 ~ 1e5) and contact moment, and float32 cancellation would leave the mass matrix
+    # indefinite. Detached: the dynamics do not depend on the choice of reference point.
+    origin = (poss[1] if tree.nbody > 1 else poss[0]).detach()
+    for da, axis, anchor in turning:
+        motion[da] = torch.cat([axis, _cross(anchor - origin, axis)], dim=-1)
     motion_t = torch.stack(motion, dim=1) if tree.nv else qpos.new_zeros(n, 0, 6)
-    return Kinematics(torch.stack(rots, dim=1), torch.stack(poss, dim=1), motion_t)
+    return Kinematics(torch.stack(rots, dim=1), torch.stack(poss, dim=1), motion_t, origin)
 
 
 def _spatial_inertia(tree: RigidBodyTree, kin: Kinematics, params: Params) -> torch.Tensor:
-    """``[N, nbody, 6, 6]`` body inertias in the world frame about the origin."""
+    """``[N, nbody, 6, 6]`` body inertias in world axes about ``kin.origin``."""
     rot, mass = kin.body_rot, params["body_mass"]
-    com = kin.body_pos + (rot @ tree.body_com.unsqueeze(-1)).squeeze(-1)
+    com = kin.body_pos + (rot @ tree.body_com.unsqueeze(-1)).squeeze(-1) - kin.origin.unsqueeze(1)
     inertia = rot @ params["body_inertia"] @ rot.transpose(-1, -2)
     c = _skew(com)
     m = mass[..., None, None]
@@ -480,7 +501,7 @@ def _spatial_inertia(tree: RigidBodyTree, kin: Kinematics, params: Params) -> to
 def _composite_mass_matrix(tree: RigidBodyTree, motion: torch.Tensor, composite: torch.Tensor) -> torch.Tensor:
     """The composite-rigid-body algorithm's ``M_ij = S_i . (Ic_j S_j)`` ``[N, nv, nv]`` from the
     dof motion axes ``[N or 1, nv, 6]`` and ``composite [N, nv, 6, 6]``, ``Ic_j`` the summed
-    inertia of everything dof ``j`` moves (world frame, about the origin).
+    inertia of everything dof ``j`` moves (world axes, about ``kin.origin``).
 
     The formula holds where dof ``i`` moves dof ``j``'s body; the other triangle follows by
     symmetry, and dofs on separate branches do not couple.
@@ -542,7 +563,8 @@ def _contact_points_and_forces(tree: RigidBodyTree, kin: Kinematics, qvel, param
     dist = ((centre - tree.contact_plane_point) * normal).sum(-1) - tree.contact_radius  # [N, P]
     point = centre - tree.contact_radius.unsqueeze(-1) * normal
     body_vel = body_velocities(tree, kin, qvel)[:, tree.contact_body]
-    vel = body_vel[..., 3:] + _cross(body_vel[..., :3], point)  # velocity of the body point at the contact
+    lever = point - kin.origin.unsqueeze(1)
+    vel = body_vel[..., 3:] + _cross(body_vel[..., :3], lever)  # velocity of the body point at the contact
     normal_vel = (vel * normal).sum(-1)
     tangent_vel = vel - normal_vel.unsqueeze(-1) * normal
     width = params["contact_width"].unsqueeze(-1)
@@ -589,7 +611,8 @@ def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, para
     c = _contact_points_and_forces(tree, kin, qvel, params)
     point, force, normal, damping, touching = c.point, c.force, c.normal, c.damping, c.touching
     normal_force, mu, slip = c.normal_force, c.mu, c.slip
-    spatial = torch.cat([_cross(point, force), force], dim=-1)  # wrench about the world origin
+    lever = point - kin.origin.unsqueeze(1)
+    spatial = torch.cat([_cross(lever, force), force], dim=-1)  # wrench about kin.origin
     generalised = generalised_force(tree.contact_dof_mask, kin, spatial)
     if not with_damping:
         return generalised
@@ -598,8 +621,8 @@ def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, para
     pushing = (normal_force > 0).to(qvel.dtype)
     normal_rate = damping * touching * pushing
     tangent_rate = mu * normal_force / slip  # [N, P]
-    damping_matrix = _point_mass_matrix(tree, kin, point, tangent_rate)
-    unit_force = torch.cat([_cross(point, normal.expand_as(point)), normal.expand_as(point)], dim=-1)
+    damping_matrix = _point_mass_matrix(tree, kin, lever, tangent_rate)
+    unit_force = torch.cat([_cross(lever, normal.expand_as(point)), normal.expand_as(point)], dim=-1)
     u = (unit_force @ kin.motion.transpose(1, 2)) * tree.contact_dof_mask  # [N, P, nv]: J_p^T n
     damping_matrix = damping_matrix + (u * (normal_rate - tangent_rate).unsqueeze(-1)).transpose(1, 2) @ u
     return generalised, damping_matrix
@@ -607,7 +630,7 @@ def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, para
 
 def _point_mass_matrix(tree: RigidBodyTree, kin: Kinematics, point: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     """``sum_p weight_p J_p^T J_p`` ``[N, nv, nv]``, ``J_p`` the linear velocity Jacobian of contact
-    point ``p`` (``point [N, P, 3]``, ``weight [N, P]``): the mass matrix of point masses ``weight_p``
+    point ``p`` (``point [N, P, 3]`` relative to ``kin.origin``, ``weight [N, P]``): the mass matrix of point masses ``weight_p``
     at the points, whose summed spatial inertias only need the sums of ``w``, ``w p`` and ``w p p^T``
     (rotational part ``|p|^2 I - p p^T``, coupling ``skew(p)``, translational ``I``)."""
     w = weight.unsqueeze(-1)
@@ -645,7 +668,7 @@ def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
     kin0 = tree.kin0
     inertia = _spatial_inertia(tree, kin0, params)
     mass = _joint_space_inertia(tree, kin0.motion, inertia) + torch.diag_embed(params["armature"])
-    weight = torch.linalg.inv(mass).diagonal(dim1=-2, dim2=-1)
+    weight = _inverse(mass).diagonal(dim1=-2, dim2=-1)
     # MuJoCo averages over a ball joint's dofs and over each half (translation, rotation) of a free joint's
     for kind, da in zip(tree.joint_type, tree.joint_dofadr):
         for first in {"ball": (da,), "free": (da, da + 3)}.get(kind, ()):
@@ -720,7 +743,7 @@ def _pivot(matrix, offset, allowed, early_exit: bool) -> torch.Tensor:
     def solve(chosen):
         both = chosen.unsqueeze(-1) & chosen.unsqueeze(-2)
         reduced = torch.where(both, matrix, eye)  # the chosen block, identity elsewhere
-        return torch.linalg.solve(reduced, torch.where(chosen, -offset, torch.zeros_like(offset)))
+        return _solve(reduced, torch.where(chosen, -offset, torch.zeros_like(offset)))
 
     chosen = allowed & (offset < 0)  # the rows that push on their own
     for _ in range(2 * rows):
@@ -772,13 +795,13 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     if implicit:
         force, damping = force
     if tree.limit_dof.numel():
-        mass_inv = torch.linalg.inv(mass)
+        mass_inv = _inverse(mass)
         smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
         invweight0 = dof_invweight0(tree, params) if invweight0 is None else invweight0
         force = force + limit_force(tree, qpos, qvel, smooth_acc, mass_inv, invweight0)
     if implicit:
         mass = mass + implicit_damping_dt * damping
-    return torch.linalg.solve(mass, force)
+    return _solve(mass, force)
 
 
 class StepResult(NamedTuple):
@@ -830,7 +853,7 @@ def constraint_force(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params) -> t
     kin = forward_kinematics(tree, qpos)
     mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
     force = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias)
-    mass_inv = torch.linalg.inv(mass)
+    mass_inv = _inverse(mass)
     smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
     return limit_force(tree, qpos, qvel, smooth_acc, mass_inv, dof_invweight0(tree, params))
 
