@@ -197,7 +197,7 @@ def test_coupled_joint_limits_gradcheck():
     fn, _ = step_fn(env, ["qpos", "qvel"], param_key="body_mass")
     action = torch.tensor([[0.5, 0.8], [-0.6, -0.9]], dtype=torch.float64)
     calls = []
-    import torchrl_diffenvs.articulated.dynamics as dynamics
+    import torchrl_diffenvs.articulated.limits as dynamics  # the module whose limit_force calls it
 
     def spy(offset, allowed, diagonal, matrix_of):
         force = _complementary_forces(offset, allowed, diagonal, matrix_of)

@@ -1,0 +1,59 @@
+"""MuJoCo's integrators over :func:`~torchrl_diffenvs.articulated.pipeline.accelerations`:
+semi-implicit Euler (with implicit joint and contact damping) and classic RK4."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from .inertia import dof_invweight0
+from .kinematics import integrate_position
+from .pipeline import accelerations
+from .spatial import Params
+from .tree import RigidBodyTree
+
+__all__ = ['StepResult', 'step']
+
+
+class StepResult(NamedTuple):
+    """One physics step: the new state, and the state MuJoCo last evaluated (see :func:`step`)."""
+
+    qpos: torch.Tensor
+    qvel: torch.Tensor
+    eval_qpos: torch.Tensor
+    eval_qvel: torch.Tensor
+
+
+def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,
+         invweight0=None) -> StepResult:
+    """One physics step of MuJoCo's ``integrator`` (``"euler"`` or ``"rk4"``).
+
+    Besides the new state, returns the state at which MuJoCo evaluated the forward dynamics last
+    (the start state for Euler, the fourth stage for RK4): after ``mj_step`` MuJoCo's derived
+    quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
+    observations and rewards read some of them. ``invweight0``: :func:`dof_invweight0` of
+    ``params``, if the caller has it.
+    """
+    # the params are the same at every stage: the limits' regulariser scale is computed once
+    # (callers stepping several times with the same params pass it in: see MuJoCoModelEnv.simulate)
+    w0 = invweight0
+    if w0 is None and tree.limit_dof.numel():
+        w0 = dof_invweight0(tree, params)
+    if integrator == "euler":
+        qacc = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt, invweight0=w0)
+        new_qvel = qvel + dt * qacc
+        return StepResult(integrate_position(tree, qpos, new_qvel, dt), new_qvel, qpos, qvel)
+    if integrator != "rk4":
+        raise ValueError(f"unknown integrator {integrator!r}; valid: 'euler', 'rk4'")
+    # MuJoCo's mj_RungeKutta with the classic tableau
+    acc1 = accelerations(tree, qpos, qvel, ctrl, params, invweight0=w0)
+    vel2 = qvel + 0.5 * dt * acc1
+    acc2 = accelerations(tree, integrate_position(tree, qpos, qvel, 0.5 * dt), vel2, ctrl, params, invweight0=w0)
+    vel3 = qvel + 0.5 * dt * acc2
+    acc3 = accelerations(tree, integrate_position(tree, qpos, vel2, 0.5 * dt), vel3, ctrl, params, invweight0=w0)
+    vel4 = qvel + dt * acc3
+    pos4 = integrate_position(tree, qpos, vel3, dt)
+    acc4 = accelerations(tree, pos4, vel4, ctrl, params, invweight0=w0)
+    new_qpos = integrate_position(tree, qpos, (qvel + 2 * vel2 + 2 * vel3 + vel4) / 6, dt)
+    new_qvel = qvel + dt / 6 * (acc1 + 2 * acc2 + 2 * acc3 + acc4)
+    return StepResult(new_qpos, new_qvel, pos4, vel4)

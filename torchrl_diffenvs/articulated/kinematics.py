@@ -1,0 +1,133 @@
+"""Forward kinematics: body poses and dof motion axes from ``qpos`` (MuJoCo's ``mj_kinematics``
+and ``cdof``), the sums along the tree that turn dof quantities into body quantities and back,
+and ``mj_integratePos``."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .spatial import _cross, integrate_quaternion, quaternion_to_matrix
+from .tree import RigidBodyTree
+
+__all__ = ['Kinematics', 'body_velocities', 'generalised_force', 'integrate_position', 'forward_kinematics', 'site_positions']
+
+
+@dataclass
+class Kinematics:
+    """World-frame poses for one batch of configurations.
+
+    Spatial vectors (motion subspaces, body velocities, inertias, wrenches) are expressed in world
+    axes about ``origin``, a reference point that moves with the robot (its first body's
+    position), so that their lever arms stay short wherever the robot is.
+    """
+
+    body_rot: torch.Tensor  # [N, nbody, 3, 3]
+    body_pos: torch.Tensor  # [N, nbody, 3] body frame origins (world)
+    motion: torch.Tensor  # [N, nv, 6] each dof's motion subspace (angular, linear at ``origin``)
+    origin: torch.Tensor  # [N, 3] the reference point of the spatial vectors (world)
+
+
+def _tree_sum(mask: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``out[:, a] = sum_b mask[a, b] x[:, b]`` for ``x [N, B, k]``: a sum along the tree (which
+    bodies a dof moves, which dofs move a body) as one product; einsum folds ``N`` into one
+    matrix product, where ``mask @ x`` would broadcast into ``N`` tiny ones (2x slower on a CPU)."""
+    return torch.einsum("ab,nbk->nak", mask, x)
+
+
+def body_velocities(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor) -> torch.Tensor:
+    """``[N, nbody, 6]`` spatial velocity of every body (angular, linear at ``kin.origin``):
+    the sum of ``S_d qvel_d`` over the dofs that move it."""
+    return _tree_sum(tree.body_dof_mask, kin.motion * qvel.unsqueeze(-1))
+
+
+def generalised_force(dof_mask: torch.Tensor, kin: Kinematics, wrench: torch.Tensor) -> torch.Tensor:
+    """``[N, nv]`` generalised force of wrenches ``[N, K, 6]`` (torque about ``kin.origin``, force)
+    on bodies or body points, with ``dof_mask [K, nv]`` saying which dofs move each: ``J^T w``, as
+    ``S_d . (sum of the wrenches on what dof d moves)``."""
+    return (kin.motion * _tree_sum(dof_mask.transpose(0, 1), wrench)).sum(-1)
+
+
+def integrate_position(tree: RigidBodyTree, qpos: torch.Tensor, qvel: torch.Tensor, dt: float) -> torch.Tensor:
+    """MuJoCo's ``mj_integratePos``: ``qpos [N, nq]`` moved by ``qvel [N, nv]`` for ``dt``.
+
+    Hinge, slide and a free joint's translation add ``dt * qvel``; ball joints and a free joint's
+    rotation turn their quaternion (:func:`integrate_quaternion`).
+    """
+    if tree.nq == tree.nv:  # hinges and slides only
+        return qpos + dt * qvel
+    parts = []
+    for segment in tree.position_segments:
+        if segment[0] == "linear":
+            _, qa, da, n = segment
+            parts.append(qpos[:, qa:qa + n] + dt * qvel[:, da:da + n])
+        else:
+            _, qa, da = segment
+            parts.append(integrate_quaternion(qpos[:, qa:qa + 4], qvel[:, da:da + 3], dt))
+    return torch.cat(parts, dim=-1)
+
+
+def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
+    """Body poses and dof motion subspaces for ``qpos [N, nq]`` (MuJoCo's mj_kinematics and cdof).
+
+    A free joint sets its body's world pose from ``qpos`` (position, quaternion); its dofs move the
+    body along the world axes and turn it about its own axes. A ball joint turns its body about its
+    anchor by the quaternion; its dofs turn it about the body's axes.
+    """
+    n = qpos.shape[0]
+    eye = torch.eye(3, dtype=qpos.dtype, device=qpos.device).expand(n, 3, 3)
+    rots, poss = [eye], [torch.zeros(n, 3, dtype=qpos.dtype, device=qpos.device)]
+    motion = [None] * tree.nv
+    turning = []  # (dof, world axis, world anchor) of the rotational dofs, placed once the origin is known
+    q = qpos - tree.qpos0
+    sin, cos = torch.sin(q), torch.cos(q)
+    for b in range(1, tree.nbody):
+        parent_rot, parent_pos = rots[tree.body_parent[b]], poss[tree.body_parent[b]]
+        rot = parent_rot @ tree.body_rot[b]
+        pos = parent_pos + parent_rot @ tree.body_pos[b]
+        for j in tree.body_joints[b]:
+            kind, qa, da = tree.joint_type[j], tree.joint_qposadr[j], tree.joint_dofadr[j]
+            if kind == "hinge":
+                axis = rot @ tree.joint_axis[j]
+                anchor = pos + rot @ tree.joint_pos[j]
+                k = tree.joint_skew[j]
+                local = eye + sin[:, qa, None, None] * k + (1 - cos[:, qa, None, None]) * (k @ k)  # Rodrigues
+                rot = rot @ local
+                pos = anchor - rot @ tree.joint_pos[j]
+                turning.append((da, axis, anchor))
+            elif kind == "slide":
+                axis = rot @ tree.joint_axis[j]
+                pos = pos + axis * q[:, qa, None]
+                motion[da] = torch.cat([torch.zeros_like(axis), axis], dim=-1)
+            else:
+                if kind == "free":  # the body's world pose is the joint's coordinates
+                    pos, rot = qpos[:, qa:qa + 3], quaternion_to_matrix(qpos[:, qa + 3:qa + 7])
+                    anchor, turn = pos, da + 3
+                    for i in range(3):
+                        linear = eye[:, :, i]
+                        motion[da + i] = torch.cat([torch.zeros_like(linear), linear], dim=-1)
+                else:
+                    anchor, turn = pos + rot @ tree.joint_pos[j], da
+                    rot = rot @ quaternion_to_matrix(qpos[:, qa:qa + 4])
+                    pos = anchor - rot @ tree.joint_pos[j]
+                for i in range(3):
+                    turning.append((turn + i, rot[:, :, i], anchor))
+        rots.append(rot)
+        poss.append(pos)
+    # The spatial quantities are taken about the first body's position, not the world origin: a
+    # runner 100 m down the track would otherwise carry lever arms of 100 m into every inertia
+    # (m |c|^2 ~ 1e5) and contact moment, and float32 cancellation would leave the mass matrix
+    # indefinite. Detached: the dynamics do not depend on the choice of reference point.
+    origin = (poss[1] if tree.nbody > 1 else poss[0]).detach()
+    for da, axis, anchor in turning:
+        motion[da] = torch.cat([axis, _cross(anchor - origin, axis)], dim=-1)
+    motion_t = torch.stack(motion, dim=1) if tree.nv else qpos.new_zeros(n, 0, 6)
+    return Kinematics(torch.stack(rots, dim=1), torch.stack(poss, dim=1), motion_t, origin)
+
+
+def site_positions(tree: RigidBodyTree, kin: Kinematics, sites) -> torch.Tensor:
+    """World positions ``[N, len(sites), 3]`` of the model's sites with these indices."""
+    model = tree.model
+    body = torch.as_tensor(model.site_body[list(sites)], device=kin.body_pos.device)
+    local = torch.as_tensor(model.site_pos[list(sites)], dtype=kin.body_pos.dtype, device=kin.body_pos.device)
+    return kin.body_pos[:, body] + (kin.body_rot[:, body] @ local.unsqueeze(-1)).squeeze(-1)

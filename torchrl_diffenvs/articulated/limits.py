@@ -1,0 +1,103 @@
+"""Joint limits as MuJoCo's soft constraints: impedance, reference acceleration, regulariser,
+and the exact complementarity solve of the rows that are active together."""
+from __future__ import annotations
+
+import torch
+
+from .spatial import _MINVAL, _solve
+from .tree import RigidBodyTree
+
+__all__ = ['limit_force']
+
+
+def _impedance(solimp: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
+    """MuJoCo's impedance ``d(r)`` in ``(0, 1)`` (solimp: dmin, dmax, width, midpoint, power)."""
+    dmin, dmax, width, mid, power = solimp.unbind(-1)
+    x = torch.clamp(violation.abs() / width.clamp(min=_MINVAL), max=1.0)
+    low = x.clamp(min=_MINVAL) ** power / mid ** (power - 1)
+    high = 1 - (1 - x).clamp(min=_MINVAL) ** power / (1 - mid) ** (power - 1)
+    y = torch.where(x <= mid, low, high)
+    y = torch.where(x >= 1, torch.ones_like(y), torch.where(x <= 0, torch.zeros_like(y), y))
+    imp = dmin + y * (dmax - dmin)
+    flat = (dmin == dmax) | (width <= 1e-15)
+    return torch.where(flat, (dmin + dmax) / 2, imp)
+
+
+def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight0) -> torch.Tensor:
+    """``[N, nv]`` joint-limit forces: MuJoCo's soft constraint, one row per active limit side.
+
+    For row ``i`` with distance ``r`` (negative when violated), velocity ``v = J qvel`` and
+    unconstrained acceleration ``a0 = J qacc_smooth``: ``aref = -B v - K d(r) (r - margin)``,
+    ``R = (1 - d) / d * invweight0`` (:func:`dof_invweight0`); the forces ``f >= 0`` of the active
+    rows solve MuJoCo's constraint problem jointly (the rows couple through ``A = J M^-1 J^T``):
+    the linear complementarity problem ``w = (A + R) f + (a0 - aref) >= 0``, ``f >= 0``,
+    ``f . w = 0``, solved exactly by principal pivoting (a fixed number of rounds, batched), and
+    applied as ``J^T f``. With one active row this is ``f = max(0, -(a0 - aref) / (A_ii + R_i))``.
+    """
+    if tree.limit_dof.numel() == 0:
+        return torch.zeros_like(qvel)
+    dof, sign = tree.limit_dof, tree.limit_sign
+    dist = sign * (qpos[:, tree.dof_qpos[dof]] - tree.limit_value)
+    active = dist < tree.limit_margin
+    imp = _impedance(tree.limit_solimp, dist - tree.limit_margin)
+    timeconst, dampratio = tree.limit_solref.unbind(-1)
+    dmax = tree.limit_solimp[:, 1]
+    stiffness = 1 / (dmax * dmax * timeconst * timeconst * dampratio * dampratio).clamp(min=_MINVAL)
+    damping = 2 / (dmax * timeconst).clamp(min=_MINVAL)
+    aref = -damping * sign * qvel[:, dof] - stiffness * imp * (dist - tree.limit_margin)
+    regulariser = torch.clamp((1 - imp) * invweight0[:, dof] / imp, min=_MINVAL)
+    offset = sign * smooth_acc[:, dof] - aref  # a0 - aref
+    diagonal = mass_inv.diagonal(dim1=-2, dim2=-1)[:, dof] + regulariser  # of A + R
+
+    def coupling(envs) -> torch.Tensor:  # A + R of these envs (built only where rows couple)
+        block = mass_inv[envs][:, dof][:, :, dof]
+        return sign[:, None] * sign[None, :] * block + torch.diag_embed(regulariser[envs])
+
+    force = _complementary_forces(offset, active, diagonal, coupling)
+    return torch.zeros_like(qvel).index_add(1, dof, sign * force)
+
+
+def _complementary_forces(offset: torch.Tensor, allowed: torch.Tensor, diagonal: torch.Tensor,
+                          matrix_of) -> torch.Tensor:
+    """``f >= 0`` with ``w = matrix f + offset >= 0`` and ``f . w = 0`` over the ``allowed`` rows
+    (``f = 0`` elsewhere), for a positive definite ``matrix`` ``[N, L, L]`` with ``diagonal``
+    ``[N, L]``; ``matrix_of(envs)`` builds the matrices of the envs ``envs`` indexes.
+
+    With at most one allowed row it is ``max(0, -offset / matrix_ii)``; envs with several are
+    solved by principal pivoting: each round solves the rows of the current set exactly, then
+    flips the first row that breaks the conditions (Murty's least-index rule, which cannot cycle):
+    a chosen row with a negative force leaves, an allowed row with a negative ``w`` joins. Eagerly
+    only the envs with several allowed rows pivot, until no row breaks; under ``torch.compile``
+    every env takes ``2 L`` rounds (no data-dependent control flow).
+    """
+    if torch.compiler.is_compiling():
+        return _pivot(matrix_of(slice(None)), offset, allowed, early_exit=False)
+    single = torch.where(allowed, (-offset / diagonal).clamp(min=0.0), torch.zeros_like(offset))
+    coupled = allowed.sum(-1) >= 2
+    if not bool(coupled.any()):
+        return single
+    envs = coupled.nonzero().squeeze(-1)
+    solved = _pivot(matrix_of(envs), offset[envs], allowed[envs], early_exit=True)
+    return single.index_put((envs,), solved)
+
+
+def _pivot(matrix, offset, allowed, early_exit: bool) -> torch.Tensor:
+    rows = offset.shape[-1]
+    eye = torch.eye(rows, dtype=matrix.dtype, device=matrix.device)
+    index = torch.arange(rows, device=offset.device)
+
+    def solve(chosen):
+        both = chosen.unsqueeze(-1) & chosen.unsqueeze(-2)
+        reduced = torch.where(both, matrix, eye)  # the chosen block, identity elsewhere
+        return _solve(reduced, torch.where(chosen, -offset, torch.zeros_like(offset)))
+
+    chosen = allowed & (offset < 0)  # the rows that push on their own
+    for _ in range(2 * rows):
+        force = solve(chosen)
+        slack = (matrix @ force.unsqueeze(-1)).squeeze(-1) + offset
+        broken = (chosen & (force < 0)) | (allowed & ~chosen & (slack < 0))
+        if early_exit and not bool(broken.any()):
+            return torch.where(chosen, force.clamp(min=0.0), torch.zeros_like(offset))
+        first = broken & (index == torch.where(broken, index, rows).min(-1, keepdim=True).values)
+        chosen = chosen ^ first
+    return torch.where(chosen, solve(chosen).clamp(min=0.0), torch.zeros_like(offset))

@@ -1,0 +1,74 @@
+"""The forward dynamics in the order the simulator computes them, on one screen:
+:func:`accelerations`. Each stage lives in its own module."""
+from __future__ import annotations
+
+import torch
+
+from .contact import contact_force
+from .forces import actuator_force, passive_force
+from .inertia import dof_invweight0, mass_matrix_and_bias
+from .kinematics import forward_kinematics
+from .limits import limit_force
+from .spatial import Params, _inverse, _solve
+from .tree import RigidBodyTree
+
+__all__ = ['accelerations', 'constraint_force']
+
+
+def _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=False):
+    """Motors + passive forces + ground contact - bias: every force but the joint limits.
+
+    ``with_damping``: also ``D [N, nv, nv]``, the velocity damping of these forces that the
+    implicit Euler integrator uses (joint damping plus the contact's, see :func:`contact_force`).
+    """
+    force = actuator_force(tree, ctrl, tree.nv) + passive_force(tree, kin, qpos, qvel, params) - bias
+    damping = torch.diag_embed(params["damping"]) if with_damping else None
+    if tree.contact_body.numel():
+        contact = contact_force(tree, kin, qvel, params, with_damping=with_damping)
+        if with_damping:
+            contact, contact_damping = contact
+            damping = damping + contact_damping
+        force = force + contact
+    return (force, damping) if with_damping else force
+
+
+def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, implicit_damping_dt=None,
+                  invweight0=None):
+    """``qacc [N, nv]`` of MuJoCo's forward dynamics: the simulator's pipeline, stage by stage.
+
+    1. kinematics: body poses and dof motion axes (:mod:`.kinematics`);
+    2. inertia and bias: ``M`` and Coriolis, centrifugal and gravity forces (:mod:`.inertia`);
+    3. smooth forces: motors, springs, dampers, fluid (:mod:`.forces`) and ground contact
+       (:mod:`.contact`);
+    4. joint limits: MuJoCo's soft constraints on the unconstrained acceleration (:mod:`.limits`);
+    5. solve ``M qacc = force`` (``M + h D`` for the implicit Euler integrator).
+
+    ``implicit_damping_dt = h`` gives the acceleration of MuJoCo's Euler integrator, which solves
+    with ``M + h D``: joint damping treated implicitly (MuJoCo), and here the contact's velocity
+    damping too (explicit contact friction and damping at MuJoCo's 0.01 s steps would be unstable).
+    ``invweight0``: :func:`dof_invweight0` of ``params`` when the caller has it (computed if not).
+    """
+    implicit = implicit_damping_dt is not None
+    kin = forward_kinematics(tree, qpos)
+    mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
+    force = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=implicit)
+    if implicit:
+        force, damping = force
+    if tree.limit_dof.numel():
+        mass_inv = _inverse(mass)
+        smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
+        invweight0 = dof_invweight0(tree, params) if invweight0 is None else invweight0
+        force = force + limit_force(tree, qpos, qvel, smooth_acc, mass_inv, invweight0)
+    if implicit:
+        mass = mass + implicit_damping_dt * damping
+    return _solve(mass, force)
+
+
+def constraint_force(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params) -> torch.Tensor:
+    """MuJoCo's ``qfrc_constraint [N, nv]`` at a state: the joint-limit forces (contact is a smooth force here)."""
+    kin = forward_kinematics(tree, qpos)
+    mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
+    force = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias)
+    mass_inv = _inverse(mass)
+    smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
+    return limit_force(tree, qpos, qvel, smooth_acc, mass_inv, dof_invweight0(tree, params))

@@ -1,0 +1,87 @@
+"""Spatial and linear algebra for the articulated core: 3-vector and 6-vector (angular, linear)
+cross products, quaternions, and the batched solves.
+
+Spatial vectors are ``[.., 6]`` tensors, angular part first, in world axes about a reference point
+(see :class:`~torchrl_diffenvs.articulated.kinematics.Kinematics`).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import torch
+
+__all__ = ['cross_motion', 'cross_force', 'quaternion_to_matrix', 'integrate_quaternion']
+
+
+Params = Mapping[str, torch.Tensor]
+_MINVAL = 1e-15  # MuJoCo's mjMINVAL
+
+
+# The _ex variants do not raise on a singular matrix (they return inf/nan for that env only): one
+# diverged env of a batch must not take the others, or the run, down with it; the env base class
+# flags and resets it.
+def _solve(matrix: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+    return torch.linalg.solve_ex(matrix, rhs)[0]
+
+
+def _inverse(matrix: torch.Tensor) -> torch.Tensor:
+    return torch.linalg.inv_ex(matrix)[0]
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    # torch.linalg.cross dispatches per call; this is cheaper for the many tiny [.., 3] crosses here
+    a0, a1, a2 = a.unbind(-1)
+    b0, b1, b2 = b.unbind(-1)
+    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim=-1)
+
+
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    """``[.., 3] -> [.., 3, 3]`` such that ``skew(v) @ u == v x u``."""
+    z = torch.zeros_like(v[..., 0])
+    x, y, w = v.unbind(-1)
+    return torch.stack([z, -w, y, w, z, -x, -y, x, z], dim=-1).reshape(*v.shape, 3)
+
+
+def cross_motion(v: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Spatial motion cross product ``v x u`` of ``[.., 6]`` (angular, linear) vectors."""
+    w, vl = v[..., :3], v[..., 3:]
+    a, ul = u[..., :3], u[..., 3:]
+    return torch.cat([_cross(w, a), _cross(w, ul) + _cross(vl, a)], dim=-1)
+
+
+def cross_force(v: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+    """Spatial force cross product ``v x* f`` (``[.., 6]``: torque about the origin, force)."""
+    w, vl = v[..., :3], v[..., 3:]
+    n, fl = f[..., :3], f[..., 3:]
+    return torch.cat([_cross(w, n) + _cross(vl, fl), _cross(w, fl)], dim=-1)
+
+
+def quaternion_to_matrix(quat: torch.Tensor) -> torch.Tensor:
+    """``[.., 4]`` quaternions ``(w, x, y, z)`` (normalised here, as MuJoCo does) -> ``[.., 3, 3]``."""
+    w, x, y, z = (quat / torch.linalg.vector_norm(quat, dim=-1, keepdim=True)).unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(*quat.shape[:-1], 3, 3)
+
+
+def _quaternion_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], dim=-1)
+
+
+def integrate_quaternion(quat: torch.Tensor, omega: torch.Tensor, dt: float) -> torch.Tensor:
+    """MuJoCo's ``mju_quatIntegrate``: rotate ``quat`` (normalised first) by the body-frame angular
+    velocity ``omega`` for ``dt``: ``quat * (cos(|w| dt / 2), sin(|w| dt / 2) w / |w|)``.
+
+    Smooth at ``omega = 0`` (``sin(|w| dt / 2) / |w|`` is written through ``sinc``).
+    """
+    speed = torch.sqrt((omega * omega).sum(-1, keepdim=True).clamp(min=_MINVAL * _MINVAL))
+    half = 0.5 * dt * speed
+    rotation = torch.cat([torch.cos(half), omega * (0.5 * dt) * torch.sinc(half / math.pi)], dim=-1)
+    unit = quat / torch.linalg.vector_norm(quat, dim=-1, keepdim=True)
+    return _quaternion_product(unit, rotation)

@@ -1,0 +1,231 @@
+"""The model as tensors: :class:`RigidBodyTree` (the constant part of a parsed MuJoCo model: tree
+structure, joint axes, contact points, limits) and :func:`default_params` (the per-env physical
+parameters a model file sets)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from .model import ArticulatedModel
+
+if TYPE_CHECKING:
+    from .kinematics import Kinematics
+
+__all__ = ['RigidBodyTree', 'default_params']
+
+
+@dataclass
+class RigidBodyTree:
+    """The constant (non-parameter) part of an :class:`ArticulatedModel`, as tensors.
+
+    Built once per env (device, dtype); the per-env physical parameters travel separately.
+    """
+
+    model: ArticulatedModel
+    body_parent: list[int]
+    body_pos: torch.Tensor  # [nbody, 3]
+    body_rot: torch.Tensor  # [nbody, 3, 3]
+    body_com: torch.Tensor  # [nbody, 3]
+    body_joints: list[list[int]]  # joints of each body, in order
+    joint_type: list[str]  # "hinge" | "slide" | "ball" | "free"
+    joint_qposadr: list[int]
+    joint_dofadr: list[int]
+    joint_axis: torch.Tensor  # [njnt, 3] body frame
+    joint_pos: torch.Tensor  # [njnt, 3]
+    joint_skew: torch.Tensor  # [njnt, 3, 3] skew(axis), for Rodrigues
+    qpos0: torch.Tensor  # [nq]
+    qpos_spring: torch.Tensor  # [nq]
+    dof_qpos: torch.Tensor  # [nv] long: the coordinate of each hinge/slide dof (springs, limits); 0 elsewhere
+    dof_has_spring: torch.Tensor  # [nv]: 1 for hinge/slide dofs (springs act on them), 0 for ball/free dofs
+    position_segments: list[tuple]  # how qvel integrates into qpos (see integrate_position)
+    body_dof_mask: torch.Tensor  # [nbody, nv]: dof d moves body b
+    dof_pre_mask: torch.Tensor  # [nv, nv]: dof d' moves the frame dof d is attached to (d' before d)
+    dof_support: torch.Tensor  # [nv, nv]: dof i moves the body of dof j (where M_ij = S_i . Ic_j S_j)
+    contact_dof_mask: torch.Tensor  # [npoint, nv]: dof d moves the body of contact point p
+    # joint limits (rows for the lower and upper side of every limited joint)
+    limit_dof: torch.Tensor  # [nlimit] long
+    limit_sign: torch.Tensor  # [nlimit] +1 lower side, -1 upper side (the constraint Jacobian)
+    limit_value: torch.Tensor  # [nlimit] the range end
+    limit_margin: torch.Tensor
+    limit_solref: torch.Tensor  # [nlimit, 2]
+    limit_solimp: torch.Tensor  # [nlimit, 5]
+    kin0: Kinematics | None  # kinematics at qpos0 (for MuJoCo's dof_invweight0, see dof_invweight0())
+    # motors
+    actuator_dof: torch.Tensor  # [nu] long
+    actuator_gear: torch.Tensor
+    ctrl_low: torch.Tensor
+    ctrl_high: torch.Tensor
+    force_low: torch.Tensor
+    force_high: torch.Tensor
+    # contact: points (capsule end spheres, spheres, box corners) against the ground planes
+    contact_body: torch.Tensor  # [npoint] long
+    contact_local: torch.Tensor  # [npoint, 3] body frame
+    contact_radius: torch.Tensor  # [npoint]
+    contact_slot: torch.Tensor  # [npoint] long: which contact pair (friction entry) it belongs to
+    contact_plane_point: torch.Tensor  # [npoint, 3]
+    contact_plane_normal: torch.Tensor  # [npoint, 3]
+    contact_pairs: list[tuple[str, str]]  # (geom, plane) of each slot
+    contact_pair_friction: np.ndarray  # [npair] MuJoCo's max of the two geoms' sliding friction
+    # fluid: each body's principal axes of inertia (its inertial frame) in the body frame
+    body_inertial_frame: torch.Tensor  # [nbody, 3, 3]
+
+    @property
+    def has_fluid(self) -> bool:
+        return self.model.density > 0 or self.model.viscosity > 0
+
+    @property
+    def nv(self) -> int:
+        return self.model.nv
+
+    @property
+    def nq(self) -> int:
+        return self.model.nq
+
+    @property
+    def nbody(self) -> int:
+        return self.model.nbody
+
+    @classmethod
+    def from_model(cls, model: ArticulatedModel, dtype=torch.float64, device="cpu") -> RigidBodyTree:
+        t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
+        idx = lambda a: torch.as_tensor(np.asarray(a, dtype=np.int64), device=device)  # noqa: E731
+        nb, nv, njnt = model.nbody, model.nv, model.njnt
+        body_joints = [[j for j in range(njnt) if model.joint_body[j] == b] for b in range(nb)]
+        # the dofs of each joint in groups whose motion axes move together: a free joint's
+        # translation, then its rotation; every other joint is one group
+        groups = []  # (body, dofs)
+        for j in range(njnt):
+            first, kind, b = int(model.joint_dofadr[j]), model.joint_type[j], int(model.joint_body[j])
+            if kind == "free":
+                groups += [(b, list(range(first, first + 3))), (b, list(range(first + 3, first + 6)))]
+            else:
+                groups.append((b, list(range(first, first + (3 if kind == "ball" else 1)))))
+        body_dofs = [[d for g, dofs in groups if g == b for d in dofs] for b in range(nb)]
+        # dof d moves body b when d belongs to b or to one of its ancestors
+        moves = np.zeros((nb, nv))
+        pre = np.zeros((nv, nv))
+        for b in range(1, nb):
+            chain, a = [], b
+            while a > 0:
+                chain.append(a)
+                a = model.body_parent[a]
+            for a in chain:
+                moves[b, body_dofs[a]] = 1.0
+        # pre[d]: the dofs that move the frame d's axis is attached to: the parent's, and the earlier
+        # groups of its own body (not its own group: MuJoCo's cdof_dot of a ball joint uses the parent's
+        # velocity; the group's own rotation drops out of the bias force, w x w = 0)
+        for i, (b, dofs) in enumerate(groups):
+            earlier = [d for g, ds in groups[:i] if g == b for d in ds]
+            for d in dofs:
+                pre[d] = moves[model.body_parent[b]]
+                pre[d, earlier] = 1.0
+        dof_body = [b for b, dofs in groups for _ in dofs]
+        axis = model.joint_axis
+        skew = np.stack([np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]]) for a in axis]) \
+            if njnt else np.zeros((0, 3, 3))
+        dof_qpos, dof_has_spring = np.zeros(nv, dtype=np.int64), np.zeros(nv)
+        segments = []  # ("linear", qpos start, dof start, length) | ("quaternion", qpos start, dof start)
+        for j in range(njnt):
+            kind, qa, da = model.joint_type[j], int(model.joint_qposadr[j]), int(model.joint_dofadr[j])
+            if kind in ("hinge", "slide"):
+                dof_qpos[da], dof_has_spring[da] = qa, 1.0
+            if kind == "free":
+                segments += [("linear", qa, da, 3), ("quaternion", qa + 3, da + 3)]
+            elif kind == "ball":
+                segments.append(("quaternion", qa, da))
+            elif segments and segments[-1][0] == "linear" and segments[-1][1] + segments[-1][3] == qa:
+                segments[-1] = ("linear", segments[-1][1], segments[-1][2], segments[-1][3] + 1)
+            else:
+                segments.append(("linear", qa, da, 1))
+        # joint limits: one row per side
+        rows = [(j, side) for j in range(njnt) if model.limited[j] for side in (0, 1)]
+        limit_dof = [int(model.joint_dofadr[j]) for j, _ in rows]
+        # contact points against each plane of the world body
+        points, pairs, pair_friction = [], [], []
+        planes = [g for g in range(len(model.geom_names)) if model.geom_type[g] == "plane"]
+        for p in planes:
+            if model.geom_body[p] != 0:
+                raise ValueError(f"{model.path}: plane {model.geom_names[p]!r} must belong to the world body")
+        for g in range(len(model.geom_names)):
+            if model.geom_body[g] == 0 or model.geom_type[g] == "plane":
+                continue
+            for p in planes:
+                collide = (model.geom_contype[g] & model.geom_conaffinity[p]) or (
+                    model.geom_contype[p] & model.geom_conaffinity[g])
+                if not collide:
+                    continue
+                local = _contact_points(model, g)
+                normal = model.geom_rot[p][:, 2]
+                slot = len(pairs)
+                pairs.append((model.geom_names[g], model.geom_names[p]))
+                pair_friction.append(max(model.geom_friction[g, 0], model.geom_friction[p, 0]))
+                for offset, radius in local:
+                    points.append((model.geom_body[g], offset, radius, slot, model.geom_pos[p], normal))
+        tree = cls(
+            model=model, body_parent=[int(p) for p in model.body_parent], body_pos=t(model.body_pos),
+            body_rot=t(model.body_rot), body_com=t(model.body_com), body_joints=body_joints,
+            joint_type=list(model.joint_type), joint_qposadr=[int(a) for a in model.joint_qposadr],
+            joint_dofadr=[int(a) for a in model.joint_dofadr], joint_axis=t(axis).reshape(njnt, 3),
+            joint_pos=t(model.joint_pos).reshape(njnt, 3), joint_skew=t(skew), qpos0=t(model.qpos0),
+            qpos_spring=t(model.qpos_spring), dof_qpos=idx(dof_qpos), dof_has_spring=t(dof_has_spring),
+            position_segments=segments, body_dof_mask=t(moves), dof_pre_mask=t(pre),
+            dof_support=t(moves[dof_body].T.reshape(nv, nv)),
+            contact_dof_mask=t(moves[[p[0] for p in points]].reshape(len(points), nv)),
+            limit_dof=idx(limit_dof), limit_sign=t([1.0 if s == 0 else -1.0 for _, s in rows]),
+            limit_value=t([model.joint_range[j, s] for j, s in rows]),
+            limit_margin=t([model.limit_margin[j] for j, _ in rows]),
+            # MuJoCo's "refsafe": a time constant below two physics steps is raised to two steps
+            limit_solref=t([[max(model.limit_solref[j, 0], 2 * model.timestep), model.limit_solref[j, 1]]
+                            for j, _ in rows]).reshape(len(rows), 2),
+            limit_solimp=t([model.limit_solimp[j] for j, _ in rows]).reshape(len(rows), 5),
+            kin0=None,
+            actuator_dof=idx(model.joint_dofadr[model.actuator_joint]), actuator_gear=t(model.actuator_gear),
+            ctrl_low=t(np.where(model.ctrl_limited, model.ctrl_range[:, 0], -np.inf)),
+            ctrl_high=t(np.where(model.ctrl_limited, model.ctrl_range[:, 1], np.inf)),
+            force_low=t(np.where(model.force_limited, model.force_range[:, 0], -np.inf)),
+            force_high=t(np.where(model.force_limited, model.force_range[:, 1], np.inf)),
+            contact_body=idx([p[0] for p in points]), contact_local=t([p[1] for p in points]).reshape(-1, 3),
+            contact_radius=t([p[2] for p in points]), contact_slot=idx([p[3] for p in points]),
+            contact_plane_point=t([p[4] for p in points]).reshape(-1, 3),
+            contact_plane_normal=t([p[5] for p in points]).reshape(-1, 3),
+            contact_pairs=pairs, contact_pair_friction=np.array(pair_friction),
+            body_inertial_frame=t(np.linalg.eigh(model.body_inertia)[1]),
+        )
+        from .kinematics import forward_kinematics  # kinematics reads the tree: imported here, not at the top
+
+        tree.kin0 = forward_kinematics(tree, tree.qpos0.unsqueeze(0))
+        return tree
+
+
+def _contact_points(model: ArticulatedModel, g: int) -> list[tuple[np.ndarray, float]]:
+    """Sphere-swept points (body-frame centre, radius) whose distance to a plane is the geom's."""
+    kind, size, pos, rot = model.geom_type[g], model.geom_size[g], model.geom_pos[g], model.geom_rot[g]
+    if kind == "sphere":
+        return [(pos, size[0])]
+    if kind == "capsule":
+        half = rot[:, 2] * size[1]
+        return [(pos - half, size[0]), (pos + half, size[0])]
+    if kind == "box":
+        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * size
+        return [(pos + rot @ c, 0.0) for c in corners]
+    raise ValueError(
+        f"{model.path}: geom {model.geom_names[g]!r} of type {kind} can touch the ground plane, but ground "
+        "contact is only modelled for spheres, capsules and boxes (set contype/conaffinity to exclude it)"
+    )
+
+
+def default_params(model: ArticulatedModel) -> dict[str, torch.Tensor]:
+    """The model file's physical parameters (float64, unbatched): the per-env ``params`` defaults
+    (with ``fluid_density`` and ``fluid_viscosity`` for a model in a fluid)."""
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
+    params = {
+        "body_mass": t(model.body_mass), "body_inertia": t(model.body_inertia), "gravity": t(model.gravity),
+        # stiffness per dof, as damping (a joint's stiffness on its dof; ball and free joints have none)
+        "damping": t(model.damping), "armature": t(model.armature), "stiffness": t(model.stiffness[model.dof_joint]),
+    }
+    if model.density > 0 or model.viscosity > 0:
+        params.update(fluid_density=t(model.density), fluid_viscosity=t(model.viscosity))
+    return params
