@@ -44,21 +44,22 @@ def _gym(task):
     return env
 
 
-def _ours(task):
-    env = make_env(task, num_envs=1, dtype=torch.float64, seed=0, max_episode_steps=None,
+def _ours(task, **options):
+    env = make_env(task, num_envs=1, dtype=torch.float64, seed=0, max_episode_steps=None, **options,
                    params={"reset_noise_scale": 0.0, **({} if task == "HalfCheetah-v5" else {"terminate_when_unhealthy": 0.0})})
     return env, env.reset()
 
 
-def fidelity(task, seconds_rest=2.0, seconds_open_loop=1.0):
-    genv, (env, td) = _gym(task), _ours(task)
+def fidelity(task, seconds_rest=2.0, seconds_open_loop=1.0, **options):
+    """Rest height and open-loop gaps of ``task`` built with ``options`` (e.g. ``integrator``, ``substeps``)."""
+    genv, (env, td) = _gym(task), _ours(task, **options)
     for _ in range(int(round(seconds_rest / env.dt))):
         genv.step(np.zeros(env.action_dim))
         td["action"] = torch.zeros(1, env.action_dim, dtype=torch.float64)
         td = env.step(td)["next"].clone()
     layout = LAYOUT.get(task, PLANAR)
     rest = (genv.unwrapped.data.qpos[layout["z"]], td["state", "qpos"][0, layout["z"]].item())
-    genv, (env, td) = _gym(task), _ours(task)
+    genv, (env, td) = _gym(task), _ours(task, **options)
     rng, theirs, ours = np.random.default_rng(0), [], []
     for _ in range(int(round(seconds_open_loop / env.dt))):
         action = rng.uniform(-1, 1, env.action_dim)

@@ -51,7 +51,17 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
 
     Args:
         num_envs, device, dtype, seed, max_episode_steps, params: as :class:`DiffEnv`.
+        integrator: ``"model"`` (default: the model file's own, as MuJoCo and Gymnasium run it),
+            ``"euler"`` (MuJoCo's semi-implicit Euler, with the joint damping and here the smooth
+            contact's velocity damping treated implicitly) or ``"rk4"``. The choice changes how
+            well the step's Jacobian is conditioned while a foot sticks (the regularised friction
+            is a stiff damper: RK4's stability bound is exceeded there, implicit Euler has none),
+            not the task: the docs list each option's fidelity against MuJoCo.
+        substeps: ``k >= 1`` physics steps of ``timestep / k`` for each of MuJoCo's steps (the
+            env step ``dt`` is unchanged).
     """
+
+    INTEGRATORS = ("model", "euler", "rk4")
 
     model_file: str = ""
     frame_skip: int = 1
@@ -59,9 +69,17 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
     contact_params: dict = CONTACT_DEFAULTS
     default_max_episode_steps = 1000
 
-    def __init__(self, num_envs: int = 1, **kwargs):
+    def __init__(self, num_envs: int = 1, *, integrator: str = "model", substeps: int = 1, **kwargs):
         model = load_model(self.model_file)
         self.model = model
+        if integrator not in self.INTEGRATORS:
+            raise ValueError(f"{self.name}: unknown integrator {integrator!r}; valid: "
+                             f"{', '.join(repr(i) for i in self.INTEGRATORS)} ('model': the file's {model.integrator!r})")
+        if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+            raise ValueError(f"{self.name}: substeps must be an integer >= 1 (physics steps per MuJoCo step), "
+                             f"got {substeps!r}")
+        self.integrator = model.integrator if integrator == "model" else integrator
+        self.substeps = substeps
         self.action_dim = model.nu
         low, high = model.ctrl_range[:, 0], model.ctrl_range[:, 1]
         if not ((low == low[0]).all() and (high == high[0]).all()):
@@ -89,7 +107,8 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         return self.tree.qpos0.expand(n, -1)
 
     def simulate(self, state, action, params) -> StepResult:
-        """``frame_skip`` physics steps with ``ctrl = action`` (Gymnasium's ``do_simulation``).
+        """``frame_skip`` physics steps with ``ctrl = action`` (Gymnasium's ``do_simulation``), each
+        as ``substeps`` steps of the chosen ``integrator``.
 
         Returns the last step's :class:`~torchrl_diffenvs.articulated.dynamics.StepResult`: the new
         ``qpos``/``qvel`` and the state MuJoCo's derived quantities belong to after ``mj_step``.
@@ -97,8 +116,8 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         qpos, qvel = state["qpos"], state["qvel"]
         # the joint limits' regulariser depends on the params only: once per env step, not per physics step
         invweight0 = dof_invweight0(self.tree, params) if self.tree.limit_dof.numel() else None
-        for _ in range(self.frame_skip):
-            result = step(self.tree, qpos, qvel, action, params, self.model.timestep, self.model.integrator,
-                          invweight0)
+        for _ in range(self.frame_skip * self.substeps):
+            result = step(self.tree, qpos, qvel, action, params, self.model.timestep / self.substeps,
+                          self.integrator, invweight0)
             qpos, qvel = result.qpos, result.qvel
         return result

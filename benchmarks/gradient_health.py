@@ -1,0 +1,139 @@
+"""Gradient health through contact: the closed-loop actor gradient at initialisation, per
+integrator option, beside each option's fidelity to MuJoCo and its cost.
+
+For each contact task and each physics option (``integrator`` x ``substeps``; the Ant also with
+and without its ``cfrc_ext`` observation features), a freshly initialised actor (the learners'
+default: 64-64 tanh MLP, deterministic mean) drives ``num_envs`` envs for ``warmup`` steps
+without gradient (the robot lands and starts to move), then for one window of ``horizon`` steps
+with the graph on; the window's loss is SHAC's actor loss without the critic term,
+``-mean_envs sum_t gamma^t r_t / horizon``. Reported per option, over ``seeds``: the actor's
+gradient norm (median and max), the largest contact normal force seen in the window, the
+fidelity gaps of ``benchmarks/contact_fidelity.py`` (float64, against gymnasium's MuJoCo env)
+and the CPU time of one env step relative to the task's default option.
+
+    OMP_NUM_THREADS=1 python benchmarks/gradient_health.py
+    OMP_NUM_THREADS=1 python benchmarks/gradient_health.py tasks=[Ant-v5] seeds=5 fidelity=false
+"""
+from __future__ import annotations
+
+import statistics
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import BenchmarkSettings, print_table  # noqa: E402
+
+from torchrl_diffenvs import make_env  # noqa: E402
+from torchrl_diffenvs.checks import checked, each, one_of, parse_cli  # noqa: E402
+
+CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"]
+# (integrator, substeps): the model file's own first, then the alternatives
+OPTIONS = [("model", 1), ("euler", 1), ("rk4", 1), ("euler", 2), ("rk4", 2)]
+
+
+@dataclass(frozen=True)
+class GradientHealthSettings(BenchmarkSettings):
+    """tasks=[..] seeds=3 num_envs=32 horizon=16 warmup=100 fidelity=true"""
+
+    tasks: tuple = checked(tuple(CONTACT_TASKS), each(one_of(CONTACT_TASKS)))
+    seeds: int = 3
+    num_envs: int = 32
+    horizon: int = 16
+    warmup: int = 100
+    gamma: float = 0.99
+    fidelity: bool = True
+
+
+def actor_for(env, seed: int) -> nn.Module:
+    torch.manual_seed(seed)
+    obs = env.observation_spec["observation"].shape[-1]
+    return nn.Sequential(nn.Linear(obs, 64), nn.Tanh(), nn.Linear(64, 64), nn.Tanh(),
+                         nn.Linear(64, env.action_dim), nn.Tanh())
+
+
+def window_gradient(task: str, options: dict, seed: int, s: GradientHealthSettings) -> dict:
+    """The actor's gradient norm over one window after ``warmup`` steps, and the window's largest
+    contact normal force."""
+    from torchrl_diffenvs.articulated.dynamics import _contact_points_and_forces, forward_kinematics
+
+    env = make_env(task, num_envs=s.num_envs, seed=seed, **options)
+    actor = actor_for(env, seed)
+    td = env.reset()
+    with torch.no_grad():
+        for _ in range(s.warmup):
+            td["action"] = actor(td["observation"])
+            td = env.step_mdp(env.step(td))
+    state = td.exclude("next").clone()
+    loss, largest = 0.0, 0.0
+    start = time.process_time()
+    for t in range(s.horizon):
+        state["action"] = actor(state["observation"])
+        out = env.step(state)
+        loss = loss - (s.gamma ** t) * out["next", "reward"].reshape(-1)
+        with torch.no_grad():
+            qpos, qvel = out["next", "state", "qpos"], out["next", "state", "qvel"]
+            kin = forward_kinematics(env.tree, qpos)
+            force = _contact_points_and_forces(env.tree, kin, qvel, env.params).normal_force
+            largest = max(largest, float(force.max()))
+        state = env.step_mdp(out)
+    forward_seconds = (time.process_time() - start) / s.horizon
+    actor.zero_grad()
+    (loss.mean() / s.horizon).backward()
+    norm = torch.sqrt(sum((p.grad.double() ** 2).sum() for p in actor.parameters())).item()
+    return {"norm": norm, "force": largest, "step_seconds": forward_seconds}
+
+
+def option_label(integrator: str, substeps: int, env_name: str) -> str:
+    model = make_env(env_name, num_envs=1).model.integrator
+    name = f"{model} (file)" if integrator == "model" else integrator
+    return name + (f" x{substeps}" if substeps > 1 else "")
+
+
+def main(argv=None):
+    settings = parse_cli(GradientHealthSettings, argv, __doc__)
+    torch.set_num_threads(settings.threads)
+    warnings.filterwarnings("ignore")
+    if settings.quick:
+        settings = GradientHealthSettings(**{**settings.__dict__, "seeds": 1, "num_envs": 4, "horizon": 4,
+                                             "warmup": 5, "fidelity": False, "tasks": settings.tasks[:1]})
+    rows = []
+    for task in settings.tasks:
+        variants = [({"integrator": i, "substeps": k}, option_label(i, k, task)) for i, k in OPTIONS]
+        model = make_env(task, num_envs=1).model.integrator
+        # "model" already covers the file's own integrator at one substep
+        variants = [v for v in variants if (v[0]["integrator"], v[0]["substeps"]) != (model, 1)]
+        if task == "Ant-v5":
+            variants += [({**o, "include_cfrc_ext_in_observation": False}, label + ", no cfrc_ext")
+                         for o, label in list(variants)]
+        base_cost = None
+        for options, label in variants:
+            runs = [window_gradient(task, options, seed, settings) for seed in range(settings.seeds)]
+            norms = [r["norm"] for r in runs]
+            cost = statistics.median(r["step_seconds"] for r in runs)
+            base_cost = base_cost or cost
+            row = [task, label, f"{statistics.median(norms):.3g}", f"{max(norms):.3g}",
+                   f"{max(r['force'] for r in runs):.3g}", f"{cost / base_cost:.2f}"]
+            if settings.fidelity:
+                from contact_fidelity import fidelity
+
+                physics = {k: v for k, v in options.items() if k in ("integrator", "substeps")}
+                gaps = fidelity(task, **physics)
+                row += [f"{gaps['rest_z_ours'] - gaps['rest_z_mujoco']:+.3f}", f"{gaps['x_gap']:.3f}",
+                        f"{gaps['joint_rms_gap']:.3f}"]
+            rows.append(row)
+            print(" | ".join(row), flush=True)
+    headers = ["task", "physics", "actor grad norm (median)", "max", "largest normal force (N)", "step cost"]
+    if settings.fidelity:
+        headers += ["rest height - MuJoCo's (m)", "x gap after 1 s (m)", "joint RMS gap (rad)"]
+    print_table(headers, rows)
+    return rows
+
+
+if __name__ == "__main__":
+    main()

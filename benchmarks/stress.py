@@ -1,0 +1,130 @@
+"""Stress: do the contact tasks stay finite under the policies that break simulators?
+
+Each contact task runs ``num_envs`` envs (float32, as training does) for ``steps`` steps with no
+truncation, under each policy:
+
+* ``random``: uniform actions in the control range, new each step;
+* ``bang-bang``: +-1 per motor, switched at random every 1-20 steps;
+* ``resonant``: every motor a full-range square wave, each env its own period (2-40 steps), the
+  gait that pumps energy into the legs;
+* ``greedy``: an adversary that uses the simulator's own gradient: each step it plays
+  ``sign(d forward velocity / d action)`` at full range, so it runs as far and as fast as the
+  physics allows (learned runners travel hundreds of metres; that is where float32 used to fail);
+* ``far``: random actions from start states 10 km down the track.
+
+Reported per task and policy: envs that became non-finite, the largest ``|qvel|`` and the torso's
+largest travel. A healthy simulator has 0 non-finite envs everywhere.
+
+    OMP_NUM_THREADS=1 python benchmarks/stress.py
+    OMP_NUM_THREADS=1 python benchmarks/stress.py tasks=[HalfCheetah-v5] num_envs=1024 steps=1000
+"""
+from __future__ import annotations
+
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import BenchmarkSettings, print_table  # noqa: E402
+
+from torchrl_diffenvs import make_env  # noqa: E402
+from torchrl_diffenvs.checks import checked, each, one_of, parse_cli  # noqa: E402
+
+CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"]
+POLICIES = ["random", "bang-bang", "resonant", "greedy", "far"]
+
+
+@dataclass(frozen=True)
+class StressSettings(BenchmarkSettings):
+    """tasks=[..] policies=[..] num_envs=1024 steps=1000"""
+
+    tasks: tuple = checked(tuple(CONTACT_TASKS), each(one_of(CONTACT_TASKS)))
+    policies: tuple = checked(tuple(POLICIES), each(one_of(POLICIES)))
+    num_envs: int = 1024
+    steps: int = 1000
+    seed: int = 0
+
+
+def make_policy(kind: str, env, gen: torch.Generator):
+    n, m = env.batch_size[0], env.action_dim
+    if kind in ("random", "far"):
+        return lambda td, t: torch.rand(n, m, generator=gen) * 2 - 1
+    if kind == "bang-bang":
+        state = {"action": torch.sign(torch.rand(n, m, generator=gen) - 0.5),
+                 "switch": torch.randint(1, 21, (n, m), generator=gen)}
+
+        def bang(td, t):
+            flip = (t % state["switch"]) == 0
+            state["action"] = torch.where(flip, torch.sign(torch.rand(n, m, generator=gen) - 0.5), state["action"])
+            return state["action"]
+        return bang
+    if kind == "resonant":
+        period = torch.randint(2, 41, (n, 1), generator=gen)
+        phase = torch.randint(0, 40, (n, m), generator=gen)
+        return lambda td, t: torch.where(((t + phase) % period) < period / 2, 1.0, -1.0)
+
+    def greedy(td, t):  # sign of d(forward velocity)/d(action), through one env step
+        action = torch.zeros(n, m, requires_grad=True)
+        probe = td.clone()
+        probe["action"] = action
+        qvel = env.step(probe)["next", "state", "qvel"]
+        (grad,) = torch.autograd.grad(qvel[:, 0].sum(), action)
+        return torch.where(grad >= 0, 1.0, -1.0)
+    return greedy
+
+
+def stress(task: str, kind: str, s: StressSettings) -> dict:
+    env = make_env(task, num_envs=s.num_envs, seed=s.seed, max_episode_steps=None,
+                   params={"terminate_when_unhealthy": 0.0} if task != "HalfCheetah-v5" else {})
+    gen = torch.Generator().manual_seed(s.seed)
+    td = env.reset()
+    if kind == "far":
+        state = td["state"].clone()
+        state["qpos"][:, 0] += 1e4
+        td.set("state", state)
+        td = env.reset(td, set_state=True)
+    start_x = td["state", "qpos"][:, 0].clone()
+    policy = make_policy(kind, env, gen)
+    bad = torch.zeros(s.num_envs, dtype=torch.bool)
+    speed, travel = 0.0, 0.0
+    began = time.perf_counter()
+    for t in range(s.steps):
+        with torch.no_grad() if kind != "greedy" else torch.enable_grad():
+            action = policy(td, t)
+        with torch.no_grad():
+            td["action"] = action.to(td["observation"].dtype)
+            td = env.step_mdp(env.step(td))
+            qvel = td["state", "qvel"]
+            finite = torch.isfinite(qvel).all(-1) & torch.isfinite(td["state", "qpos"]).all(-1)
+            bad |= ~finite
+            if finite.any():
+                speed = max(speed, float(qvel[finite].abs().max()))
+                travel = max(travel, float((td["state", "qpos"][finite, 0] - start_x[finite]).abs().max()))
+    return {"nonfinite": int(bad.sum()), "max_qvel": speed, "travel": travel,
+            "env_steps_per_s": s.num_envs * s.steps / (time.perf_counter() - began)}
+
+
+def main(argv=None):
+    settings = parse_cli(StressSettings, argv, __doc__)
+    torch.set_num_threads(settings.threads)
+    warnings.filterwarnings("ignore")
+    if settings.quick:
+        settings = StressSettings(**{**settings.__dict__, "num_envs": 8, "steps": 20})
+    rows = []
+    for task in settings.tasks:
+        for kind in settings.policies:
+            r = stress(task, kind, settings)
+            row = [task, kind, f"{settings.num_envs} x {settings.steps}", str(r["nonfinite"]),
+                   f"{r['max_qvel']:.3g}", f"{r['travel']:.3g}"]
+            rows.append(row)
+            print(" | ".join(row), flush=True)
+    print_table(["task", "policy", "envs x steps", "non-finite envs", "max |qvel|", "max travel (m)"], rows)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
