@@ -1,0 +1,142 @@
+"""MkDocs hook: fills the pages' generated parts at build time.
+
+* ``{{ table NAME }}`` becomes the Markdown table of ``docs/data/NAME.json`` (written by the
+  benchmark that measured it), followed by its date, machine and command. Numbers are never
+  pasted into the pages: re-running the benchmark rewrites the data file and the next build
+  shows the new measurement.
+* ``{{ config_reference }}`` becomes the reference of every learner's settings, read from the
+  settings dataclasses themselves (field, default, accepted values, description).
+
+A missing data file or learner raises, so ``mkdocs build --strict`` (CI) fails loudly.
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+import re
+from pathlib import Path
+
+DATA_DIR = Path(__file__).resolve().parent.parent / "data"
+TABLE = re.compile(r"\{\{\s*table\s+([A-Za-z0-9_.-]+)\s*\}\}")
+CONFIG_REFERENCE = re.compile(r"\{\{\s*config_reference\s*\}\}")
+DATA_FIELDS = ("title", "measured", "machine", "command", "columns", "rows")
+
+
+def _cell(value) -> str:
+    text = "-" if value is None else str(value)
+    return text.replace("|", "\\|").replace("\\\\|", "\\|").replace("\n", " ")
+
+
+def load_table(name: str) -> dict:
+    """The data file ``docs/data/<name>.json``, checked for the fields every table needs."""
+    path = DATA_DIR / f"{name}.json"
+    if not path.is_file():
+        valid = ", ".join(sorted(p.stem for p in DATA_DIR.glob("*.json")))
+        raise ValueError(f"{{{{ table {name} }}}}: no data file {path}; valid: {valid}")
+    data = json.loads(path.read_text())
+    missing = [key for key in DATA_FIELDS if key not in data]
+    if missing:
+        raise ValueError(f"{path}: missing field(s) {', '.join(missing)}; every data file needs {', '.join(DATA_FIELDS)}")
+    for i, row in enumerate(data["rows"]):
+        if len(row) != len(data["columns"]):
+            raise ValueError(f"{path}: row {i} has {len(row)} cells for {len(data['columns'])} columns")
+    return data
+
+
+def render_table(name: str) -> str:
+    data = load_table(name)
+    lines = ["| " + " | ".join(_cell(c) for c in data["columns"]) + " |",
+             "|" + "|".join("---" for _ in data["columns"]) + "|"]
+    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in data["rows"]]
+    command = data["command"]
+    caption = (f"*{data['title']}. Measured {data['measured']} on {data['machine']}"
+               + (f" with `{command}`" if command else "") + f" ([data](data/{name}.json)).*")
+    return "\n".join(lines) + "\n\n" + caption + "\n"
+
+
+# --------------------------------------------------------------------------- config reference
+
+def _field_comments(cls) -> dict[str, str]:
+    """``name -> trailing comment`` of the field lines in the class bodies along the MRO."""
+    comments: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        try:
+            source = inspect.getsource(klass)
+        except (OSError, TypeError):
+            continue
+        for match in re.finditer(r"^\s+(\w+)\s*:[^=\n]*=.*?#\s*(.+)$", source, flags=re.MULTILINE):
+            comments[match.group(1)] = match.group(2).strip()
+    return comments
+
+
+def _accepted(field: dataclasses.Field) -> str:
+    """What a field accepts, in the words of its check's error message."""
+    check = field.metadata.get("check")
+    if check is None:
+        return ""
+    for probe in (object(), "?", -1, 0, None):
+        try:
+            message = check(probe)
+        except Exception:  # a check that cannot even look at the probe says nothing
+            continue
+        if message:
+            return message.removeprefix("expected ").replace("valid: ", "one of ")
+    return ""
+
+
+def _default(field: dataclasses.Field):
+    if field.default_factory is not dataclasses.MISSING:
+        return field.default_factory()
+    return field.default
+
+
+def _type_name(field: dataclasses.Field) -> str:
+    return field.type if isinstance(field.type, str) else getattr(field.type, "__name__", str(field.type))
+
+
+def _settings_rows(cls, prefix: str) -> list[list[str]]:
+    rows, comments = [], _field_comments(cls)
+    for field in dataclasses.fields(cls):
+        default = _default(field)
+        if dataclasses.is_dataclass(default):  # nested settings (e.g. the networks): their own rows
+            rows += _settings_rows(type(default), f"{prefix}{field.name}.")
+            continue
+        if isinstance(default, tuple):
+            default = list(default)
+        doc = field.metadata.get("doc") or comments.get(field.name, "")
+        rows.append([f"`{prefix}{field.name}`", f"`{default!r}`".replace("'", ""), _cell(_type_name(field)),
+                     _cell(_accepted(field)), _cell(doc)])
+    return rows
+
+
+def _learners() -> dict:
+    from torchrl_diffenvs import learners
+
+    registry = getattr(learners, "LEARNERS", None)
+    if not registry:
+        raise ValueError("torchrl_diffenvs.learners.LEARNERS is missing or empty: the config reference "
+                         "lists the learners registered there")
+    return dict(registry)
+
+
+def render_config_reference() -> str:
+    parts = []
+    for name, learner in _learners().items():
+        settings = getattr(learner, "config_class", None)
+        if settings is None or not dataclasses.is_dataclass(settings):
+            raise ValueError(f"learner {name!r} ({learner.__name__}) has no settings dataclass in config_class")
+        summary = (inspect.getdoc(settings) or "").split("\n\n")[0].replace("\n", " ")
+        parts.append(f"### `loss={name}`: `{settings.__name__}`\n\n{summary}\n")
+        parts.append("| key | default | type | accepts | what |\n|---|---|---|---|---|")
+        parts += ["| " + " | ".join(row) + " |" for row in _settings_rows(settings, "loss.")]
+        parts.append("")
+    return "\n".join(parts)
+
+
+def on_page_markdown(markdown: str, page, config, files) -> str:
+    depth = page.file.src_uri.count("/")
+    markdown = TABLE.sub(lambda m: render_table(m.group(1)).replace("](data/", "](" + "../" * depth + "data/"), markdown)
+    if CONFIG_REFERENCE.search(markdown):
+        markdown = CONFIG_REFERENCE.sub(lambda m: render_config_reference(), markdown)
+    return markdown
