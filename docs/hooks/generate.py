@@ -15,6 +15,7 @@ import dataclasses
 import inspect
 import json
 import re
+import warnings
 from pathlib import Path
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
@@ -111,7 +112,9 @@ def _settings_rows(cls, prefix: str) -> list[list[str]]:
 
 
 def _learners() -> dict:
-    from torchrl_diffenvs import learners
+    with warnings.catch_warnings():  # TorchRL's import-time deprecation notices are not the docs' warnings
+        warnings.simplefilter("ignore")
+        from torchrl_diffenvs import learners
 
     registry = getattr(learners, "LEARNERS", None)
     if not registry:
