@@ -19,9 +19,10 @@ import warnings
 from pathlib import Path
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
-TABLE = re.compile(r"\{\{\s*table\s+([A-Za-z0-9_.-]+)\s*\}\}")
+TABLE = re.compile(r"\{\{\s*table\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?\s*\}\}")
 CONFIG_REFERENCE = re.compile(r"\{\{\s*config_reference\s*\}\}")
-DATA_FIELDS = ("title", "measured", "machine", "command", "columns", "rows")
+DATA_FIELDS = ("measured", "machine", "command", "tables")
+TABLE_FIELDS = ("title", "columns", "rows")
 
 
 def _cell(value) -> str:
@@ -29,8 +30,8 @@ def _cell(value) -> str:
     return text.replace("|", "\\|").replace("\\\\|", "\\|").replace("\n", " ")
 
 
-def load_table(name: str) -> dict:
-    """The data file ``docs/data/<name>.json``, checked for the fields every table needs."""
+def load_data(name: str) -> dict:
+    """The data file ``docs/data/<name>.json``, checked for the fields every data file needs."""
     path = DATA_DIR / f"{name}.json"
     if not path.is_file():
         valid = ", ".join(sorted(p.stem for p in DATA_DIR.glob("*.json")))
@@ -39,20 +40,32 @@ def load_table(name: str) -> dict:
     missing = [key for key in DATA_FIELDS if key not in data]
     if missing:
         raise ValueError(f"{path}: missing field(s) {', '.join(missing)}; every data file needs {', '.join(DATA_FIELDS)}")
-    for i, row in enumerate(data["rows"]):
-        if len(row) != len(data["columns"]):
-            raise ValueError(f"{path}: row {i} has {len(row)} cells for {len(data['columns'])} columns")
+    for key, table in data["tables"].items():
+        missing = [field for field in TABLE_FIELDS if field not in table]
+        if missing:
+            raise ValueError(f"{path}: table {key!r} lacks {', '.join(missing)}")
+        for i, row in enumerate(table["rows"]):
+            if len(row) != len(table["columns"]):
+                raise ValueError(f"{path}: table {key!r}, row {i} has {len(row)} cells for {len(table['columns'])} columns")
     return data
 
 
-def render_table(name: str) -> str:
-    data = load_table(name)
-    lines = ["| " + " | ".join(_cell(c) for c in data["columns"]) + " |",
-             "|" + "|".join("---" for _ in data["columns"]) + "|"]
-    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in data["rows"]]
+def render_table(name: str, key: str | None, data_link: str) -> str:
+    """``{{ table name }}`` (a data file with one table) or ``{{ table name:key }}``, as Markdown."""
+    data = load_data(name)
+    tables = data["tables"]
+    if key is None and len(tables) != 1:
+        raise ValueError(f"{{{{ table {name} }}}}: the file holds {len(tables)} tables; name one: "
+                         + ", ".join(f"{name}:{k}" for k in tables))
+    if key is not None and key not in tables:
+        raise ValueError(f"{{{{ table {name}:{key} }}}}: no table {key!r}; valid: {', '.join(tables)}")
+    table = tables[key] if key is not None else next(iter(tables.values()))
+    lines = ["| " + " | ".join(_cell(c) for c in table["columns"]) + " |",
+             "|" + "|".join("---" for _ in table["columns"]) + "|"]
+    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in table["rows"]]
     command = data["command"]
-    caption = (f"*{data['title']}. Measured {data['measured']} on {data['machine']}"
-               + (f" with `{command}`" if command else "") + f" ([data](data/{name}.json)).*")
+    caption = (f"*{table['title']}. Measured {data['measured']} on {data['machine']}"
+               + (f" with `{command}`" if command else "") + f" ([data]({data_link}{name}.json)).*")
     return "\n".join(lines) + "\n\n" + caption + "\n"
 
 
@@ -138,8 +151,8 @@ def render_config_reference() -> str:
 
 
 def on_page_markdown(markdown: str, page, config, files) -> str:
-    depth = page.file.src_uri.count("/")
-    markdown = TABLE.sub(lambda m: render_table(m.group(1)).replace("](data/", "](" + "../" * depth + "data/"), markdown)
+    data_link = "../" * page.file.src_uri.count("/") + "data/"
+    markdown = TABLE.sub(lambda m: render_table(m.group(1), m.group(2), data_link), markdown)
     if CONFIG_REFERENCE.search(markdown):
         markdown = CONFIG_REFERENCE.sub(lambda m: render_config_reference(), markdown)
     return markdown
