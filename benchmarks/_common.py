@@ -214,6 +214,13 @@ def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], 
     return path
 
 
+def table_cells(text: str) -> tuple[list[str], list[list[str]]]:
+    """Headers and rows of a table printed by :func:`print_table` (cells without ``|``)."""
+    lines = [line for line in text.splitlines() if line.strip() and set(line) - set("|- ")]
+    cells = [[c.strip() for c in line.strip()[1:-1].split("|")] for line in lines]
+    return cells[0], cells[1:]
+
+
 def write_json(name: str, payload: dict, out: str | Path | None) -> Path:
     path = Path(out) if out is not None else RESULTS_DIR / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
