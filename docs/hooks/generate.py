@@ -25,6 +25,12 @@ DATA_FIELDS = ("measured", "machine", "command", "tables")
 TABLE_FIELDS = ("title", "columns", "rows")
 
 
+def _plain(text: str) -> str:
+    """reStructuredText roles and literals of a docstring as Markdown code: ``:class:`X` `` -> `` `X` ``."""
+    text = re.sub(r":[\w:]+:`~?([^`]+)`", r"`\1`", text)
+    return re.sub(r"``([^`]+)``", r"`\1`", text)
+
+
 def _cell(value) -> str:
     text = "-" if value is None else str(value)
     return text.replace("|", "\\|").replace("\\\\|", "\\|").replace("\n", " ")
@@ -118,7 +124,7 @@ def _settings_rows(cls, prefix: str) -> list[list[str]]:
             continue
         if isinstance(default, tuple):
             default = list(default)
-        doc = field.metadata.get("doc") or comments.get(field.name, "")
+        doc = _plain(field.metadata.get("doc") or comments.get(field.name, ""))
         rows.append([f"`{prefix}{field.name}`", f"`{default!r}`".replace("'", ""), _cell(_type_name(field)),
                      _cell(_accepted(field)), _cell(doc)])
     return rows
@@ -142,7 +148,7 @@ def render_config_reference() -> str:
         settings = getattr(learner, "config_class", None)
         if settings is None or not dataclasses.is_dataclass(settings):
             raise ValueError(f"learner {name!r} ({learner.__name__}) has no settings dataclass in config_class")
-        summary = (inspect.getdoc(settings) or "").split("\n\n")[0].replace("\n", " ")
+        summary = _plain((inspect.getdoc(settings) or "").split("\n\n")[0].replace("\n", " "))
         parts.append(f"### `loss={name}`: `{settings.__name__}`\n\n{summary}\n")
         parts.append("| key | default | type | accepts | what |\n|---|---|---|---|---|")
         parts += ["| " + " | ".join(row) + " |" for row in _settings_rows(settings, "loss.")]
