@@ -21,12 +21,15 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 
 from torchrl_diffenvs import checks
 from torchrl_diffenvs.checks import Settings, checked
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
+# The documentation renders its measured tables from these files (docs/hooks/generate.py)
+DATA_DIR = Path(__file__).resolve().parent.parent / "docs" / "data"
 
 
 @dataclass(frozen=True)
@@ -37,6 +40,9 @@ class BenchmarkSettings(Settings):
     threads: int = checked(1, checks.one_of((1, 2)))  # torch intra-op threads
     repeats: int | None = None  # timed rounds per configuration (default: the script's)
     out: str | None = None  # JSON output path (default benchmarks/results/<name>.json)
+    # the documentation's data file to (re)write: docs/data/<data>.json (default: the script's
+    # own name; quick=true writes none unless data= is given); none: write no data file
+    data: str | None = None
 
 
 _SYNCHRONIZE: list = []  # torch.cuda.synchronize when timing on a GPU
@@ -157,6 +163,62 @@ def print_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str
     text = "\n".join(lines)
     print(text)
     return text
+
+
+def machine_name(device: str = "cpu") -> str:
+    """The machine in words, for the data files: CPU model and count, architecture, torch threads
+    and, on CUDA, the GPU."""
+    import torch
+
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:  # not Linux: platform.processor() it is
+        pass
+    threads = torch.get_num_threads()
+    text = f"{os.cpu_count()}-vCPU {model} ({platform.machine()}), {threads} torch thread{'s' if threads > 1 else ''}"
+    if str(device).startswith("cuda") and torch.cuda.is_available():
+        text += f", {torch.cuda.get_device_name(torch.device(device))}"
+    return text
+
+
+def data_table(title: str, headers: Sequence[str], rows: Sequence[Sequence[object]]) -> dict:
+    """One table of a data file: cells as the benchmark prints them."""
+    return {"title": title, "columns": [str(c) for c in headers], "rows": [[str(c) for c in row] for row in rows]}
+
+
+def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], device: str = "cpu",
+               source: str | None = None) -> Path | None:
+    """Writes the tables the documentation shows (:func:`data_table` each, by key) to
+    ``docs/data/<settings.data or name>.json`` with today's date (UTC), the machine and the command,
+    so the next measurement replaces the one the docs show. Quick runs write nothing unless
+    ``data=`` names a file; ``data=none`` writes nothing."""
+    target = getattr(settings, "data", None)
+    if target == "none" or (target is None and getattr(settings, "quick", False)):
+        return None
+    path = Path(target) if target and (target.endswith(".json") or "/" in target) else DATA_DIR / f"{target or name}.json"
+    script = Path(sys.argv[0]).name if Path(sys.argv[0]).suffix == ".py" else f"{source or name}.py"
+    payload = {
+        "measured": datetime.now(timezone.utc).date().isoformat(),
+        "machine": machine_name(device),
+        "command": " ".join(["python", f"benchmarks/{script}", *sys.argv[1:]]),
+        "source": f"benchmarks/{source or name}.py",
+        "tables": tables,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(payload, indent=1, ensure_ascii=False) + "\n")
+    print(f"# wrote {path}")
+    return path
+
+
+def table_cells(text: str) -> tuple[list[str], list[list[str]]]:
+    """Headers and rows of a table printed by :func:`print_table` (cells without ``|``)."""
+    lines = [line for line in text.splitlines() if line.strip() and set(line) - set("|- ")]
+    cells = [[c.strip() for c in line.strip()[1:-1].split("|")] for line in lines]
+    return cells[0], cells[1:]
 
 
 def write_json(name: str, payload: dict, out: str | Path | None) -> Path:

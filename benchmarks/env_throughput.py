@@ -151,6 +151,49 @@ class EnvThroughputSettings(C.BenchmarkSettings):
     device: str = "cpu"
 
 
+def docs_tables(results: list[dict], args) -> dict:
+    """The tables the documentation shows (docs/performance.md), from the same medians as the printout."""
+    def rate(r, name):
+        c = r["candidates"].get(name)
+        return C.fmt_rate(c["env_steps_per_s_cpu"]["median"]) if c else "-"
+
+    def ratio(r, a, b):  # median over rounds of a / b
+        c = r["candidates"]
+        return C.fmt_ratio(C.median_ratio(c[a]["cpu_rates"], c[b]["cpu_rates"])) if a in c and b in c else "-"
+
+    tables = {"rates": C.data_table(
+        "Env throughput without gradient, env-steps/s from CPU time",
+        ["task", "N", "ours", "EnvBase.rollout", "raw", "raw + resets", "ours / EnvBase", "ours / raw",
+         "ours / raw + resets"],
+        [[r["task"], r["N"], rate(r, "ours"), rate(r, "EnvBase.rollout"), rate(r, "raw"), rate(r, "raw + resets"),
+          ratio(r, "ours", "EnvBase.rollout"), ratio(r, "ours", "raw"), ratio(r, "ours", "raw + resets")]
+         for r in results])}
+    peers = ("gymnasium SyncVectorEnv", "gymnasium vectorised CartPole", "torchrl PendulumEnv")
+    peer_rows = [r for r in results if any(p in r["candidates"] for p in peers)]
+    if peer_rows:
+        tables["peers"] = C.data_table(
+            "Against Gymnasium's vector envs and TorchRL's PendulumEnv, env-steps/s",
+            ["task", "N", "ours", "gymnasium SyncVectorEnv", "ours / Sync", "gymnasium vectorised CartPole",
+             "ours / vectorised", "TorchRL PendulumEnv", "ours / TorchRL"],
+            [[r["task"], r["N"], rate(r, "ours"), *[cell for p in peers for cell in (rate(r, p), ratio(r, "ours", p))]]
+             for r in peer_rows])
+    if args.compile:
+        tables["compile"] = C.data_table(
+            "compile_physics(env, steps_per_chunk=8) against eager, env-steps/s",
+            ["task", "N", "ours (eager)", "ours compiled", "raw (eager)", "first rollout s", "compiled/eager",
+             "compiled/raw"],
+            [[r["task"], r["N"], rate(r, "ours"), rate(r, "ours compiled"), rate(r, "raw"),
+              f"{r['compile_seconds']:.1f}", ratio(r, "ours compiled", "ours"), ratio(r, "ours compiled", "raw")]
+             for r in results])
+    if args.policy:
+        tables["policy"] = C.data_table(
+            "With make_actor's policy: ours against a raw loop with the same network, env-steps/s",
+            ["task", "N", "ours + policy", "raw + policy", "ratio"],
+            [[r["task"], r["N"], rate(r, "ours + policy"), rate(r, "raw + policy"),
+              ratio(r, "ours + policy", "raw + policy")] for r in results])
+    return tables
+
+
 def main(argv=None) -> dict:
     args = parse_cli(EnvThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
@@ -286,6 +329,7 @@ def main(argv=None) -> dict:
                       [[r["task"], r["N"], C.fmt_rate(r["candidates"]["ours + policy"]["env_steps_per_s_cpu"]["median"]),
                         C.fmt_rate(r["candidates"]["raw + policy"]["env_steps_per_s_cpu"]["median"]),
                         C.fmt_ratio(r["ratios_cpu"]["ours + policy / raw + policy"])] for r in results])
+    C.write_data(args, "env_throughput", docs_tables(results, args), device)
     for row in results:
         for c in row["candidates"].values():
             c.pop("cpu_rates")

@@ -110,6 +110,7 @@ class GradientThroughputSettings(C.BenchmarkSettings):
 
 def main(argv=None) -> dict:
     args = parse_cli(GradientThroughputSettings, argv, __doc__)
+    printed = {}  # headers and rows of the printed tables: the docs' data file holds them too
     C.setup_threads(args.threads)
 
     import torch
@@ -180,15 +181,16 @@ def main(argv=None) -> dict:
                         f"{k}={C.fmt_rate(v['env_steps_per_s_cpu']['median'])}" for k, v in row["candidates"].items()))
 
     print("\n## forward + backward, env-steps/s (median over rounds, CPU time) and ratios")
-    table = C.print_table(
+    printed["throughput"] = (
         ["task", "mode", "H", "N", "ours", "EnvBase.rollout", "raw", "ours/EnvBase", "ours/raw"],
         [[r["task"], r["mode"], r["H"], r["N"],
           *[C.fmt_rate(r["candidates"][k]["env_steps_per_s_cpu"]["median"]) for k in ("ours", "EnvBase.rollout", "raw")],
           C.fmt_ratio(r["ratios_cpu"]["ours / EnvBase.rollout"]), C.fmt_ratio(r["ratios_cpu"]["ours / raw"])]
          for r in results],
     )
+    table = C.print_table(*printed["throughput"])
     print("\n## memory per env-step (bytes): saved for backward / held until backward")
-    memory_table = C.print_table(
+    printed["memory"] = (
         ["task", "mode", "H", "N", "must keep (raw saved)", "ours saved", "ours held", "EnvBase held",
          "ours held / must keep"],
         [[r["task"], r["mode"], r["H"], r["N"], f"{r['memory']['raw']['saved_bytes_per_env_step']:.0f}",
@@ -196,9 +198,14 @@ def main(argv=None) -> dict:
           f"{r['memory']['EnvBase.rollout']['held_bytes_per_env_step']:.0f}",
           C.fmt_ratio(r["memory"]["ours_held_over_must_keep"])] for r in results],
     )
+    memory_table = C.print_table(*printed["memory"])
     payload = {"benchmark": "gradient_throughput", "info": info, "rounds": rounds, "results": results,
                "table": table, "memory_table": memory_table}
     C.write_json("gradient_throughput" + ("_quick" if quick else ""), payload, args.out)
+    C.write_data(args, "gradient_throughput", {
+        "throughput": C.data_table("Forward + backward through a window of H steps, env-steps/s", *printed["throughput"]),
+        "memory": C.data_table("Memory per env-step (bytes) kept for backward", *printed["memory"]),
+    })
     return payload
 
 

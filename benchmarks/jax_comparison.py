@@ -300,6 +300,8 @@ def main(argv=None) -> dict:
     payload = {"benchmark": "jax_comparison", "info": info, "results": results, "table": table,
                "jax_skipped": missing}
     C.write_json("jax_comparison" + ("_quick" if quick else ""), payload, args.out)
+    C.write_data(args, "jax_comparison", {"comparison": C.data_table(
+        "Side by side with JAX: env-steps/s from CPU time, one thread", headers, rows)}, device)
     return payload
 
 

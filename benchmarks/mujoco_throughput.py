@@ -145,6 +145,10 @@ def main(argv=None) -> dict:
                            "ours / gymnasium"], rows)
     payload = {"benchmark": "mujoco_throughput", "info": info, "results": results, "table": table}
     C.write_json("mujoco_throughput", payload, args.out)
+    C.write_data(args, "mujoco_throughput", {"rates": C.data_table(
+        "MuJoCo tasks: env-steps/s, one thread, from CPU time",
+        ["task", "N", "ours", "ours fwd+bwd", "gymnasium, 1 env", "SyncVectorEnv", "mj_step (C)", "ours / gymnasium"],
+        rows)})
     return payload
 
 

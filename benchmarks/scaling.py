@@ -141,6 +141,10 @@ def main(argv=None) -> dict:
     payload = {"benchmark": "scaling", "info": info, "settings": vars(args) if hasattr(args, "__dict__") else {},
                "summary": summary, "runs": runs, "table": table}
     C.write_json(f"scaling_{args.scaling}" + ("_quick" if args.quick else ""), payload, args.out)
+    data_name = f"scaling_{args.scaling}" + ("" if args.env == "pendulum" else f"_{args.env}")
+    C.write_data(args, data_name, {"scaling": C.data_table(
+        f"Data parallel, {args.env}, {args.scaling} scaling ({batch}), one torch thread per rank "
+        "(medians [min, max] over seeds)", *C.table_cells(table))}, source="scaling")
     if args.keep_runs is None:
         shutil.rmtree(runs_root, ignore_errors=True)
     return payload

@@ -279,6 +279,10 @@ def main(argv=None) -> dict:
         r["curve"] = [list(p) for p in r["curve"]]
     payload = {"benchmark": "time_to_solve", "info": info, "summary": summary, "runs": runs, "table": table}
     C.write_json("time_to_solve" + ("_quick" if quick else ""), payload, args.out)
+    C.write_data(args, "time_to_solve_" + "_".join(envs), {"levels": C.data_table(
+        f"Time to solve: {', '.join(envs)} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''}; median [min, max]; "
+        "t (seeds that reached it, speed-up against PPO))", *C.table_cells(table))},
+        source="time_to_solve")
     if args.keep_runs is None:
         shutil.rmtree(runs_root, ignore_errors=True)
     return payload

@@ -1,0 +1,164 @@
+"""MkDocs hook: fills the pages' generated parts at build time.
+
+* ``{{ table NAME }}`` becomes the Markdown table of ``docs/data/NAME.json`` (written by the
+  benchmark that measured it), followed by its date, machine and command. Numbers are never
+  pasted into the pages: re-running the benchmark rewrites the data file and the next build
+  shows the new measurement.
+* ``{{ config_reference }}`` becomes the reference of every learner's settings, read from the
+  settings dataclasses themselves (field, default, accepted values, description).
+
+A missing data file or learner raises, so ``mkdocs build --strict`` (CI) fails loudly.
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+import re
+import warnings
+from pathlib import Path
+
+DATA_DIR = Path(__file__).resolve().parent.parent / "data"
+TABLE = re.compile(r"\{\{\s*table\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?\s*\}\}")
+CONFIG_REFERENCE = re.compile(r"\{\{\s*config_reference\s*\}\}")
+DATA_FIELDS = ("measured", "machine", "command", "tables")
+TABLE_FIELDS = ("title", "columns", "rows")
+
+
+def _plain(text: str) -> str:
+    """reStructuredText roles and literals of a docstring as Markdown code: ``:class:`X` `` -> `` `X` ``."""
+    text = re.sub(r":[\w:]+:`~?([^`]+)`", r"`\1`", text)
+    return re.sub(r"``([^`]+)``", r"`\1`", text)
+
+
+def _cell(value) -> str:
+    text = "-" if value is None else str(value)
+    return text.replace("|", "\\|").replace("\\\\|", "\\|").replace("\n", " ")
+
+
+def load_data(name: str) -> dict:
+    """The data file ``docs/data/<name>.json``, checked for the fields every data file needs."""
+    path = DATA_DIR / f"{name}.json"
+    if not path.is_file():
+        valid = ", ".join(sorted(p.stem for p in DATA_DIR.glob("*.json")))
+        raise ValueError(f"{{{{ table {name} }}}}: no data file {path}; valid: {valid}")
+    data = json.loads(path.read_text())
+    missing = [key for key in DATA_FIELDS if key not in data]
+    if missing:
+        raise ValueError(f"{path}: missing field(s) {', '.join(missing)}; every data file needs {', '.join(DATA_FIELDS)}")
+    for key, table in data["tables"].items():
+        missing = [field for field in TABLE_FIELDS if field not in table]
+        if missing:
+            raise ValueError(f"{path}: table {key!r} lacks {', '.join(missing)}")
+        for i, row in enumerate(table["rows"]):
+            if len(row) != len(table["columns"]):
+                raise ValueError(f"{path}: table {key!r}, row {i} has {len(row)} cells for {len(table['columns'])} columns")
+    return data
+
+
+def render_table(name: str, key: str | None, data_link: str) -> str:
+    """``{{ table name }}`` (a data file with one table) or ``{{ table name:key }}``, as Markdown."""
+    data = load_data(name)
+    tables = data["tables"]
+    if key is None and len(tables) != 1:
+        raise ValueError(f"{{{{ table {name} }}}}: the file holds {len(tables)} tables; name one: "
+                         + ", ".join(f"{name}:{k}" for k in tables))
+    if key is not None and key not in tables:
+        raise ValueError(f"{{{{ table {name}:{key} }}}}: no table {key!r}; valid: {', '.join(tables)}")
+    table = tables[key] if key is not None else next(iter(tables.values()))
+    lines = ["| " + " | ".join(_cell(c) for c in table["columns"]) + " |",
+             "|" + "|".join("---" for _ in table["columns"]) + "|"]
+    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in table["rows"]]
+    command = data["command"]
+    caption = (f"*{table['title']}. Measured {data['measured']} on {data['machine']}"
+               + (f" with `{command}`" if command else "") + f" ([data]({data_link}{name}.json)).*")
+    return "\n".join(lines) + "\n\n" + caption + "\n"
+
+
+# --------------------------------------------------------------------------- config reference
+
+def _field_comments(cls) -> dict[str, str]:
+    """``name -> trailing comment`` of the field lines in the class bodies along the MRO."""
+    comments: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        try:
+            source = inspect.getsource(klass)
+        except (OSError, TypeError):
+            continue
+        for match in re.finditer(r"^\s+(\w+)\s*:[^=\n]*=.*?#\s*(.+)$", source, flags=re.MULTILINE):
+            comments[match.group(1)] = match.group(2).strip()
+    return comments
+
+
+def _accepted(field: dataclasses.Field) -> str:
+    """What a field accepts, in the words of its check's error message."""
+    check = field.metadata.get("check")
+    if check is None:
+        return ""
+    for probe in (object(), "?", -1, 0, None):
+        try:
+            message = check(probe)
+        except Exception:  # a check that cannot even look at the probe says nothing
+            continue
+        if message:
+            return message.removeprefix("expected ").replace("valid: ", "one of ")
+    return ""
+
+
+def _default(field: dataclasses.Field):
+    if field.default_factory is not dataclasses.MISSING:
+        return field.default_factory()
+    return field.default
+
+
+def _type_name(field: dataclasses.Field) -> str:
+    return field.type if isinstance(field.type, str) else getattr(field.type, "__name__", str(field.type))
+
+
+def _settings_rows(cls, prefix: str) -> list[list[str]]:
+    rows, comments = [], _field_comments(cls)
+    for field in dataclasses.fields(cls):
+        default = _default(field)
+        if dataclasses.is_dataclass(default):  # nested settings (e.g. the networks): their own rows
+            rows += _settings_rows(type(default), f"{prefix}{field.name}.")
+            continue
+        if isinstance(default, tuple):
+            default = list(default)
+        doc = _plain(field.metadata.get("doc") or comments.get(field.name, ""))
+        rows.append([f"`{prefix}{field.name}`", f"`{default!r}`".replace("'", ""), _cell(_type_name(field)),
+                     _cell(_accepted(field)), _cell(doc)])
+    return rows
+
+
+def _learners() -> dict:
+    with warnings.catch_warnings():  # TorchRL's import-time deprecation notices are not the docs' warnings
+        warnings.simplefilter("ignore")
+        from torchrl_diffenvs import learners
+
+    registry = getattr(learners, "LEARNERS", None)
+    if not registry:
+        raise ValueError("torchrl_diffenvs.learners.LEARNERS is missing or empty: the config reference "
+                         "lists the learners registered there")
+    return dict(registry)
+
+
+def render_config_reference() -> str:
+    parts = []
+    for name, learner in _learners().items():
+        settings = getattr(learner, "config_class", None)
+        if settings is None or not dataclasses.is_dataclass(settings):
+            raise ValueError(f"learner {name!r} ({learner.__name__}) has no settings dataclass in config_class")
+        summary = _plain((inspect.getdoc(settings) or "").split("\n\n")[0].replace("\n", " "))
+        parts.append(f"### `loss={name}`: `{settings.__name__}`\n\n{summary}\n")
+        parts.append("| key | default | type | accepts | what |\n|---|---|---|---|---|")
+        parts += ["| " + " | ".join(row) + " |" for row in _settings_rows(settings, "loss.")]
+        parts.append("")
+    return "\n".join(parts)
+
+
+def on_page_markdown(markdown: str, page, config, files) -> str:
+    data_link = "../" * page.file.src_uri.count("/") + "data/"
+    markdown = TABLE.sub(lambda m: render_table(m.group(1), m.group(2), data_link), markdown)
+    if CONFIG_REFERENCE.search(markdown):
+        markdown = CONFIG_REFERENCE.sub(lambda m: render_config_reference(), markdown)
+    return markdown
