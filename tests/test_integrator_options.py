@@ -121,3 +121,56 @@ def test_gradcheck_one_step_through_contact(name, options):
     reward, _, _ = fn(*inputs)
     assert torch.isfinite(reward).all()
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def _one_step(env, qpos, qvel, action):
+    extras = {k: v for k, v in env.initial_state(env.params, qpos.shape[0]).items() if k not in ("qpos", "qvel")}
+    return env.transition({**extras, "qpos": qpos, "qvel": qvel}, action, env.params)
+
+
+@pytest.mark.parametrize("name", ["Hopper-v5", "Walker2d-v5", "Ant-v5"])
+def test_posture_gradient_keeps_gymnasiums_rewards_and_adds_the_posture_terms_gradient(name):
+    """posture_gradient_scale=k: the reward values are unchanged; d reward / d action gains exactly
+    k x the gradient of the hand-written posture terms at the next state."""
+    plain = make_env(name, num_envs=3, dtype=torch.float64, seed=0)
+    shaped = make_env(name, num_envs=3, dtype=torch.float64, seed=0, posture_gradient_scale=2.0)
+    qpos, qvel = lowered_onto_floor(plain, 3, depth=0.003)
+    action = torch.full((3, plain.action_dim), 0.3, dtype=torch.float64, requires_grad=True)
+    _, r_plain, _ = _one_step(plain, qpos, qvel, action)
+    next_state, r_shaped, _ = _one_step(shaped, qpos, qvel, action)
+    torch.testing.assert_close(r_shaped, r_plain, rtol=0, atol=0)
+    q = next_state["qpos"]
+    z = q[:, shaped.height_coordinate] - shaped.params["healthy_z_low"]
+    h = torch.clamp(z, -1.0, 0.3)
+    hand = torch.where(h < 0, -200 * h * h, h)
+    if name == "Ant-v5":
+        quat = q[:, 3:7] / q[:, 3:7].norm(dim=-1, keepdim=True)
+        hand = hand + 0.1 * (1 - 2 * (quat[:, 1] ** 2 + quat[:, 2] ** 2))
+    else:
+        hand = hand + 1 - (q[:, 2] / shaped.params["healthy_angle_high"]) ** 2
+    (g_plain,) = torch.autograd.grad(r_plain.sum(), action)
+    (g_shaped,) = torch.autograd.grad(r_shaped.sum(), action, retain_graph=True)
+    (g_hand,) = torch.autograd.grad(hand.sum(), action)
+    assert g_hand.abs().max() > 1e-5  # the posture terms do move with the action (the Ant: 2e-4)
+    torch.testing.assert_close(g_shaped, g_plain + 2.0 * g_hand)
+
+
+def test_ant_cfrc_ext_gradient_option_keeps_values_and_stops_their_gradient():
+    on = make_env("Ant-v5", num_envs=2, dtype=torch.float64, seed=0)
+    off = make_env("Ant-v5", num_envs=2, dtype=torch.float64, seed=0, cfrc_ext_gradient=False)
+    qpos, qvel = lowered_onto_floor(on, 2, depth=0.003)
+    action = torch.full((2, on.action_dim), 0.3, dtype=torch.float64, requires_grad=True)
+    obs_on = on.observation(_one_step(on, qpos, qvel, action)[0], on.params)
+    obs_off = off.observation(_one_step(off, qpos, qvel, action)[0], off.params)
+    torch.testing.assert_close(obs_on, obs_off, rtol=0, atol=0)
+    forces = slice(27, 105)  # the 78 cfrc_ext features
+    assert obs_on[:, forces].abs().max() > 0
+    (g_on,) = torch.autograd.grad(obs_on[:, forces].sum(), action, retain_graph=True)
+    assert g_on.abs().max() > 0
+    (g_off,) = torch.autograd.grad(obs_off[:, forces].sum(), action, retain_graph=True)
+    assert torch.equal(g_off, torch.zeros_like(g_off))
+    (g_off_rest,) = torch.autograd.grad(obs_off[:, :27].sum(), action)
+    (g_on_rest,) = torch.autograd.grad(obs_on[:, :27].sum(), action)  # the graph kept by retain_graph above
+    torch.testing.assert_close(g_off_rest, g_on_rest)
+    with pytest.raises(ValueError, match="cfrc_ext_gradient must be true or false"):
+        make_env("Ant-v5", num_envs=1, cfrc_ext_gradient="no")

@@ -28,7 +28,11 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     ``("state", "torso_xy")`` and ``("state", "cfrc_ext")``; ``cfrc_ext`` is 0 after a reset.
 
     ``healthy_gradient_width`` / ``healthy_gradient_scale``: a surrogate gradient for the healthy
-    bonus at the torso height's bounds (:class:`~.healthy.HealthySurrogate`).
+    bonus at the torso height's bounds; ``posture_gradient_scale``: the gradient of dense height
+    and uprightness terms (both straight-through: rewards stay Gymnasium's;
+    :class:`~.healthy.HealthySurrogate`). ``cfrc_ext_gradient=False``: the observation's
+    ``cfrc_ext`` features keep their values but carry no gradient (their derivatives are the
+    contact stiffness and the stick-slip friction slope, which dominate the actor's gradient).
     """
 
     name = "Ant-v5"
@@ -47,11 +51,16 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     height_coordinate = 2  # the free joint's z
 
     def __init__(self, num_envs: int = 1, *, exclude_current_positions_from_observation: bool = True,
-                 include_cfrc_ext_in_observation: bool = True, healthy_gradient_width: float = 0.0,
-                 healthy_gradient_scale: float = 1.0, **kwargs):
+                 include_cfrc_ext_in_observation: bool = True, cfrc_ext_gradient: bool = True,
+                 healthy_gradient_width: float = 0.0, healthy_gradient_scale: float = 1.0,
+                 posture_gradient_scale: float = 0.0, **kwargs):
         self.exclude_current_positions = bool(exclude_current_positions_from_observation)
         self.include_cfrc_ext = bool(include_cfrc_ext_in_observation)
+        if not isinstance(cfrc_ext_gradient, bool):
+            raise ValueError(f"{self.name}: cfrc_ext_gradient must be true or false, got {cfrc_ext_gradient!r}")
+        self.cfrc_ext_gradient = cfrc_ext_gradient
         self._set_healthy_gradient(healthy_gradient_width, healthy_gradient_scale)
+        self._set_posture_gradient(posture_gradient_scale)
         super().__init__(num_envs, **kwargs)
 
     def contact_wrenches(self, qpos, qvel, params):
@@ -85,7 +94,8 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
         contact_cost = params["contact_cost_weight"] * (self.contact_forces(next_state, params) ** 2).sum((-1, -2))
         bonus = self.healthy_bonus(healthy, result.qpos, result.qvel, params)
         reward = (params["forward_reward_weight"] * x_velocity + bonus
-                  - params["ctrl_cost_weight"] * (action**2).sum(-1) - contact_cost)
+                  - params["ctrl_cost_weight"] * (action**2).sum(-1) - contact_cost
+                  + self.posture_gradient(result.qpos, params))
         terminated = ~healthy & (params["terminate_when_unhealthy"] > 0)
         return next_state, reward, terminated
 
@@ -93,5 +103,8 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
         qpos = state["qpos"][:, 2:] if self.exclude_current_positions else state["qpos"]
         parts = [qpos, state["qvel"]]
         if self.include_cfrc_ext:
-            parts.append(self.contact_forces(state, params)[:, 1:].flatten(1))
+            forces = self.contact_forces(state, params)[:, 1:].flatten(1)
+            # their derivatives are the contact stiffness and the friction slope mu f_n / v_eps:
+            # cfrc_ext_gradient=False keeps the values and stops that gradient
+            parts.append(forces if self.cfrc_ext_gradient else forces.detach())
         return torch.cat(parts, dim=-1)

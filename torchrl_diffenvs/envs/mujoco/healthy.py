@@ -39,6 +39,35 @@ class HealthySurrogate:
         self.healthy_gradient_width = float(width)
         self.healthy_gradient_scale = float(scale)
 
+    def _set_posture_gradient(self, scale) -> None:
+        """Checks and keeps ``posture_gradient_scale`` (called by the task's ``__init__``)."""
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0.0 <= scale < float("inf"):
+            raise ValueError(f"{self.name}: posture_gradient_scale must be a finite number >= 0 (0: off), got {scale!r}")
+        self.posture_gradient_scale = float(scale)
+
+    def posture_score(self, qpos, params):
+        """``[N]`` dense posture terms in the spirit of DiffRL's locomotion rewards: the torso height
+        above the healthy floor ``h = clip(z - healthy_z_low, -1, 0.3)`` (``-200 h^2`` below it),
+        plus uprightness: ``1 - (angle / healthy_angle_high)^2`` for a planar runner with an angle
+        range, ``0.1 * (the torso's up axis . z)`` for a free-floating torso (the Ant)."""
+        height = torch.clamp(qpos[:, self.height_coordinate] - params["healthy_z_low"], -1.0, 0.3)
+        score = torch.where(height < 0, -200.0 * height * height, height)
+        if self.height_coordinate == 2:  # a free joint: qpos[3:7] is the torso's quaternion (w, x, y, z)
+            w, x, y, z = (qpos[:, 3:7] / qpos[:, 3:7].norm(dim=-1, keepdim=True)).unbind(-1)
+            score = score + 0.1 * (1 - 2 * (x * x + y * y))
+        elif "healthy_angle_high" in params.keys():
+            score = score + 1 - (qpos[:, 2] / params["healthy_angle_high"]) ** 2
+        return score
+
+    def posture_gradient(self, qpos, params):
+        """``[N]``, exactly zero in value: ``posture_gradient_scale`` x the gradient of
+        :meth:`posture_score` (straight-through), so gradient learners feel "stay up and upright"
+        while every reward value stays Gymnasium's."""
+        if self.posture_gradient_scale == 0:
+            return torch.zeros_like(qpos[:, 0])
+        score = self.posture_score(qpos, params)
+        return self.posture_gradient_scale * (score - score.detach())
+
     def _healthy_bounds(self, qpos, qvel, params):
         """``(value [N, k], low [N, 1], high [N, 1])`` of every healthy range of the task."""
         for name, what in self.healthy_ranges.items():

@@ -17,7 +17,8 @@ class PlanarLocomotionEnv(HealthySurrogate, MuJoCoModelEnv):
     (``qvel ~ s N(0, 1)`` where ``velocity_noise = "normal"``), ``s = reset_noise_scale``.
 
     ``healthy_gradient_width`` / ``healthy_gradient_scale``: a surrogate gradient for the healthy
-    bonus (:class:`~.healthy.HealthySurrogate`).
+    bonus; ``posture_gradient_scale``: the gradient of dense height and uprightness terms (both
+    straight-through: reward values stay Gymnasium's; :class:`~.healthy.HealthySurrogate`).
 
     Dynamics: MuJoCo's model and integrator, with a smooth penalty contact instead of MuJoCo's
     soft-constraint solver (see the README, "Articulated robots"): trajectories differ from
@@ -29,9 +30,14 @@ class PlanarLocomotionEnv(HealthySurrogate, MuJoCoModelEnv):
     clip_velocity: float | None = None
 
     def __init__(self, num_envs: int = 1, *, exclude_current_positions_from_observation: bool = True,
-                 healthy_gradient_width: float = 0.0, healthy_gradient_scale: float = 1.0, **kwargs):
+                 healthy_gradient_width: float = 0.0, healthy_gradient_scale: float = 1.0,
+                 posture_gradient_scale: float = 0.0, **kwargs):
         self.exclude_current_positions = bool(exclude_current_positions_from_observation)
         self._set_healthy_gradient(healthy_gradient_width, healthy_gradient_scale)
+        self._set_posture_gradient(posture_gradient_scale)
+        if posture_gradient_scale > 0 and not self.healthy_ranges:
+            raise ValueError(f"{self.name}: posture_gradient_scale applies to tasks with a healthy height "
+                             f"(Hopper-v5, Walker2d-v5, Ant-v5); {self.name} has none")
         super().__init__(num_envs, **kwargs)
 
     def initial_state(self, params, n):
@@ -51,6 +57,7 @@ class PlanarLocomotionEnv(HealthySurrogate, MuJoCoModelEnv):
         if self.healthy_ranges:
             healthy = self.healthy(result.qpos, result.qvel, params)
             reward = reward + self.healthy_bonus(healthy, result.qpos, result.qvel, params)
+            reward = reward + self.posture_gradient(result.qpos, params)
             terminated = ~healthy & (params["terminate_when_unhealthy"] > 0)
         return {"qpos": result.qpos, "qvel": result.qvel}, reward, terminated
 
