@@ -174,3 +174,36 @@ def test_ant_cfrc_ext_gradient_option_keeps_values_and_stops_their_gradient():
     torch.testing.assert_close(g_off_rest, g_on_rest)
     with pytest.raises(ValueError, match="cfrc_ext_gradient must be true or false"):
         make_env("Ant-v5", num_envs=1, cfrc_ext_gradient="no")
+
+
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+def test_step_reports_the_largest_contact_normal_force_at_the_evaluated_state(integrator):
+    """StepResult.contact_force is max over the contact points of the normal force at the state
+    the step evaluated last (Euler: the start; RK4: the fourth stage), recomputed here by hand from
+    the penetration depth and normal velocity."""
+    import torch.nn.functional as F
+
+    from torchrl_diffenvs.articulated.dynamics import body_velocities
+
+    env = make_env("Hopper-v5", num_envs=3, dtype=torch.float64, seed=0, integrator=integrator)
+    tree, params = env.tree, env.params
+    qpos, qvel = lowered_onto_floor(env, 3, depth=0.004)
+    r = step(tree, qpos, qvel, torch.zeros(3, env.action_dim, dtype=torch.float64), params, env.model.timestep,
+             integrator, dof_invweight0(tree, params))
+    kin = forward_kinematics(tree, r.eval_qpos)
+    rot = kin.body_rot[:, tree.contact_body]
+    centre = kin.body_pos[:, tree.contact_body] + (rot @ tree.contact_local.unsqueeze(-1)).squeeze(-1)
+    depth_signed = centre[..., 2] - tree.contact_radius  # the floor is z = 0
+    point = centre.clone()
+    point[..., 2] -= tree.contact_radius
+    vel = body_velocities(tree, kin, r.eval_qvel)[:, tree.contact_body]
+    v_point = vel[..., 3:] + torch.linalg.cross(vel[..., :3], point - kin.origin.unsqueeze(1))
+    w = params["contact_width"].unsqueeze(-1)
+    normal = params["contact_stiffness"].unsqueeze(-1) * F.softplus(-depth_signed / w) * w \
+        - params["contact_damping"].unsqueeze(-1) * torch.sigmoid(-depth_signed / w) * v_point[..., 2]
+    expected = normal.clamp(min=0).amax(-1)
+    assert expected.max() > 100.0  # pushing (an env whose foot moves up may already be free)
+    torch.testing.assert_close(r.contact_force, expected)
+    swimmer = make_env("Swimmer-v5", num_envs=1)  # no contacts: no force reported
+    start = {"qpos": swimmer.tree.qpos0[None], "qvel": torch.zeros(1, swimmer.tree.nv)}
+    assert swimmer.simulate(start, torch.zeros(1, 2), swimmer.params).contact_force is None

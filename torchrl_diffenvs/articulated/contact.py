@@ -62,7 +62,8 @@ def body_contact_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Para
     return out.index_add(1, tree.contact_body, wrench)
 
 
-def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, with_damping=False):
+def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, with_damping=False,
+                  contacts: _ContactForces | None = None):
     """``[N, nv]`` generalised force of the smooth ground contacts.
 
     Each contact point (a capsule end, a sphere, a box corner) with signed distance ``d`` to a
@@ -74,12 +75,13 @@ def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, para
 
     ``with_damping=True`` also returns ``C [N, nv, nv]``, the (positive semi-definite) velocity
     damping of these forces, ``-d(force)/d(qvel)`` with the friction direction held fixed: the
-    Euler integrator treats it implicitly, as MuJoCo treats joint damping.
+    Euler integrator treats it implicitly, as MuJoCo treats joint damping. ``contacts``: the
+    points' forces (:func:`_contact_points_and_forces`) when the caller has them.
     """
     if tree.contact_body.numel() == 0:
         zero = qvel.new_zeros(qvel.shape)
         return (zero, qvel.new_zeros(*qvel.shape, qvel.shape[-1])) if with_damping else zero
-    c = _contact_points_and_forces(tree, kin, qvel, params)
+    c = _contact_points_and_forces(tree, kin, qvel, params) if contacts is None else contacts
     point, force, normal, damping, touching = c.point, c.force, c.normal, c.damping, c.touching
     normal_force, mu, slip = c.normal_force, c.mu, c.slip
     lever = point - kin.origin.unsqueeze(1)

@@ -22,6 +22,7 @@ class StepResult(NamedTuple):
     qvel: torch.Tensor
     eval_qpos: torch.Tensor
     eval_qvel: torch.Tensor
+    contact_force: torch.Tensor | None = None  # [N] the largest contact normal force at the evaluated state
 
 
 def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,
@@ -31,7 +32,8 @@ def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integ
     Besides the new state, returns the state at which MuJoCo evaluated the forward dynamics last
     (the start state for Euler, the fourth stage for RK4): after ``mj_step`` MuJoCo's derived
     quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
-    observations and rewards read some of them. ``invweight0``: :func:`dof_invweight0` of
+    observations and rewards read some of them, and the largest contact normal force there
+    (``contact_force [N]``, detached; None without contacts). ``invweight0``: :func:`dof_invweight0` of
     ``params``, if the caller has it.
     """
     # the params are the same at every stage: the limits' regulariser scale is computed once
@@ -40,9 +42,10 @@ def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integ
     if w0 is None and tree.limit_dof.numel():
         w0 = dof_invweight0(tree, params)
     if integrator == "euler":
-        qacc = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt, invweight0=w0)
+        qacc, largest = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt, invweight0=w0,
+                                      with_contact_force=True)
         new_qvel = qvel + dt * qacc
-        return StepResult(integrate_position(tree, qpos, new_qvel, dt), new_qvel, qpos, qvel)
+        return StepResult(integrate_position(tree, qpos, new_qvel, dt), new_qvel, qpos, qvel, largest)
     if integrator != "rk4":
         raise ValueError(f"unknown integrator {integrator!r}; valid: 'euler', 'rk4'")
     # MuJoCo's mj_RungeKutta with the classic tableau
@@ -53,7 +56,7 @@ def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integ
     acc3 = accelerations(tree, integrate_position(tree, qpos, vel2, 0.5 * dt), vel3, ctrl, params, invweight0=w0)
     vel4 = qvel + dt * acc3
     pos4 = integrate_position(tree, qpos, vel3, dt)
-    acc4 = accelerations(tree, pos4, vel4, ctrl, params, invweight0=w0)
+    acc4, largest = accelerations(tree, pos4, vel4, ctrl, params, invweight0=w0, with_contact_force=True)
     new_qpos = integrate_position(tree, qpos, (qvel + 2 * vel2 + 2 * vel3 + vel4) / 6, dt)
     new_qvel = qvel + dt / 6 * (acc1 + 2 * acc2 + 2 * acc3 + acc4)
-    return StepResult(new_qpos, new_qvel, pos4, vel4)
+    return StepResult(new_qpos, new_qvel, pos4, vel4, largest)

@@ -2,9 +2,11 @@
 :func:`accelerations`. Each stage lives in its own module."""
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
-from .contact import contact_force
+from .contact import _contact_points_and_forces, contact_force
 from .forces import actuator_force, passive_force
 from .inertia import dof_invweight0, mass_matrix_and_bias
 from .kinematics import forward_kinematics
@@ -15,7 +17,15 @@ from .tree import RigidBodyTree
 __all__ = ['accelerations', 'constraint_force']
 
 
-def _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=False):
+class SmoothForces(NamedTuple):
+    """Every force but the joint limits, at one state."""
+
+    force: torch.Tensor  # [N, nv] motors + passive + contact - bias
+    damping: torch.Tensor | None  # [N, nv, nv] their velocity damping (for the implicit Euler), if asked
+    largest_contact: torch.Tensor | None  # [N] the largest contact normal force (newtons), None without contacts
+
+
+def _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=False) -> SmoothForces:
     """Motors + passive forces + ground contact - bias: every force but the joint limits.
 
     ``with_damping``: also ``D [N, nv, nv]``, the velocity damping of these forces that the
@@ -23,17 +33,20 @@ def _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=False)
     """
     force = actuator_force(tree, ctrl, tree.nv) + passive_force(tree, kin, qpos, qvel, params) - bias
     damping = torch.diag_embed(params["damping"]) if with_damping else None
+    largest = None
     if tree.contact_body.numel():
-        contact = contact_force(tree, kin, qvel, params, with_damping=with_damping)
+        contacts = _contact_points_and_forces(tree, kin, qvel, params)
+        largest = contacts.normal_force.detach().amax(-1)
+        contact = contact_force(tree, kin, qvel, params, with_damping=with_damping, contacts=contacts)
         if with_damping:
             contact, contact_damping = contact
             damping = damping + contact_damping
         force = force + contact
-    return (force, damping) if with_damping else force
+    return SmoothForces(force, damping, largest)
 
 
 def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, implicit_damping_dt=None,
-                  invweight0=None):
+                  invweight0=None, with_contact_force=False):
     """``qacc [N, nv]`` of MuJoCo's forward dynamics: the simulator's pipeline, stage by stage.
 
     1. kinematics: body poses and dof motion axes (:mod:`.kinematics`);
@@ -47,13 +60,13 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     with ``M + h D``: joint damping treated implicitly (MuJoCo), and here the contact's velocity
     damping too (explicit contact friction and damping at MuJoCo's 0.01 s steps would be unstable).
     ``invweight0``: :func:`dof_invweight0` of ``params`` when the caller has it (computed if not).
+    ``with_contact_force``: also return the largest contact normal force ``[N]`` (detached; None
+    for a model without contacts), as ``(qacc, largest)``.
     """
     implicit = implicit_damping_dt is not None
     kin = forward_kinematics(tree, qpos)
     mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
-    force = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=implicit)
-    if implicit:
-        force, damping = force
+    force, damping, largest = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=implicit)
     if tree.limit_dof.numel():
         mass_inv = _inverse(mass)
         smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
@@ -61,14 +74,15 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
         force = force + limit_force(tree, qpos, qvel, smooth_acc, mass_inv, invweight0)
     if implicit:
         mass = mass + implicit_damping_dt * damping
-    return _solve(mass, force)
+    qacc = _solve(mass, force)
+    return (qacc, largest) if with_contact_force else qacc
 
 
 def constraint_force(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params) -> torch.Tensor:
     """MuJoCo's ``qfrc_constraint [N, nv]`` at a state: the joint-limit forces (contact is a smooth force here)."""
     kin = forward_kinematics(tree, qpos)
     mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
-    force = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias)
+    force = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias).force
     mass_inv = _inverse(mass)
     smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
     return limit_force(tree, qpos, qvel, smooth_acc, mass_inv, dof_invweight0(tree, params))

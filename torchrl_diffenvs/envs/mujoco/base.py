@@ -111,13 +111,17 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         as ``substeps`` steps of the chosen ``integrator``.
 
         Returns the last step's :class:`~torchrl_diffenvs.articulated.dynamics.StepResult`: the new
-        ``qpos``/``qvel`` and the state MuJoCo's derived quantities belong to after ``mj_step``.
+        ``qpos``/``qvel`` and the state MuJoCo's derived quantities belong to after ``mj_step``;
+        its ``contact_force`` is the largest contact normal force over all the physics steps.
         """
         qpos, qvel = state["qpos"], state["qvel"]
         # the joint limits' regulariser depends on the params only: once per env step, not per physics step
         invweight0 = dof_invweight0(self.tree, params) if self.tree.limit_dof.numel() else None
+        largest = None
         for _ in range(self.frame_skip * self.substeps):
             result = step(self.tree, qpos, qvel, action, params, self.model.timestep / self.substeps,
                           self.integrator, invweight0)
             qpos, qvel = result.qpos, result.qvel
-        return result
+            if result.contact_force is not None:
+                largest = result.contact_force if largest is None else torch.maximum(largest, result.contact_force)
+        return result._replace(contact_force=largest)
