@@ -43,10 +43,14 @@ def test_bad_options_are_refused_with_what_is_valid(kwargs, expected):
         make_env("Hopper-v5", num_envs=1, **kwargs)
 
 
-def test_model_is_the_files_integrator():
-    assert make_env("Hopper-v5", num_envs=1).integrator == "rk4"
-    assert make_env("HalfCheetah-v5", num_envs=1).integrator == "euler"
-    assert make_env("Hopper-v5", num_envs=1, integrator="euler").integrator == "euler"
+def test_defaults_and_the_model_files_integrator():
+    """The contact tasks step by semi-implicit Euler unless told otherwise; "model" is the file's."""
+    for name in ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"):
+        assert make_env(name, num_envs=1).integrator == "euler"
+    assert make_env("Hopper-v5", num_envs=1, integrator="model").integrator == "rk4"
+    assert make_env("Ant-v5", num_envs=1, integrator="model").integrator == "rk4"
+    assert make_env("HalfCheetah-v5", num_envs=1, integrator="model").integrator == "euler"
+    assert make_env("InvertedDoublePendulum-v5", num_envs=1).integrator == "rk4"  # contact-free: the file's
 
 
 @pytest.mark.parametrize("name,integrator,substeps", [("Hopper-v5", "euler", 3), ("HalfCheetah-v5", "rk4", 2)])
@@ -95,12 +99,12 @@ def test_other_integrator_matches_mujoco_run_with_it_in_the_air(name, integrator
 
 
 @pytest.mark.parametrize("name,options", [
-    ("Hopper-v5", {"integrator": "euler"}),
-    ("Hopper-v5", {"integrator": "euler", "substeps": 2}),
-    ("Walker2d-v5", {"integrator": "euler"}),
+    ("Hopper-v5", {"integrator": "rk4"}),
+    ("Hopper-v5", {"substeps": 2}),
+    ("Walker2d-v5", {"integrator": "rk4"}),
     ("HalfCheetah-v5", {"integrator": "rk4"}),
-    ("Ant-v5", {"integrator": "euler"}),
-])
+    ("Ant-v5", {"integrator": "rk4"}),
+])  # the default (Euler) of every contact task: tests/test_mujoco_gradients.py
 def test_gradcheck_one_step_through_contact(name, options):
     """One env step, 5 mm into the floor: gradients w.r.t. the action, the state and the masses."""
     n = 1

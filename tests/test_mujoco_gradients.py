@@ -66,7 +66,7 @@ def step_fn(env, state_keys, param_key=None):
 
 @pytest.mark.parametrize("name", MUJOCO_TASKS)
 def test_gradcheck_one_step(name):
-    n = 1 if name == "Ant-v5" else 2  # the Ant's step is 20 force evaluations (RK4, frame_skip 5): one env
+    n = 1 if name == "Ant-v5" else 2  # the Ant's 8 legs' contacts make its gradcheck the slowest: one env
     env = make_env(name, num_envs=n, dtype=torch.float64, seed=0)
     # contact active; joints mid-range: a limit's active set (which rows push, jointly solved) has
     # kinks in the state (as MuJoCo's), see test_coupled_joint_limits_gradcheck for the limits

@@ -13,12 +13,14 @@ class HopperV5Env(PlanarLocomotionEnv):
     while ``state[2:]`` is in ``(-100, 100)``, the torso height ``qpos[1]`` in ``(0.7, inf)`` and
     its angle ``qpos[2]`` in ``(-0.2, 0.2)``; terminated when unhealthy; truncated after 1000
     steps; observation ``[qpos[1:], clip(qvel, -10, 10)]`` (11); start ``qpos0 + U(-5e-3, 5e-3)``,
-    ``qvel ~ U(-5e-3, 5e-3)``; MuJoCo's RK4 at 0.002 s, 4 steps per env step. Contact with the
+    ``qvel ~ U(-5e-3, 5e-3)``; 0.002 s physics steps, 4 per env step, by semi-implicit Euler
+    (the file's RK4 with ``integrator="model"``). Contact with the
     floor is the smooth penalty model, not MuJoCo's solver (see :class:`PlanarLocomotionEnv`).
     """
 
     name = "Hopper-v5"
     model_file = "hopper.xml"
+    default_integrator = "euler"  # the file's RK4: integrator="model" (see MuJoCoModelEnv)
     frame_skip = 4
     clip_velocity = 10.0
     healthy_ranges = {"state": "state", "z": "z", "angle": "angle"}

@@ -10,13 +10,14 @@ class Walker2dV5Env(PlanarLocomotionEnv):
     As Gymnasium's v5: reward ``(x_after - x_before) / dt + 1 * healthy - 1e-3 |a|^2``; healthy
     while the torso height ``qpos[1]`` is in ``(0.8, 2)`` and its angle ``qpos[2]`` in ``(-1, 1)``;
     terminated when unhealthy; truncated after 1000 steps; observation ``[qpos[1:], clip(qvel,
-    -10, 10)]`` (17); start ``qpos0 + U(-5e-3, 5e-3)``, ``qvel ~ U(-5e-3, 5e-3)``; MuJoCo's RK4 at
-    0.002 s, 4 steps per env step. Contact with the floor is the smooth penalty model, not
+    -10, 10)]`` (17); start ``qpos0 + U(-5e-3, 5e-3)``, ``qvel ~ U(-5e-3, 5e-3)``; 0.002 s physics
+    steps, 4 per env step, by semi-implicit Euler (the file's RK4 with ``integrator="model"``). Contact with the floor is the smooth penalty model, not
     MuJoCo's solver (see :class:`PlanarLocomotionEnv`).
     """
 
     name = "Walker2d-v5"
     model_file = "walker2d_v5.xml"
+    default_integrator = "euler"  # the file's RK4: integrator="model" (see MuJoCoModelEnv)
     frame_skip = 4
     clip_velocity = 10.0
     healthy_ranges = {"z": "z", "angle": "angle"}
