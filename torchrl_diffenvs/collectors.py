@@ -13,7 +13,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from .envs.multi_agent import policy_keys, reward_per_env
@@ -40,6 +40,20 @@ def batch_size_of(env, reset_input=None, who: str = "") -> int:
             else "")
     raise ValueError(f"{who}: expected a batched env with batch size [N], got {tuple(env.batch_size)} "
                      f"({type(env).__name__}).{hint}")
+
+
+@torch.no_grad()
+def detach_transform_state(env) -> None:
+    """Cuts the autograd graph out of the state that ``env``'s transforms keep between steps
+    (``CatFrames``' frame buffer, ...): every buffer that carries a graph is replaced by a
+    detached copy (a copy, so that a window collected earlier keeps its own graph intact).
+    A no-op for an env without transforms."""
+    while isinstance(env, TransformedEnv):
+        for module in env.transform.modules():
+            for name, buffer in list(module.named_buffers(recurse=False)):
+                if buffer.requires_grad:
+                    setattr(module, name, buffer.detach().clone())
+        env = env.base_env
 
 
 class EpisodeReturnTracker:
@@ -239,6 +253,8 @@ class DiffWindowCollector:
             self.reset(self.start_state, set_state=True)
         elif self._carried is None:
             self.reset()
+        # a transform's state (CatFrames' frames) is env state too: detached at the window start
+        detach_transform_state(self.env)
         with torch.enable_grad(), set_exploration_type(self.exploration_type):
             # the carried TensorDict is detached: the graph starts here
             window = self.env.rollout(

@@ -24,7 +24,7 @@ from .. import checks
 from ..collectors import DiffWindowCollector
 from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
-from ..modules import ObservationNormalizer, actor_from_config
+from ..modules import ObservationNormalizer, actor_from_config, observation_key_of
 from ..objectives import BPTTLoss, GradientGuard
 from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
@@ -123,7 +123,7 @@ class BPTTLearner(Learner):
             metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
         # 3. observation statistics, frozen during the window, move after it
         if self.normalizer is not None:
-            self.normalizer.update(self.world.gather(window.get(self.keys.observation)))
+            self.normalizer.update(self.world.gather(window.get(observation_key_of(self.actor, self.keys.observation))))
         # 4. learning-rate schedule
         self.actor_schedule.step()
         self.iteration += 1

@@ -42,6 +42,7 @@ from ..modules import (
     ObservationNormalizer,
     actor_from_config,
     critic_from_config,
+    observation_key_of,
     env_dims,
     update_privileged_statistics,
 )
@@ -212,7 +213,7 @@ class PPOLearner(Learner):
             self.schedule.step()
         # 4. normaliser statistics, then the collector gets the new weights
         if self.normalizer is not None:
-            self.normalizer.update(self.world.gather(data.get(self.keys.observation)))
+            self.normalizer.update(self.world.gather(data.get(observation_key_of(self.actor, self.keys.observation))))
         update_privileged_statistics(self.critic, data, self.world.gather)
         self.collector.update_policy_weights_()
         self.iteration += 1

@@ -32,6 +32,7 @@ from ..modules import (
     ObservationNormalizer,
     actor_from_config,
     critic_from_config,
+    observation_key_of,
     update_privileged_statistics,
 )
 from ..objectives import GradientGuard, SHACLoss
@@ -161,7 +162,7 @@ class SHACLearner(Learner):
         self.target_updater.step()
         # 6. observation (and privileged-input) statistics, frozen during the window, move after it
         if self.normalizer is not None:
-            self.normalizer.update(self.world.gather(data.get(self.keys.observation)))
+            self.normalizer.update(self.world.gather(data.get(observation_key_of(self.actor, self.keys.observation))))
         update_privileged_statistics(self.loss.critic_network, data, self.world.gather)
         metrics.update({
             "reward": metrics.pop("reward_mean"),
