@@ -7,18 +7,22 @@ differentiable w.r.t. the policy parameters. :class:`DiffWindowCollector` owns t
 """
 from __future__ import annotations
 
+import functools
+import math
 from collections.abc import Iterator
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from .envs.multi_agent import policy_keys, reward_per_env
+from .objectives.nonfinite import ISOLATED_KEY, nonfinite_envs
 
-__all__ = ["DiffWindowCollector", "EpisodeReturnTracker", "batch_size_of"]
+__all__ = ["DiffWindowCollector", "EpisodeReturnTracker", "IsolatingPolicy", "batch_size_of", "detach_transform_state"]
 
 
 def batch_size_of(env, reset_input=None, who: str = "") -> int:
@@ -54,6 +58,49 @@ def detach_transform_state(env) -> None:
                 if buffer.requires_grad:
                     setattr(module, name, buffer.detach().clone())
         env = env.base_env
+
+
+def _zero_rows(keep: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
+    # where, not a product: a NaN gradient of an isolated env becomes exactly 0
+    return torch.where(keep.reshape(-1, *([1] * (grad.ndim - 1))), grad, torch.zeros((), dtype=grad.dtype,
+                                                                                     device=grad.device))
+
+
+class IsolatingPolicy(TensorDictModuleBase):
+    """Calls ``policy`` so that non-finite envs cannot spoil the gradient of the others.
+
+    Averaging the gradient over a batch does not isolate a non-finite env: the zero weight a
+    loss gives it meets the NaN derivatives of its simulation (``0 * nan = nan``) and the NaN
+    reaches the shared weights. So, on every step, the policy reads its inputs with non-finite
+    values replaced by 0 (the recorded observations stay as the env produced them), and its
+    outputs get a gradient hook that replaces the gradient of every env not in :attr:`keep` by 0.
+    :attr:`keep` (``[N]`` bool) can be set after the rollout, before the backward pass: that is
+    when the non-finite envs are known.
+    """
+
+    def __init__(self, policy):
+        super().__init__()
+        self.policy = policy
+        self.in_keys = list(policy.in_keys)
+        self.out_keys = list(policy.out_keys)
+        self.keep: torch.Tensor | None = None
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        inputs = tensordict.copy()  # shallow: the caller's entries are not replaced
+        for key in self.in_keys:
+            value = inputs.get(key, None)
+            if isinstance(value, torch.Tensor) and value.dtype.is_floating_point:
+                inputs.set(key, torch.where(torch.isfinite(value), value, torch.zeros((), dtype=value.dtype,
+                                                                                      device=value.device)))
+        outputs = self.policy(inputs)
+        for key in self.out_keys:
+            value = outputs.get(key, None)
+            if value is None:
+                continue
+            if self.keep is not None and value.requires_grad:
+                value.register_hook(functools.partial(_zero_rows, self.keep))
+            tensordict.set(key, value)
+        return tensordict
 
 
 class EpisodeReturnTracker:
@@ -135,9 +182,14 @@ class DiffWindowCollector:
         reset_input: for a batch-unlocked env (``batch_size`` ``[]``, batched by what ``reset``
             receives, like TorchRL's ``PendulumEnv``): a function returning the TensorDict to
             reset with, e.g. ``lambda: env.gen_params(batch_size=[64])``; its batch size is ``N``.
+        isolate_nonfinite: (default) envs with a NaN/inf reward or observation in a window (or
+            a ``("next", "nonfinite")`` flag) are marked ``"isolated"`` ``[N, H]`` in it, which
+            the losses leave out, and their gradient is cut at the policy's outputs
+            (:class:`IsolatingPolicy`), so that they cannot make the others' gradient NaN.
 
     Attributes:
         finished_returns: the undiscounted returns of the episodes that ended in the last window.
+        nonfinite: ``[N]`` bool, the envs isolated in the last window.
         windows: windows collected so far.
         frames: env steps collected so far (``windows * N * H``).
 
@@ -163,6 +215,7 @@ class DiffWindowCollector:
         stagger_episodes: bool = False,
         generator: torch.Generator | None = None,
         reset_input=None,
+        isolate_nonfinite: bool = True,
     ):
         if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
             raise ValueError(f"DiffWindowCollector: horizon must be a positive integer, got {horizon!r}")
@@ -172,6 +225,7 @@ class DiffWindowCollector:
         self._num_envs = batch_size_of(env, reset_input, "DiffWindowCollector")
         self.env = env
         self.policy = policy
+        self._isolating_policy = IsolatingPolicy(policy) if isolate_nonfinite and policy is not None else None
         self.horizon = horizon
         self.total_windows = total_windows
         self.exploration_type = exploration_type
@@ -181,6 +235,7 @@ class DiffWindowCollector:
         if stagger_episodes and getattr(env, "max_episode_steps", None) is None:
             raise ValueError("DiffWindowCollector: stagger_episodes needs an env with max_episode_steps")
         self.finished_returns: list[float] = []
+        self.nonfinite: torch.Tensor | None = None
         self.windows = 0
         # what the env needs to continue: its observation/state entries and the done flags
         self._carry_keys = list(env.observation_spec.keys(True, True)) + list(env.done_keys)  # leaves: not a group's reward
@@ -255,11 +310,16 @@ class DiffWindowCollector:
             self.reset()
         # a transform's state (CatFrames' frames) is env state too: detached at the window start
         detach_transform_state(self.env)
+        policy = self.policy
+        if self._isolating_policy is not None:
+            policy = self._isolating_policy
+            # every env's gradient passes until the window shows which envs to isolate
+            policy.keep = torch.ones(self.num_envs, dtype=torch.bool, device=self.env.device)
         with torch.enable_grad(), set_exploration_type(self.exploration_type):
             # the carried TensorDict is detached: the graph starts here
             window = self.env.rollout(
                 self.horizon,
-                self.policy,
+                policy,
                 auto_reset=False,
                 tensordict=self._carried,
                 break_when_any_done=False,
@@ -267,6 +327,7 @@ class DiffWindowCollector:
             )
         if self.windows == 0:
             self._check_differentiable(window)
+        self._isolate_nonfinite(window)
         self._track_returns(window)
         # where the next window starts: the last step's "next" entries, done envs reset
         last = window[:, -1].get("next").select(*self._carry_keys, strict=False).detach()
@@ -292,9 +353,27 @@ class DiffWindowCollector:
             )
 
     @torch.no_grad()
+    def _isolate_nonfinite(self, window: TensorDictBase) -> None:
+        """Finds the envs with a NaN/inf reward or observation (or a ``("next", "nonfinite")``
+        flag) in ``window``, marks them ``"isolated"`` ``[N, H]`` for the losses, cuts their
+        gradient at the policy's outputs and keeps their mask in :attr:`nonfinite`."""
+        keys = policy_keys(self.env)
+        observed = [key for key in getattr(self.policy, "in_keys", ()) if key != "episode_step"]
+        checked = [("next", *(keys.reward if isinstance(keys.reward, tuple) else (keys.reward,)))]
+        for key in observed or [keys.observation]:
+            checked += [key, ("next", *(key if isinstance(key, tuple) else (key,)))]
+        bad = nonfinite_envs(window, checked)
+        self.nonfinite = bad
+        if self._isolating_policy is not None:
+            self._isolating_policy.keep.copy_(~bad)
+        window.set(ISOLATED_KEY, bad.unsqueeze(-1).expand(window.batch_size))
+
+    @torch.no_grad()
     def _track_returns(self, window: TensorDictBase) -> None:
-        """Writes ``("next", "episode_reward")`` and records the returns of finished episodes."""
-        self.finished_returns, running = self.tracker.update(window)
+        """Writes ``("next", "episode_reward")`` and records the returns of finished episodes
+        (those of non-finite envs left out)."""
+        finished, running = self.tracker.update(window)
+        self.finished_returns = [value for value in finished if math.isfinite(value)]
         dtype = window.get(("next", self.env.reward_key)).dtype
         window.set(("next", "episode_reward"), running.to(dtype).unsqueeze(-1))  # [N, H, 1], the team's for agents
 
