@@ -143,14 +143,15 @@ class SACLearner(Learner):
         self.frames += data.numel() * self.world.size  # all ranks' env steps
         bad = nonfinite_envs(data, self.buffer_keys)
         nonfinite = self.nonfinite.update(bad, self.iteration)
+        any_finite = not bool(bad.all())
         data = data[~bad]  # the replay buffer keeps finite transitions only
-        if data.numel():
+        if any_finite:
             self.buffer.extend(data.reshape(-1).select(*self.buffer_keys))
         metrics = {"reward": data.get(("next", "reward")).mean().item(), "nonfinite_envs": nonfinite}
         if finished:
             metrics["return"] = sum(finished) / len(finished)
         # 2. gradient steps on sampled minibatches, each followed by the target update
-        if not data.numel():  # every env non-finite: no update, and a skip towards the guards' limit
+        if not any_finite:  # every env non-finite: no update, and a skip towards the guards' limit
             self.actor_guard.skip(self.nonfinite.describe)
             self.qvalue_guard.skip(self.nonfinite.describe)
         elif self.frames >= c.init_random_frames and len(self.buffer) >= c.batch_size:
