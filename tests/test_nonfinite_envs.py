@@ -235,3 +235,22 @@ def test_collector_isolation_can_be_turned_off():
     assert collector.nonfinite.nonzero().flatten().tolist() == [BAD]  # still found and marked for the losses
     assert window["isolated"][BAD].all()
     assert policy_keys(env).observation == "observation"
+
+
+def test_compiled_rollout_chunks_skip_the_update_with_a_nonfinite_env():
+    """``compile_physics``: the chunks run without the gradient hooks (documented in
+    IsolatingPolicy), so the window's gradient is NaN and BPTT skips the update; the env is still
+    found, counted and reported, and the compiled windows do not recompile for it."""
+    from torchrl_diffenvs import compile_physics
+    from torchrl_diffenvs.learners import BPTTConfig, BPTTLearner
+
+    torch.compiler.reset()
+    env = poisoned_pendulum()
+    compile_physics(env, steps_per_chunk=H, backend="aot_eager")
+    torch.manual_seed(0)
+    learner = BPTTLearner(env, make_actor(env, hidden=(16,)), BPTTConfig(horizon=H), 100_000)
+    with pytest.warns(NonFiniteEnvWarning, match=rf"env\(s\) \[{BAD}\] of {N}"):
+        metrics = learner.train_iteration()
+    assert metrics["nonfinite_envs"] == 1 and metrics["skipped_actor"] == 1
+    assert torch.isfinite(torch.tensor(metrics["loss_actor"]))  # the loss itself is the finite envs'
+    torch.compiler.reset()

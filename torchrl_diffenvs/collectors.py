@@ -60,10 +60,19 @@ def detach_transform_state(env) -> None:
         env = env.base_env
 
 
-def _zero_rows(keep: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
-    # where, not a product: a NaN gradient of an isolated env becomes exactly 0
-    return torch.where(keep.reshape(-1, *([1] * (grad.ndim - 1))), grad, torch.zeros((), dtype=grad.dtype,
-                                                                                     device=grad.device))
+class _Gate:
+    """The envs whose gradient passes (``keep``, ``[N]`` bool), read when the backward pass runs:
+    the non-finite envs of a window are known only after it has been collected."""
+
+    def __init__(self, keep: torch.Tensor):
+        self.keep = keep
+
+    def __call__(self, grad: torch.Tensor | None) -> torch.Tensor | None:
+        if grad is None:  # no gradient reached this output
+            return None
+        keep = self.keep.reshape(-1, *([1] * (grad.ndim - 1)))
+        # where, not a product: a NaN gradient of an isolated env becomes exactly 0
+        return torch.where(keep, grad, torch.zeros((), dtype=grad.dtype, device=grad.device))
 
 
 class IsolatingPolicy(TensorDictModuleBase):
@@ -72,34 +81,47 @@ class IsolatingPolicy(TensorDictModuleBase):
     Averaging the gradient over a batch does not isolate a non-finite env: the zero weight a
     loss gives it meets the NaN derivatives of its simulation (``0 * nan = nan``) and the NaN
     reaches the shared weights. So, on every step, the policy reads its inputs with non-finite
-    values replaced by 0 (the recorded observations stay as the env produced them), and its
-    outputs get a gradient hook that replaces the gradient of every env not in :attr:`keep` by 0.
-    :attr:`keep` (``[N]`` bool) can be set after the rollout, before the backward pass: that is
-    when the non-finite envs are known.
+    values replaced by 0 (the recorded observations stay as the env produced them), and the
+    actions it writes (``action_keys``) get a gradient hook that replaces the gradient of every
+    env not in ``gate.keep`` by 0. :meth:`open_gate` starts a rollout with every env passing and
+    returns the gate, whose ``keep`` (``[N]`` bool) is set after the rollout, before the backward
+    pass: that is when the non-finite envs are known.
+
+    Inside the compiled chunks of ``compile_physics`` no hook is registered (a traced hook would
+    read the mask as it was when the chunk ran, and an eager one would split every chunk at every
+    step): there a non-finite env still makes the window's gradient NaN, and the learner skips
+    that update (counted, warned about, and an error after too many in a row).
     """
 
-    def __init__(self, policy):
+    def __init__(self, policy, action_keys=("action",)):
         super().__init__()
         self.policy = policy
         self.in_keys = list(policy.in_keys)
         self.out_keys = list(policy.out_keys)
-        self.keep: torch.Tensor | None = None
+        self.action_keys = list(action_keys)
+        self.gate: _Gate | None = None
+
+    def open_gate(self, num_envs: int, device) -> _Gate:
+        """A new gate (every env passing) for the outputs of the next calls."""
+        self.gate = _Gate(torch.ones(num_envs, dtype=torch.bool, device=device))
+        return self.gate
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        inputs = tensordict.copy()  # shallow: the caller's entries are not replaced
+        raw = {}
         for key in self.in_keys:
-            value = inputs.get(key, None)
+            value = tensordict.get(key, None)
             if isinstance(value, torch.Tensor) and value.dtype.is_floating_point:
-                inputs.set(key, torch.where(torch.isfinite(value), value, torch.zeros((), dtype=value.dtype,
-                                                                                      device=value.device)))
-        outputs = self.policy(inputs)
-        for key in self.out_keys:
-            value = outputs.get(key, None)
-            if value is None:
-                continue
-            if self.keep is not None and value.requires_grad:
-                value.register_hook(functools.partial(_zero_rows, self.keep))
+                raw[key] = value
+        for key, value in raw.items():  # nan_to_num's gradient is grad * isfinite: 0, never NaN, there
+            tensordict.set(key, torch.nan_to_num(value, nan=0.0, posinf=0.0, neginf=0.0))
+        tensordict = self.policy(tensordict)
+        for key, value in raw.items():  # the record keeps what the env produced
             tensordict.set(key, value)
+        if not torch.compiler.is_compiling() and self.gate is not None:
+            for key in self.action_keys:
+                action = tensordict.get(key, None)
+                if action is not None and action.requires_grad:
+                    action.register_hook(self.gate)
         return tensordict
 
 
@@ -225,7 +247,9 @@ class DiffWindowCollector:
         self._num_envs = batch_size_of(env, reset_input, "DiffWindowCollector")
         self.env = env
         self.policy = policy
-        self._isolating_policy = IsolatingPolicy(policy) if isolate_nonfinite and policy is not None else None
+        self._isolating_policy = None
+        if isolate_nonfinite and policy is not None:
+            self._isolating_policy = IsolatingPolicy(policy, env.action_keys)
         self.horizon = horizon
         self.total_windows = total_windows
         self.exploration_type = exploration_type
@@ -311,10 +335,11 @@ class DiffWindowCollector:
         # a transform's state (CatFrames' frames) is env state too: detached at the window start
         detach_transform_state(self.env)
         policy = self.policy
+        gate = None
         if self._isolating_policy is not None:
             policy = self._isolating_policy
             # every env's gradient passes until the window shows which envs to isolate
-            policy.keep = torch.ones(self.num_envs, dtype=torch.bool, device=self.env.device)
+            gate = policy.open_gate(self.num_envs, self.env.device)
         with torch.enable_grad(), set_exploration_type(self.exploration_type):
             # the carried TensorDict is detached: the graph starts here
             window = self.env.rollout(
@@ -327,7 +352,7 @@ class DiffWindowCollector:
             )
         if self.windows == 0:
             self._check_differentiable(window)
-        self._isolate_nonfinite(window)
+        self._isolate_nonfinite(window, gate)
         self._track_returns(window)
         # where the next window starts: the last step's "next" entries, done envs reset
         last = window[:, -1].get("next").select(*self._carry_keys, strict=False).detach()
@@ -353,7 +378,7 @@ class DiffWindowCollector:
             )
 
     @torch.no_grad()
-    def _isolate_nonfinite(self, window: TensorDictBase) -> None:
+    def _isolate_nonfinite(self, window: TensorDictBase, gate: _Gate | None) -> None:
         """Finds the envs with a NaN/inf reward or observation (or a ``("next", "nonfinite")``
         flag) in ``window``, marks them ``"isolated"`` ``[N, H]`` for the losses, cuts their
         gradient at the policy's outputs and keeps their mask in :attr:`nonfinite`."""
@@ -364,8 +389,8 @@ class DiffWindowCollector:
             checked += [key, ("next", *(key if isinstance(key, tuple) else (key,)))]
         bad = nonfinite_envs(window, checked)
         self.nonfinite = bad
-        if self._isolating_policy is not None:
-            self._isolating_policy.keep.copy_(~bad)
+        if gate is not None:
+            gate.keep = ~bad
         window.set(ISOLATED_KEY, bad.unsqueeze(-1).expand(window.batch_size))
 
     @torch.no_grad()
