@@ -13,6 +13,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType
 
 from torchrl_diffenvs import make_env
 from torchrl_diffenvs.collectors import DiffWindowCollector
@@ -20,10 +21,14 @@ from torchrl_diffenvs.envs.multi_agent import policy_keys
 from torchrl_diffenvs.learners import make_learner
 from torchrl_diffenvs.modules import make_actor, make_critic
 from torchrl_diffenvs.objectives import (
-    BPTTLoss, GradientGuard, NonFiniteEnvMonitor, NonFiniteEnvWarning, NonFiniteTrainingError, SHACLoss,
+    BPTTLoss,
+    GradientGuard,
+    NonFiniteEnvMonitor,
+    NonFiniteEnvWarning,
+    NonFiniteTrainingError,
+    SHACLoss,
     nonfinite_envs,
 )
-from torchrl.envs.utils import ExplorationType
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 N, BAD, H = 16, 3, 5
@@ -63,8 +68,10 @@ def _windows(loss_name):
     env15 = make_env("pendulum", num_envs=N - 1, seed=0, dtype=torch.float64, max_episode_steps=50)
     start = env16.reset()
     actor = make_actor(env16, hidden=(16,))
-    make_loss = (lambda: BPTTLoss(actor)) if loss_name == "bptt" else (
-        lambda critic=make_critic(env16, hidden=(16,)): SHACLoss(actor, critic, gamma=0.9, lmbda=0.8))
+    critic = make_critic(env16, hidden=(16,))  # one critic for both windows
+
+    def make_loss():
+        return BPTTLoss(actor) if loss_name == "bptt" else SHACLoss(actor, critic, gamma=0.9, lmbda=0.8)
     out = []
     for env, state in ((env16, start), (env15, start[KEEP])):
         collector = DiffWindowCollector(env, actor, horizon=H, start_state=state,

@@ -11,7 +11,14 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 from torch import nn
-from torchrl.envs import CatFrames, CatTensors, Compose, DoubleToFloat, ObservationNorm, TransformedEnv
+from torchrl.envs import (
+    CatFrames,
+    CatTensors,
+    Compose,
+    DoubleToFloat,
+    ObservationNorm,
+    TransformedEnv,
+)
 
 from torchrl_diffenvs import make_env
 from torchrl_diffenvs.learners import LEARNERS, make_learner

@@ -7,7 +7,6 @@ differentiable w.r.t. the policy parameters. :class:`DiffWindowCollector` owns t
 """
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Iterator
 
@@ -20,7 +19,7 @@ from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from .envs.multi_agent import policy_keys, reward_per_env
-from .objectives.nonfinite import ISOLATED_KEY, nonfinite_envs
+from .objectives.nonfinite import ISOLATED_KEY, next_key, nonfinite_envs, now_and_next
 
 __all__ = ["DiffWindowCollector", "EpisodeReturnTracker", "IsolatingPolicy", "batch_size_of", "detach_transform_state"]
 
@@ -384,10 +383,7 @@ class DiffWindowCollector:
         gradient at the policy's outputs and keeps their mask in :attr:`nonfinite`."""
         keys = policy_keys(self.env)
         observed = [key for key in getattr(self.policy, "in_keys", ()) if key != "episode_step"]
-        checked = [("next", *(keys.reward if isinstance(keys.reward, tuple) else (keys.reward,)))]
-        for key in observed or [keys.observation]:
-            checked += [key, ("next", *(key if isinstance(key, tuple) else (key,)))]
-        bad = nonfinite_envs(window, checked)
+        bad = nonfinite_envs(window, [next_key(keys.reward), *now_and_next(observed or [keys.observation])])
         self.nonfinite = bad
         if gate is not None:
             gate.keep = ~bad

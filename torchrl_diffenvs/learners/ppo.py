@@ -44,11 +44,12 @@ from ..modules import (
     ObservationNormalizer,
     actor_from_config,
     critic_from_config,
-    observation_key_of,
     env_dims,
+    observation_key_of,
     update_privileged_statistics,
 )
 from ..objectives import GradientGuard, NonFiniteEnvMonitor, nonfinite_envs
+from ..objectives.nonfinite import next_key, now_and_next
 from .base import Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["PPOConfig", "PPOLearner"]
@@ -231,16 +232,12 @@ class PPOLearner(Learner):
         whose rewards and network inputs (now and next) are all finite, and that nothing flags as
         non-finite. With no finite env left, the batch is kept whole (its NaN losses skip the
         steps and count towards the guard's limit)."""
-        inputs = {key if isinstance(key, tuple) else (key,) for key in [*self.actor.in_keys, *self.critic.in_keys]}
-        bad = nonfinite_envs(data, [("next", *self._key(self.keys.reward)), *inputs, *(("next", *k) for k in inputs)])
+        inputs = now_and_next(dict.fromkeys([*self.actor.in_keys, *self.critic.in_keys]))
+        bad = nonfinite_envs(data, [next_key(self.keys.reward), *inputs])
         count = self.nonfinite.update(bad, self.iteration)
         if 0 < count < bad.numel():
             data = data[~bad]
         return data, count
-
-    @staticmethod
-    def _key(key) -> tuple:
-        return key if isinstance(key, tuple) else (key,)
 
     def gradient_step(self, batch) -> dict[str, float]:
         """One guarded optimiser step on a minibatch (with advantages and value targets), the

@@ -3,9 +3,9 @@
 One iteration, in the algorithm's order:
 
 1. collect ``num_envs x rollout_len`` steps (uniformly random actions for the first
-   ``init_random_frames``) and add them to the replay buffer, but for the envs with NaN/inf
-   rewards or observations (counted in ``"nonfinite_envs"`` and named in a warning; when every
-   env is non-finite, the gradient steps of the iteration are skipped);
+   ``init_random_frames``) and add them to the replay buffer, except those of the envs with
+   NaN/inf rewards or observations (counted in ``"nonfinite_envs"`` and named in a warning; when
+   every env is non-finite, the gradient steps of the iteration are skipped);
 2. once ``init_random_frames`` steps are in, ``round(utd_ratio x steps collected)`` gradient
    steps on sampled minibatches: actor, both Q-networks and the temperature (separate Adam
    optimisers; actor and Q-networks through a guard), each followed by a soft update of the
@@ -184,7 +184,8 @@ class SACLearner(Learner):
             "grad_norm_qvalue": self.qvalue_guard.step(self.qvalue_optim, self.qvalue_params, loss=out["loss_qvalue"],
                                                        context=self.nonfinite.describe)["grad_norm"],
         }
-        if self.loss.log_alpha.grad is None or torch.isfinite(self.loss.log_alpha.grad).all():  # a NaN temperature never recovers
+        alpha_grad = self.loss.log_alpha.grad
+        if alpha_grad is None or torch.isfinite(alpha_grad).all():  # a NaN temperature would never recover
             self.alpha_optim.step()
         self.target_updater.step()
         stats.update({key: out[key].detach().float().mean().item()

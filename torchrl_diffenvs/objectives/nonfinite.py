@@ -16,7 +16,10 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
-__all__ = ["ISOLATED_KEY", "NONFINITE_KEY", "NonFiniteEnvMonitor", "NonFiniteEnvWarning", "nonfinite_envs"]
+__all__ = [
+    "ISOLATED_KEY", "NONFINITE_KEY", "NonFiniteEnvMonitor", "NonFiniteEnvWarning", "next_key", "nonfinite_envs",
+    "now_and_next",
+]
 
 #: the per-step flag an env may report under ``"next"``: its state became non-finite at that step
 NONFINITE_KEY = "nonfinite"
@@ -28,8 +31,14 @@ class NonFiniteEnvWarning(RuntimeWarning):
     """Some envs of the batch produced non-finite values and are left out of the loss."""
 
 
-def _as_key(key: NestedKey) -> tuple:
-    return key if isinstance(key, tuple) else (key,)
+def next_key(key: NestedKey) -> tuple:
+    """``("next", *key)``: where a rollout keeps the entry ``key`` after the step."""
+    return ("next", *(key if isinstance(key, tuple) else (key,)))
+
+
+def now_and_next(keys: Iterable[NestedKey]) -> list:
+    """Every key of ``keys`` and its ``"next"`` counterpart (the inputs a network reads in a rollout)."""
+    return [entry for key in keys for entry in (key, next_key(key))]
 
 
 def nonfinite_envs(batch: TensorDictBase, keys: Iterable[NestedKey] = (("next", "reward"),)) -> torch.Tensor:

@@ -13,7 +13,7 @@ from torchrl.objectives import LossModule, SoftUpdate
 from torchrl.objectives.value import TDLambdaEstimator
 
 from ._windows import like_agents, steps_since_start, window_entry
-from .nonfinite import nonfinite_envs
+from .nonfinite import next_key, nonfinite_envs, now_and_next
 
 __all__ = ["SHACLoss"]
 
@@ -210,9 +210,7 @@ class SHACLoss(LossModule):
     def finite_envs(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``[N]`` bool: the envs of a window whose rewards and critic inputs (now and next) are
         finite and that nothing flags as non-finite (see :func:`~torchrl_diffenvs.objectives.nonfinite_envs`)."""
-        inputs = [key if isinstance(key, tuple) else (key,) for key in self.critic_network.in_keys]
-        keys = [("next", self.tensor_keys.reward), *inputs, *(("next", *key) for key in inputs)]
-        return ~nonfinite_envs(tensordict, keys)
+        return ~nonfinite_envs(tensordict, [next_key(self.tensor_keys.reward), *now_and_next(self.critic_network.in_keys)])
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
