@@ -261,3 +261,18 @@ def test_compiled_rollout_chunks_skip_the_update_with_a_nonfinite_env():
     assert metrics["nonfinite_envs"] == 1 and metrics["skipped_actor"] == 1
     assert torch.isfinite(torch.tensor(metrics["loss_actor"]))  # the loss itself is the finite envs'
     torch.compiler.reset()
+
+
+@pytest.mark.parametrize("loss", ["bptt", "shac", "ppo"])
+def test_a_nan_env_of_a_multi_agent_env_is_isolated(loss):
+    """Per-agent observations, rewards and actions ``[N, A, ...]``: the env (all its agents) is left out."""
+    env = make_env("multi_swimmer", num_envs=8, seed=0)
+    env.params["dt"][2] = float("nan")
+    learner = learner_for(loss, env)
+    before = [p.detach().clone() for p in learner.actor.parameters()]
+    with pytest.warns(NonFiniteEnvWarning, match=r"env\(s\) \[2\] of 8"):
+        metrics = [learner.train_iteration() for _ in range(2)][-1]
+    assert metrics["nonfinite_envs"] == 1
+    assert all(v == 0 for k, v in metrics.items() if k.startswith("skipped")), metrics
+    assert all(torch.isfinite(torch.tensor(v)) for k, v in metrics.items() if k.startswith("loss")), metrics
+    assert any(not torch.equal(a, b.detach()) for a, b in zip(before, learner.actor.parameters()))
