@@ -231,12 +231,24 @@ class PPOLearner(Learner):
         """``(data of the finite envs, how many were left out)``: the envs of a batch ``[N, T]``
         whose rewards and network inputs (now and next) are all finite, and that nothing flags as
         non-finite. With no finite env left, the batch is kept whole (its NaN losses skip the
-        steps and count towards the guard's limit)."""
+        steps and count towards the guard's limit).
+
+        With several ranks, every rank keeps the same number of envs (their minibatch steps and
+        exchanges must match): a rank with fewer non-finite envs than another also leaves out its
+        last finite ones for this iteration; when some rank has no finite env, every rank keeps
+        its batch whole (the averaged NaN gradient skips the steps everywhere).
+        """
         inputs = now_and_next(dict.fromkeys([*self.actor.in_keys, *self.critic.in_keys]))
         bad = nonfinite_envs(data, [next_key(self.keys.reward), *inputs])
         count = self.nonfinite.update(bad, self.iteration)
-        if 0 < count < bad.numel():
-            data = data[~bad]
+        most = count
+        if self.world.size > 1:
+            most = int(self.world.gather(bad.sum().reshape(1)).max())
+        if 0 < most < bad.numel():
+            drop = bad.clone()
+            if most > count:  # the same number of envs as the rank that lost the most
+                drop[(~bad).nonzero().flatten()[count - most:]] = True
+            data = data[~drop]
         return data, count
 
     def gradient_step(self, batch) -> dict[str, float]:

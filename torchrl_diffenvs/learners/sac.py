@@ -154,7 +154,10 @@ class SACLearner(Learner):
         if not any_finite:  # every env non-finite: no update, and a skip towards the guards' limit
             self.actor_guard.skip(self.nonfinite.describe)
             self.qvalue_guard.skip(self.nonfinite.describe)
-        elif self.frames >= c.init_random_frames and len(self.buffer) >= c.batch_size:
+        ready = any_finite and self.frames >= c.init_random_frames and len(self.buffer) >= c.batch_size
+        if self.world.size > 1:  # the ranks' gradient steps meet in exchanges: all of them step, or none
+            ready = self.world.mean(float(ready)) == 1.0
+        if ready:
             sums = dict.fromkeys(("loss_actor", "loss_qvalue", "loss_alpha", "grad_norm_actor", "grad_norm_qvalue",
                                   "entropy"), 0.0)
             for _ in range(self.updates_per_iteration):
