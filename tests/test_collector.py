@@ -39,7 +39,7 @@ def test_window_layout_matches_env_rollout():
     window = DiffWindowCollector(env, actor, horizon=5).rollout()
     assert window.batch_size == torch.Size([4, 5])
     reference = env.rollout(5, actor, break_when_any_done=False)
-    expected = set(reference.keys(True, True)) | {("next", "episode_reward")}
+    expected = set(reference.keys(True, True)) | {("next", "episode_reward"), "isolated"}
     assert set(window.keys(True, True)) == expected
     assert window["next", "reward"].requires_grad  # the graph is on
     assert window["action"].shape == (4, 5, 1)

@@ -100,7 +100,8 @@ def test_shac_critic_targets_and_loss_hand_computed():
     expected = torch.tensor([[6.375, 11.5, 18.0], [21.5, 30.0, 6.0]], dtype=torch.float64)
     torch.testing.assert_close(window["value_target"].squeeze(-1), expected)
     values = torch.tensor([[0, 10, 20], [1, 40, 2]], dtype=torch.float64)
-    assert set(out.keys()) == {"loss_actor", "reward_mean", "value_mean"}  # only what a learner uses
+    assert set(out.keys()) == {"loss_actor", "reward_mean", "value_mean", "nonfinite_envs"}  # only what a learner uses
+    assert out["nonfinite_envs"] == 0
     assert loss.critic_loss(window)["loss_critic"].item() == pytest.approx(((values - expected) ** 2).mean().item())
     # critic_loss on a flattened minibatch agrees
     flat = window.reshape(-1)
@@ -269,6 +270,6 @@ def test_gradient_guard_clips_and_skips_huge_norms():
     p.grad = torch.tensor([300.0, 400.0], dtype=torch.float64)  # norm 500 > skip_above
     assert guard.step(optimizer)["skipped"]
     torch.testing.assert_close(p.detach(), torch.tensor([-0.6, -0.8], dtype=torch.float64), atol=1e-6, rtol=0)
-    assert guard.state_dict() == {"skipped": 1, "steps": 2}
+    assert guard.state_dict() == {"skipped": 1, "steps": 2, "nonfinite_in_a_row": 0}  # a huge finite norm is no NaN
     with pytest.raises(ValueError, match="max_norm"):
         GradientGuard(max_norm=0.0)

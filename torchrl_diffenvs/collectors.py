@@ -7,18 +7,21 @@ differentiable w.r.t. the policy parameters. :class:`DiffWindowCollector` owns t
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from .envs.multi_agent import policy_keys, reward_per_env
+from .objectives.nonfinite import ISOLATED_KEY, next_key, nonfinite_envs, now_and_next
 
-__all__ = ["DiffWindowCollector", "EpisodeReturnTracker", "batch_size_of"]
+__all__ = ["DiffWindowCollector", "EpisodeReturnTracker", "IsolatingPolicy", "batch_size_of", "detach_transform_state"]
 
 
 def batch_size_of(env, reset_input=None, who: str = "") -> int:
@@ -40,6 +43,85 @@ def batch_size_of(env, reset_input=None, who: str = "") -> int:
             else "")
     raise ValueError(f"{who}: expected a batched env with batch size [N], got {tuple(env.batch_size)} "
                      f"({type(env).__name__}).{hint}")
+
+
+@torch.no_grad()
+def detach_transform_state(env) -> None:
+    """Cuts the autograd graph out of the state that ``env``'s transforms keep between steps
+    (``CatFrames``' frame buffer, ...): every buffer that carries a graph is replaced by a
+    detached copy (a copy, so that a window collected earlier keeps its own graph intact).
+    A no-op for an env without transforms."""
+    while isinstance(env, TransformedEnv):
+        for module in env.transform.modules():
+            for name, buffer in list(module.named_buffers(recurse=False)):
+                if buffer.requires_grad:
+                    setattr(module, name, buffer.detach().clone())
+        env = env.base_env
+
+
+class _Gate:
+    """The envs whose gradient passes (``keep``, ``[N]`` bool), read when the backward pass runs:
+    the non-finite envs of a window are known only after it has been collected."""
+
+    def __init__(self, keep: torch.Tensor):
+        self.keep = keep
+
+    def __call__(self, grad: torch.Tensor | None) -> torch.Tensor | None:
+        if grad is None:  # no gradient reached this output
+            return None
+        keep = self.keep.reshape(-1, *([1] * (grad.ndim - 1)))
+        # where, not a product: a NaN gradient of an isolated env becomes exactly 0
+        return torch.where(keep, grad, torch.zeros((), dtype=grad.dtype, device=grad.device))
+
+
+class IsolatingPolicy(TensorDictModuleBase):
+    """Calls ``policy`` so that non-finite envs cannot spoil the gradient of the others.
+
+    Averaging the gradient over a batch does not isolate a non-finite env: the zero weight a
+    loss gives it meets the NaN derivatives of its simulation (``0 * nan = nan``) and the NaN
+    reaches the shared weights. So, on every step, the policy reads its inputs with non-finite
+    values replaced by 0 (the recorded observations stay as the env produced them), and the
+    actions it writes (``action_keys``) get a gradient hook that replaces the gradient of every
+    env not in ``gate.keep`` by 0. :meth:`open_gate` starts a rollout with every env passing and
+    returns the gate, whose ``keep`` (``[N]`` bool) is set after the rollout, before the backward
+    pass: that is when the non-finite envs are known.
+
+    Inside the compiled chunks of ``compile_physics`` no hook is registered (a traced hook would
+    read the mask as it was when the chunk ran, and an eager one would split every chunk at every
+    step): there a non-finite env still makes the window's gradient NaN, and the learner skips
+    that update (counted, warned about, and an error after too many in a row).
+    """
+
+    def __init__(self, policy, action_keys=("action",)):
+        super().__init__()
+        self.policy = policy
+        self.in_keys = list(policy.in_keys)
+        self.out_keys = list(policy.out_keys)
+        self.action_keys = list(action_keys)
+        self.gate: _Gate | None = None
+
+    def open_gate(self, num_envs: int, device) -> _Gate:
+        """A new gate (every env passing) for the outputs of the next calls."""
+        self.gate = _Gate(torch.ones(num_envs, dtype=torch.bool, device=device))
+        return self.gate
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        raw = {}
+        for key in self.in_keys:
+            value = tensordict.get(key, None)
+            if isinstance(value, torch.Tensor) and value.dtype.is_floating_point:
+                raw[key] = value
+        for key, value in raw.items():  # nan_to_num's gradient is grad * isfinite: 0, never NaN, there
+            tensordict.set(key, torch.nan_to_num(value, nan=0.0, posinf=0.0, neginf=0.0))
+        tensordict = self.policy(tensordict)
+        for key, value in raw.items():  # the record keeps what the env produced
+            tensordict.set(key, value)
+        if not torch.compiler.is_compiling() and self.gate is not None:
+            for key in self.action_keys:
+                action = tensordict.get(key, None)
+                if action is not None and action.requires_grad:
+                    action.register_hook(self.gate)
+        return tensordict
 
 
 class EpisodeReturnTracker:
@@ -121,9 +203,14 @@ class DiffWindowCollector:
         reset_input: for a batch-unlocked env (``batch_size`` ``[]``, batched by what ``reset``
             receives, like TorchRL's ``PendulumEnv``): a function returning the TensorDict to
             reset with, e.g. ``lambda: env.gen_params(batch_size=[64])``; its batch size is ``N``.
+        isolate_nonfinite: (default) envs with a NaN/inf reward or observation in a window (or
+            a ``("next", "nonfinite")`` flag) are marked ``"isolated"`` ``[N, H]`` in it, which
+            the losses leave out, and their gradient is cut at the policy's outputs
+            (:class:`IsolatingPolicy`), so that they cannot make the others' gradient NaN.
 
     Attributes:
         finished_returns: the undiscounted returns of the episodes that ended in the last window.
+        nonfinite: ``[N]`` bool, the envs isolated in the last window.
         windows: windows collected so far.
         frames: env steps collected so far (``windows * N * H``).
 
@@ -149,6 +236,7 @@ class DiffWindowCollector:
         stagger_episodes: bool = False,
         generator: torch.Generator | None = None,
         reset_input=None,
+        isolate_nonfinite: bool = True,
     ):
         if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
             raise ValueError(f"DiffWindowCollector: horizon must be a positive integer, got {horizon!r}")
@@ -158,6 +246,9 @@ class DiffWindowCollector:
         self._num_envs = batch_size_of(env, reset_input, "DiffWindowCollector")
         self.env = env
         self.policy = policy
+        self._isolating_policy = None
+        if isolate_nonfinite and policy is not None:
+            self._isolating_policy = IsolatingPolicy(policy, env.action_keys)
         self.horizon = horizon
         self.total_windows = total_windows
         self.exploration_type = exploration_type
@@ -167,6 +258,7 @@ class DiffWindowCollector:
         if stagger_episodes and getattr(env, "max_episode_steps", None) is None:
             raise ValueError("DiffWindowCollector: stagger_episodes needs an env with max_episode_steps")
         self.finished_returns: list[float] = []
+        self.nonfinite: torch.Tensor | None = None
         self.windows = 0
         # what the env needs to continue: its observation/state entries and the done flags
         self._carry_keys = list(env.observation_spec.keys(True, True)) + list(env.done_keys)  # leaves: not a group's reward
@@ -239,11 +331,19 @@ class DiffWindowCollector:
             self.reset(self.start_state, set_state=True)
         elif self._carried is None:
             self.reset()
+        # a transform's state (CatFrames' frames) is env state too: detached at the window start
+        detach_transform_state(self.env)
+        policy = self.policy
+        gate = None
+        if self._isolating_policy is not None:
+            policy = self._isolating_policy
+            # every env's gradient passes until the window shows which envs to isolate
+            gate = policy.open_gate(self.num_envs, self.env.device)
         with torch.enable_grad(), set_exploration_type(self.exploration_type):
             # the carried TensorDict is detached: the graph starts here
             window = self.env.rollout(
                 self.horizon,
-                self.policy,
+                policy,
                 auto_reset=False,
                 tensordict=self._carried,
                 break_when_any_done=False,
@@ -251,6 +351,7 @@ class DiffWindowCollector:
             )
         if self.windows == 0:
             self._check_differentiable(window)
+        self._isolate_nonfinite(window, gate)
         self._track_returns(window)
         # where the next window starts: the last step's "next" entries, done envs reset
         last = window[:, -1].get("next").select(*self._carry_keys, strict=False).detach()
@@ -276,9 +377,24 @@ class DiffWindowCollector:
             )
 
     @torch.no_grad()
+    def _isolate_nonfinite(self, window: TensorDictBase, gate: _Gate | None) -> None:
+        """Finds the envs with a NaN/inf reward or observation (or a ``("next", "nonfinite")``
+        flag) in ``window``, marks them ``"isolated"`` ``[N, H]`` for the losses, cuts their
+        gradient at the policy's outputs and keeps their mask in :attr:`nonfinite`."""
+        keys = policy_keys(self.env)
+        observed = [key for key in getattr(self.policy, "in_keys", ()) if key != "episode_step"]
+        bad = nonfinite_envs(window, [next_key(keys.reward), *now_and_next(observed or [keys.observation])])
+        self.nonfinite = bad
+        if gate is not None:
+            gate.keep = ~bad
+        window.set(ISOLATED_KEY, bad.unsqueeze(-1).expand(window.batch_size))
+
+    @torch.no_grad()
     def _track_returns(self, window: TensorDictBase) -> None:
-        """Writes ``("next", "episode_reward")`` and records the returns of finished episodes."""
-        self.finished_returns, running = self.tracker.update(window)
+        """Writes ``("next", "episode_reward")`` and records the returns of finished episodes
+        (those of non-finite envs left out)."""
+        finished, running = self.tracker.update(window)
+        self.finished_returns = [value for value in finished if math.isfinite(value)]
         dtype = window.get(("next", self.env.reward_key)).dtype
         window.set(("next", "episode_reward"), running.to(dtype).unsqueeze(-1))  # [N, H, 1], the team's for agents
 

@@ -13,8 +13,9 @@
 * :class:`ObservationNormalizer`: running mean / std of observations, updated explicitly outside
   the autograd graph and applied with frozen statistics inside it.
 
-All builders create their parameters in the env's float dtype (``env.float_dtype``), so a float64
-env gives float64 networks (gradient checks).
+All builders take sizes and dtypes from the env's (transformed) specs (:func:`env_dims`): a float64
+env gives float64 networks (gradient checks), a ``TransformedEnv`` networks sized for what its
+transforms output.
 """
 from __future__ import annotations
 
@@ -38,6 +39,7 @@ __all__ = [
     "TanhNormalActor",
     "actor_from_config",
     "env_dims",
+    "observation_key_of",
     "CRITIC_INPUTS",
     "privileged_inputs",
     "update_privileged_statistics",
@@ -238,12 +240,15 @@ class _ScaledTanh(nn.Module):
 def env_dims(env, in_key="observation") -> tuple[int, int, torch.dtype]:
     """``(observation size, action size, float dtype)`` of any TorchRL env the networks are built for.
 
-    Our envs carry them as attributes (``observation_dim``, ``action_dim``, ``float_dtype``); for
-    any other ``EnvBase`` they are read from its specs: the last dimension of ``in_key`` in the
-    observation spec and of the action spec.
+    Always read from the env's specs: the last dimension and dtype of ``in_key`` in its
+    observation spec, and the last dimension of its action spec. For a ``TransformedEnv`` these
+    are the *transformed* specs (``CatFrames``, ``CatTensors``, ``DoubleToFloat``,
+    ``ObservationNorm``, ...), which is what the networks receive; attributes of a DiffEnv such as
+    ``observation_dim`` describe the base env and are forwarded unchanged through a transform.
+
+    Raises a ``ValueError`` when ``in_key`` is missing or not floating point, or when the action
+    dtype differs from the observation dtype (the networks compute in one dtype).
     """
-    if all(hasattr(env, name) for name in ("observation_dim", "action_dim", "float_dtype")):
-        return env.observation_dim, env.action_dim, env.float_dtype
     observation = env.observation_spec.get(in_key, None)
     if observation is None:
         raise ValueError(
@@ -253,7 +258,21 @@ def env_dims(env, in_key="observation") -> tuple[int, int, torch.dtype]:
         )
     if not observation.dtype.is_floating_point:
         raise ValueError(f"{type(env).__name__}: {in_key!r} must be floating point, got {observation.dtype}")
-    return int(observation.shape[-1]), int(env.full_action_spec[env.action_key].shape[-1]), observation.dtype
+    action = env.full_action_spec[env.action_key]
+    if action.dtype.is_floating_point and action.dtype != observation.dtype:
+        raise ValueError(
+            f"{type(env).__name__}: the observation {in_key!r} is {observation.dtype} but the action is "
+            f"{action.dtype}; the networks compute in one dtype: cast both, e.g. "
+            f"DoubleToFloat(in_keys=[{in_key!r}, 'reward'], in_keys_inv=['action'])"
+        )
+    return int(observation.shape[-1]), int(action.shape[-1]), observation.dtype
+
+
+def observation_key_of(policy, default="observation"):
+    """The observation entry ``policy`` reads (its only in-key), else ``default``: what a learner
+    updates the policy's :class:`ObservationNormalizer` from (e.g. a key a ``CatTensors`` added)."""
+    in_keys = list(getattr(policy, "in_keys", ()))
+    return in_keys[0] if len(in_keys) == 1 else default
 
 
 def _action_bounds(env) -> tuple[float, float]:
@@ -630,7 +649,8 @@ class OpenLoopActor(TensorDictModuleBase):
         if horizon is None:
             raise ValueError("OpenLoopActor.from_env: the env never truncates; pass horizon=")
         low, high = _action_bounds(env)
-        return cls(horizon, env.action_dim, low=low, high=high, dtype=env.float_dtype, **kwargs)
+        action = env.full_action_spec[env.action_key]  # the (transformed) spec the actions must fit
+        return cls(horizon, int(action.shape[-1]), low=low, high=high, dtype=action.dtype, **kwargs)
 
     @property
     def horizon(self) -> int:

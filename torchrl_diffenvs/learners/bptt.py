@@ -4,8 +4,9 @@ One iteration, in the algorithm's order:
 
 1. collect a window ``[N, H]`` with the autograd graph on, the env state carried over from the
    previous window and detached at its start (:class:`~torchrl_diffenvs.collectors.DiffWindowCollector`);
-2. actor step: backpropagate the window's (discounted) negative return
-   (:class:`~torchrl_diffenvs.objectives.BPTTLoss`), average the gradient over the ranks (data
+2. actor step: backpropagate the window's (discounted) negative return over its finite envs
+   (:class:`~torchrl_diffenvs.objectives.BPTTLoss`; envs with NaN/inf rewards or observations
+   are left out, counted in ``"nonfinite_envs"`` and named in a warning), average the gradient over the ranks (data
    parallel; a no-op in one process) and take one guarded Adam step (clip the gradient norm;
    skip NaN/inf or absurd gradients);
 3. update the observation normaliser from the window's raw observations, all ranks' (frozen
@@ -24,8 +25,8 @@ from .. import checks
 from ..collectors import DiffWindowCollector
 from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
-from ..modules import ObservationNormalizer, actor_from_config
-from ..objectives import BPTTLoss, GradientGuard
+from ..modules import ObservationNormalizer, actor_from_config, observation_key_of
+from ..objectives import BPTTLoss, GradientGuard, NonFiniteEnvMonitor
 from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["BPTTConfig", "BPTTLearner"]
@@ -89,6 +90,7 @@ class BPTTLearner(Learner):
         # foreach: one kernel per Adam operation for all tensors (about 2x faster for small nets on CPU)
         self.actor_optim = torch.optim.Adam(self.actor_params, lr=c.actor_lr, betas=c.betas, foreach=True)
         self.actor_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=c.skip_above, clip=c.grad_clip)
+        self.nonfinite = NonFiniteEnvMonitor(type(self).__name__)
         self.actor_schedule = lr_scheduler(self.actor_optim, c.lr_schedule, lambda: self.total_iterations,
                                            min_lr=c.min_lr, decay=c.lr_decay)
 
@@ -106,13 +108,16 @@ class BPTTLearner(Learner):
         # 1. collect a window with the graph on
         window = self.collector.rollout()
         # 2. actor step on the window's negative return
-        out = self.loss(window)
+        out = self.loss(window)  # over the finite envs (the collector cut the others' gradient)
+        nonfinite = self.nonfinite.update(self.collector.nonfinite, self.iteration)
         self.actor_optim.zero_grad(set_to_none=True)
         if out["loss_actor"].requires_grad:  # False when no reward depends on the actions (CartPole-v1's +1)
             out["loss_actor"].backward()
         self.world.average_gradients(self.actor_params)
-        actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"])
+        actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"],
+                                           context=self.nonfinite.describe)
         metrics = {
+            "nonfinite_envs": nonfinite,
             "reward": out["reward_mean"].item(),
             "loss_actor": out["loss_actor"].item(),
             "grad_norm_actor": actor_info["grad_norm"],
@@ -123,7 +128,7 @@ class BPTTLearner(Learner):
             metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
         # 3. observation statistics, frozen during the window, move after it
         if self.normalizer is not None:
-            self.normalizer.update(self.world.gather(window.get(self.keys.observation)))
+            self.normalizer.update(self.world.gather(window.get(observation_key_of(self.actor, self.keys.observation))))
         # 4. learning-rate schedule
         self.actor_schedule.step()
         self.iteration += 1

@@ -3,7 +3,8 @@
 One iteration, in the algorithm's order:
 
 1. collect ``num_envs x rollout_len`` steps with the stochastic policy (TorchRL's ``Collector``,
-   no gradients);
+   no gradients); envs with NaN/inf rewards or observations are left out of the batch (counted
+   in ``"nonfinite_envs"`` and named in a warning);
 2. ``epochs`` passes, each recomputing GAE advantages with the current critic, then taking
    shuffled minibatch steps (without replacement) on ``loss_objective + loss_critic
    (+ loss_entropy) (+ bounds loss)``, each on the gradient averaged over the ranks and through
@@ -22,6 +23,7 @@ statistics of that union, and the adaptive schedule follows the mean KL.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import defaultdict
 from collections.abc import Mapping
 
@@ -43,9 +45,11 @@ from ..modules import (
     actor_from_config,
     critic_from_config,
     env_dims,
+    observation_key_of,
     update_privileged_statistics,
 )
-from ..objectives import GradientGuard
+from ..objectives import GradientGuard, NonFiniteEnvMonitor, nonfinite_envs
+from ..objectives.nonfinite import next_key, now_and_next
 from .base import Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["PPOConfig", "PPOLearner"]
@@ -160,6 +164,7 @@ class PPOLearner(Learner):
         self.schedule = lr_scheduler(self.optim, "linear" if c.lr_schedule == "linear" else "constant",
                                      lambda: self.total_iterations)
         self.guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
+        self.nonfinite = NonFiniteEnvMonitor(type(self).__name__)
         self.buffer = ReplayBuffer(
             storage=LazyTensorStorage(self.num_envs * c.rollout_len, device=env.device),
             sampler=SamplerWithoutReplacement(),
@@ -189,6 +194,8 @@ class PPOLearner(Learner):
         # 1. collect (no gradients)
         data = next(self._batches)  # [num_envs, rollout_len]
         finished, _ = self.tracker.update(data)
+        finished = [value for value in finished if math.isfinite(value)]
+        data, nonfinite = self.finite_envs(data)
         # 2. epochs of minibatch steps, advantages recomputed with the current critic
         sums: dict[str, float] = defaultdict(float)
         updates = 0
@@ -197,6 +204,8 @@ class PPOLearner(Learner):
                 self.loss.value_estimator(
                     data, params=self.loss.critic_network_params, target_params=self.loss.target_critic_network_params
                 )
+            if data.numel() != self.buffer.storage.max_size:
+                self.buffer.empty()  # a batch without its non-finite envs must not leave older transitions behind
             self.buffer.extend(data.reshape(-1))
             for batch in self.buffer:
                 for key, value in self.gradient_step(batch).items():
@@ -204,7 +213,7 @@ class PPOLearner(Learner):
                 updates += 1
         metrics = {key: value / max(updates, 1) for key, value in sums.items()}
         metrics.update(reward=reward_per_env(data, self.keys.reward).mean().item(), skipped=self.guard.skipped,
-                       lr=self.optim.param_groups[0]["lr"])
+                       lr=self.optim.param_groups[0]["lr"], nonfinite_envs=nonfinite)
         if finished:
             metrics["return"] = sum(finished) / len(finished)
         # 3. learning-rate schedule (the adaptive one moved the lr after each step already)
@@ -212,11 +221,35 @@ class PPOLearner(Learner):
             self.schedule.step()
         # 4. normaliser statistics, then the collector gets the new weights
         if self.normalizer is not None:
-            self.normalizer.update(self.world.gather(data.get(self.keys.observation)))
+            self.normalizer.update(self.world.gather(data.get(observation_key_of(self.actor, self.keys.observation))))
         update_privileged_statistics(self.critic, data, self.world.gather)
         self.collector.update_policy_weights_()
         self.iteration += 1
         return metrics
+
+    def finite_envs(self, data):
+        """``(data of the finite envs, how many were left out)``: the envs of a batch ``[N, T]``
+        whose rewards and network inputs (now and next) are all finite, and that nothing flags as
+        non-finite. With no finite env left, the batch is kept whole (its NaN losses skip the
+        steps and count towards the guard's limit).
+
+        With several ranks, every rank keeps the same number of envs (their minibatch steps and
+        exchanges must match): a rank with fewer non-finite envs than another also leaves out its
+        last finite ones for this iteration; when some rank has no finite env, every rank keeps
+        its batch whole (the averaged NaN gradient skips the steps everywhere).
+        """
+        inputs = now_and_next(dict.fromkeys([*self.actor.in_keys, *self.critic.in_keys]))
+        bad = nonfinite_envs(data, [next_key(self.keys.reward), *inputs])
+        count = self.nonfinite.update(bad, self.iteration)
+        most = count
+        if self.world.size > 1:
+            most = int(self.world.gather(bad.sum().reshape(1)).max())
+        if 0 < most < bad.numel():
+            drop = bad.clone()
+            if most > count:  # the same number of envs as the rank that lost the most
+                drop[(~bad).nonzero().flatten()[count - most:]] = True
+            data = data[~drop]
+        return data, count
 
     def gradient_step(self, batch) -> dict[str, float]:
         """One guarded optimiser step on a minibatch (with advantages and value targets), the
@@ -238,7 +271,9 @@ class PPOLearner(Learner):
         self.optim.zero_grad(set_to_none=True)
         total.backward()
         self.world.average_gradients(self.params)
-        stats["grad_norm"] = self.guard.step(self.optim, self.params)["grad_norm"]
+        # the loss too: a NaN that does not reach the gradient (a NaN advantage) must also skip
+        stats["grad_norm"] = self.guard.step(self.optim, self.params, loss=total,
+                                             context=self.nonfinite.describe)["grad_norm"]
         for key in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "clip_fraction", "kl_approx"):
             if key in out.keys():
                 stats[key] = out[key].detach().float().mean().item()

@@ -3,7 +3,9 @@
 One iteration, in the algorithm's order:
 
 1. collect ``num_envs x rollout_len`` steps (uniformly random actions for the first
-   ``init_random_frames``) and add them to the replay buffer;
+   ``init_random_frames``) and add them to the replay buffer, except those of the envs with
+   NaN/inf rewards or observations (counted in ``"nonfinite_envs"`` and named in a warning; when
+   every env is non-finite, the gradient steps of the iteration are skipped);
 2. once ``init_random_frames`` steps are in, ``round(utd_ratio x steps collected)`` gradient
    steps on sampled minibatches: actor, both Q-networks and the temperature (separate Adam
    optimisers; actor and Q-networks through a guard), each followed by a soft update of the
@@ -18,6 +20,7 @@ temperature) over the ranks, so a step sees ``K x batch_size`` transitions. ``ut
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 
 import torch
@@ -30,7 +33,7 @@ from .._compat import collector_carrier_state, load_collector_carrier
 from ..collectors import EpisodeReturnTracker
 from ..distributed import SINGLE_PROCESS, World
 from ..modules import CRITIC_INPUTS, actor_from_config, qvalue_from_config
-from ..objectives import GradientGuard
+from ..objectives import GradientGuard, NonFiniteEnvMonitor, nonfinite_envs
 from .base import Learner, LearnerConfig, checked
 
 __all__ = ["SACConfig", "SACLearner"]
@@ -102,6 +105,7 @@ class SACLearner(Learner):
         self.alpha_optim = torch.optim.Adam([self.loss.log_alpha], lr=c.alpha_lr)
         self.actor_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
         self.qvalue_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
+        self.nonfinite = NonFiniteEnvMonitor(type(self).__name__)
         # what SACLoss reads (the Q-networks' inputs, now and next); the rest of a transition stays out
         observed = [key for key in qvalue.in_keys if key != "action"]
         self.buffer_keys = [*observed, "action", *(("next", *(k if isinstance(k, tuple) else (k,))) for k in observed),
@@ -135,13 +139,25 @@ class SACLearner(Learner):
         # 1. collect into the replay buffer
         data = next(self._batches)  # [num_envs, rollout_len]
         finished, _ = self.tracker.update(data)
-        self.buffer.extend(data.reshape(-1).select(*self.buffer_keys))
+        finished = [value for value in finished if math.isfinite(value)]
         self.frames += data.numel() * self.world.size  # all ranks' env steps
-        metrics = {"reward": data.get(("next", "reward")).mean().item()}
+        bad = nonfinite_envs(data, self.buffer_keys)
+        nonfinite = self.nonfinite.update(bad, self.iteration)
+        any_finite = not bool(bad.all())
+        data = data[~bad]  # the replay buffer keeps finite transitions only
+        if any_finite:
+            self.buffer.extend(data.reshape(-1).select(*self.buffer_keys))
+        metrics = {"reward": data.get(("next", "reward")).mean().item(), "nonfinite_envs": nonfinite}
         if finished:
             metrics["return"] = sum(finished) / len(finished)
         # 2. gradient steps on sampled minibatches, each followed by the target update
-        if self.frames >= c.init_random_frames and len(self.buffer) >= c.batch_size:
+        if not any_finite:  # every env non-finite: no update, and a skip towards the guards' limit
+            self.actor_guard.skip(self.nonfinite.describe)
+            self.qvalue_guard.skip(self.nonfinite.describe)
+        ready = any_finite and self.frames >= c.init_random_frames and len(self.buffer) >= c.batch_size
+        if self.world.size > 1:  # the ranks' gradient steps meet in exchanges: all of them step, or none
+            ready = self.world.mean(float(ready)) == 1.0
+        if ready:
             sums = dict.fromkeys(("loss_actor", "loss_qvalue", "loss_alpha", "grad_norm_actor", "grad_norm_qvalue",
                                   "entropy"), 0.0)
             for _ in range(self.updates_per_iteration):
@@ -166,10 +182,14 @@ class SACLearner(Learner):
         total.backward()
         self.world.average_gradients(self.actor_params + self.qvalue_params + [self.loss.log_alpha])
         stats = {
-            "grad_norm_actor": self.actor_guard.step(self.actor_optim, self.actor_params)["grad_norm"],
-            "grad_norm_qvalue": self.qvalue_guard.step(self.qvalue_optim, self.qvalue_params)["grad_norm"],
+            "grad_norm_actor": self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"],
+                                                     context=self.nonfinite.describe)["grad_norm"],
+            "grad_norm_qvalue": self.qvalue_guard.step(self.qvalue_optim, self.qvalue_params, loss=out["loss_qvalue"],
+                                                       context=self.nonfinite.describe)["grad_norm"],
         }
-        self.alpha_optim.step()
+        alpha_grad = self.loss.log_alpha.grad
+        if alpha_grad is None or torch.isfinite(alpha_grad).all():  # a NaN temperature would never recover
+            self.alpha_optim.step()
         self.target_updater.step()
         stats.update({key: out[key].detach().float().mean().item()
                       for key in ("loss_actor", "loss_qvalue", "loss_alpha", "entropy")})

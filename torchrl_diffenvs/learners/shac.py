@@ -5,7 +5,9 @@ One iteration, in the order of the reference implementation (DiffRL's ``shac.py`
 1. collect a window ``[N, H]`` with the autograd graph on (the env state carried over and
    detached at the window start);
 2. actor step: backpropagate the window's return bootstrapped by the *target* critic at
-   episode ends and at the window end (:class:`~torchrl_diffenvs.objectives.SHACLoss`), one
+   episode ends and at the window end over the finite envs (:class:`~torchrl_diffenvs.objectives.SHACLoss`;
+   envs with NaN/inf rewards or observations are left out of the actor and critic steps, counted in
+   ``"nonfinite_envs"`` and named in a warning), one
    guarded Adam step on the gradient averaged over the ranks (a no-op in one process);
 3. critic targets: TD(lambda) returns of the detached window, from the target values the actor
    loss already computed (written under ``"value_target"``);
@@ -32,9 +34,10 @@ from ..modules import (
     ObservationNormalizer,
     actor_from_config,
     critic_from_config,
+    observation_key_of,
     update_privileged_statistics,
 )
-from ..objectives import GradientGuard, SHACLoss
+from ..objectives import GradientGuard, NonFiniteEnvMonitor, SHACLoss
 from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["SHACConfig", "SHACLearner"]
@@ -111,6 +114,7 @@ class SHACLearner(Learner):
         self.critic_optim = torch.optim.Adam(self.critic_params, lr=c.critic_lr, betas=c.betas, foreach=True)
         self.actor_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=c.skip_above)
         self.critic_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=c.skip_above)
+        self.nonfinite = NonFiniteEnvMonitor(type(self).__name__)
         self.schedules = [
             lr_scheduler(optim, c.lr_schedule, lambda: self.total_iterations, min_lr=c.min_lr, decay=c.lr_decay)
             for optim in (self.actor_optim, self.critic_optim)
@@ -134,17 +138,24 @@ class SHACLearner(Learner):
         # 1. collect a window with the graph on
         window = self.collector.rollout()
         # 2. actor step on the bootstrapped return (also writes the critic targets: step 3)
-        out = self.loss(window)
+        out = self.loss(window)  # over the finite envs (the collector cut the others' gradient)
+        keep = self.loss.finite_envs(window)
+        nonfinite = self.nonfinite.update(~keep, self.iteration)
         self.actor_optim.zero_grad(set_to_none=True)
         if out["loss_actor"].requires_grad:  # False when nothing depends on the actions
             out["loss_actor"].backward()
         self.world.average_gradients(self.actor_params)
-        actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"])
+        actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"],
+                                           context=self.nonfinite.describe)
         metrics = {key: out[key].item() for key in ("loss_actor", "reward_mean", "value_mean")}
-        # 3. the critic fits the detached window and its TD(lambda) targets
+        metrics["nonfinite_envs"] = nonfinite
+        # 3. the critic fits the detached window and its TD(lambda) targets (those of the finite envs)
         data = window.detach()
         del window, out  # the graph is spent
-        flat = data.select(*self.loss.critic_network.in_keys, self.loss.tensor_keys.value_target).reshape(-1)
+        flat = data.select(*self.loss.critic_network.in_keys, self.loss.tensor_keys.value_target)
+        if keep.any():  # with no finite env left the NaN losses skip every critic step, as they must
+            flat = flat[keep]
+        flat = flat.reshape(-1)
         # 4. critic passes over shuffled minibatches
         critic_losses = []
         for critic_pass in range(c.critic_passes):
@@ -155,13 +166,14 @@ class SHACLearner(Learner):
                 self.critic_optim.zero_grad(set_to_none=True)
                 critic_loss.backward()
                 self.world.average_gradients(self.critic_params)
-                self.critic_guard.step(self.critic_optim, self.critic_params, loss=critic_loss)
+                self.critic_guard.step(self.critic_optim, self.critic_params, loss=critic_loss,
+                                       context=self.nonfinite.describe)
                 critic_losses.append(critic_loss.item())
         # 5. the target critic follows the critic
         self.target_updater.step()
         # 6. observation (and privileged-input) statistics, frozen during the window, move after it
         if self.normalizer is not None:
-            self.normalizer.update(self.world.gather(data.get(self.keys.observation)))
+            self.normalizer.update(self.world.gather(data.get(observation_key_of(self.actor, self.keys.observation))))
         update_privileged_statistics(self.loss.critic_network, data, self.world.gather)
         metrics.update({
             "reward": metrics.pop("reward_mean"),

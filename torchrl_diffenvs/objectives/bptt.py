@@ -9,6 +9,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
 from ._windows import like_agents, steps_since_start, window_entry
+from .nonfinite import nonfinite_envs
 
 __all__ = ["BPTTLoss"]
 
@@ -32,6 +33,12 @@ class BPTTLoss(LossModule):
     one episode per window this is full-episode BPTT (Ivy Gym's demos, TorchRL's Pendulum
     tutorial); with short windows and carried state it is Brax's APG.
 
+    **Non-finite envs** (a NaN/inf reward, a ``("next", "nonfinite")`` flag, or marked
+    ``"isolated"`` by the collector) are left out: the sums run over the other envs and :math:`N`
+    counts only them (``nonfinite_envs`` says how many were left out). Their gradient must also be
+    kept out of the backward pass, which the window collector does
+    (:class:`~torchrl_diffenvs.collectors.IsolatingPolicy`).
+
     The policy is not called here: the gradient reaches it through the rollout's graph. The actor
     is held so that ``loss.parameters()`` lists what to optimise.
 
@@ -40,8 +47,9 @@ class BPTTLoss(LossModule):
         gamma: discount (default ``1.0``, undiscounted as in Ivy Gym, Brax APG and TorchRL's
             tutorial).
 
-    Returns (``forward``): a TensorDict with ``loss_actor`` and ``reward_mean`` (the window's mean
-    per-step reward, detached). Episode returns come from the collector
+    Returns (``forward``): a TensorDict with ``loss_actor``, ``reward_mean`` (the window's mean
+    per-step reward over the finite envs, detached) and ``nonfinite_envs`` (how many envs were
+    left out); NaN when every env was. Episode returns come from the collector
     (:attr:`~torchrl_diffenvs.collectors.DiffWindowCollector.finished_returns`).
     """
 
@@ -70,14 +78,17 @@ class BPTTLoss(LossModule):
 
     @property
     def out_keys(self):
-        return ["loss_actor", "reward_mean"]
+        return ["loss_actor", "reward_mean", "nonfinite_envs"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         reward = window_entry(tensordict, self.tensor_keys.reward, "BPTTLoss")
         done = window_entry(tensordict, self.tensor_keys.done, "BPTTLoss").bool()
+        bad = nonfinite_envs(tensordict, [("next", self.tensor_keys.reward)])
+        reward, done = reward[~bad], done[~bad]  # the finite envs only
         discount = like_agents(self.gamma ** steps_since_start(done).to(reward.dtype), reward)
         out = {
-            "loss_actor": -(discount * reward).sum() / reward.numel(),
+            "loss_actor": -(discount * reward).sum() / reward.numel(),  # NaN (0 / 0) when no env is left
             "reward_mean": reward.detach().mean(),
+            "nonfinite_envs": bad.sum(),
         }
         return TensorDict(out, batch_size=[])

@@ -2,11 +2,15 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import torch
 
-__all__ = ["GradientGuard"]
+__all__ = ["GradientGuard", "NonFiniteTrainingError"]
+
+
+class NonFiniteTrainingError(RuntimeError):
+    """Training cannot go on: too many consecutive updates had a NaN/inf loss or gradient."""
 
 
 class GradientGuard:
@@ -20,6 +24,10 @@ class GradientGuard:
     exactly as they were) and :attr:`skipped` is incremented. Otherwise the gradients are clipped
     to ``max_norm`` and the step is taken.
 
+    A NaN/inf loss or gradient now and then is survivable; ``max_nonfinite_skips`` of them in a
+    row are not (nothing has been learned since): :meth:`step` then raises a
+    :class:`NonFiniteTrainingError` naming the likely causes.
+
     The caller zeroes gradients before its backward pass as usual.
 
     Args:
@@ -29,6 +37,9 @@ class GradientGuard:
             ``[-max_norm, max_norm]``, as Brax's APG does with ``optax.clip``).
         skip_above: skip the step when the pre-clip norm exceeds this; ``None`` skips only on
             NaN/inf.
+        max_nonfinite_skips: raise after this many consecutive steps skipped for a NaN/inf loss
+            or gradient (steps skipped for a finite norm above ``skip_above`` do not count);
+            ``None`` never raises.
 
     Example::
 
@@ -38,13 +49,20 @@ class GradientGuard:
         info = guard.step(optimizer, actor.parameters(), loss=loss)  # {"grad_norm": ..., "skipped": False}
     """
 
-    def __init__(self, max_norm: float | None = 1.0, skip_above: float | None = 1e6, clip: str = "norm"):
+    def __init__(self, max_norm: float | None = 1.0, skip_above: float | None = 1e6, clip: str = "norm",
+                 max_nonfinite_skips: int | None = 20):
         if max_norm is not None and not max_norm > 0:
             raise ValueError(f"GradientGuard: max_norm must be > 0 or None, got {max_norm!r}")
         if skip_above is not None and not skip_above > 0:
             raise ValueError(f"GradientGuard: skip_above must be > 0 or None, got {skip_above!r}")
         if clip not in self.CLIP_MODES:
             raise ValueError(f"GradientGuard: clip must be one of {self.CLIP_MODES}, got {clip!r}")
+        if max_nonfinite_skips is not None and (isinstance(max_nonfinite_skips, bool) or
+                                                not isinstance(max_nonfinite_skips, int) or max_nonfinite_skips < 1):
+            raise ValueError(f"GradientGuard: max_nonfinite_skips must be a positive integer or None, "
+                             f"got {max_nonfinite_skips!r}")
+        self.max_nonfinite_skips = max_nonfinite_skips
+        self.nonfinite_in_a_row = 0
         self.clip = clip
         self.max_norm = max_norm
         self.skip_above = skip_above
@@ -58,6 +76,7 @@ class GradientGuard:
         optimizer: torch.optim.Optimizer,
         parameters: Iterable[torch.Tensor] | None = None,
         loss: torch.Tensor | float | None = None,
+        context: Callable[[], str] | None = None,
     ) -> dict:
         """Checks, clips and (if safe) applies one optimiser step.
 
@@ -65,6 +84,9 @@ class GradientGuard:
             optimizer: the optimiser to step.
             parameters: the parameters whose gradients are checked and clipped; defaults to every
                 parameter of ``optimizer``.
+            loss: the loss the gradient comes from; a NaN/inf value skips the step.
+            context: called only to build the error message when training must stop (e.g.
+                which envs were non-finite).
 
         Returns:
             ``{"grad_norm": float (pre-clip), "skipped": bool}``.
@@ -82,7 +104,11 @@ class GradientGuard:
         if isinstance(loss, torch.Tensor):
             loss = loss.detach()
         loss_ok = loss is None or math.isfinite(float(loss))
-        if not loss_ok or not math.isfinite(norm) or (self.skip_above is not None and norm > self.skip_above):
+        if not loss_ok or not math.isfinite(norm):
+            self.skip(context)
+            return {"grad_norm": norm, "skipped": True}
+        self.nonfinite_in_a_row = 0
+        if self.skip_above is not None and norm > self.skip_above:
             self.skipped += 1
             return {"grad_norm": norm, "skipped": True}
         if self.max_norm is not None and self.clip == "elementwise":
@@ -95,12 +121,27 @@ class GradientGuard:
         optimizer.step()
         return {"grad_norm": norm, "skipped": False}
 
+    def skip(self, context: Callable[[], str] | None = None) -> None:
+        """Counts a step skipped for a non-finite loss or gradient (also one the caller could not
+        even compute, e.g. when every env of the batch was non-finite); raises a
+        :class:`NonFiniteTrainingError` when that makes ``max_nonfinite_skips`` in a row."""
+        self.skipped += 1
+        self.nonfinite_in_a_row += 1
+        if self.max_nonfinite_skips is not None and self.nonfinite_in_a_row >= self.max_nonfinite_skips:
+            detail = f" ({context()})" if context is not None else ""
+            raise NonFiniteTrainingError(
+                f"{self.nonfinite_in_a_row} consecutive updates skipped because the loss or gradient was NaN/inf"
+                f"{detail}; likely causes: non-finite physical parameters (a NaN or inf param) or a diverging "
+                "simulation; check the env's parameters, or lower the learning rate or the gradient clip"
+            )
+
     def state_dict(self) -> dict:
-        return {"skipped": self.skipped, "steps": self.steps}
+        return {"skipped": self.skipped, "steps": self.steps, "nonfinite_in_a_row": self.nonfinite_in_a_row}
 
     def load_state_dict(self, state: dict) -> None:
         self.skipped = int(state["skipped"])
         self.steps = int(state["steps"])
+        self.nonfinite_in_a_row = int(state.get("nonfinite_in_a_row", 0))  # absent from older checkpoints
 
     def __repr__(self) -> str:
         return (f"GradientGuard(max_norm={self.max_norm}, clip={self.clip!r}, skip_above={self.skip_above}, "

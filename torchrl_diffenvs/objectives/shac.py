@@ -13,6 +13,7 @@ from torchrl.objectives import LossModule, SoftUpdate
 from torchrl.objectives.value import TDLambdaEstimator
 
 from ._windows import like_agents, steps_since_start, window_entry
+from .nonfinite import next_key, nonfinite_envs, now_and_next
 
 __all__ = ["SHACLoss"]
 
@@ -57,6 +58,13 @@ class SHACLoss(LossModule):
     **Multi-agent.** With ``set_keys(reward=("agents", "reward"), value=("agents", "state_value"))``
     each agent has its own return and value (``[N, H, A, 1]``; the done flags are shared); the
     actor loss averages the agents' bootstrapped returns, the critic fits each agent's targets.
+
+    **Non-finite envs** (a NaN/inf reward or critic input, a ``("next", "nonfinite")`` flag, or
+    marked ``"isolated"`` by the collector) are left out of ``loss_actor`` and the diagnostics (the
+    sums run over the other envs, :math:`N` counts only them; ``nonfinite_envs`` says how many were
+    left out); their critic targets are NaN, so the critic must be fitted on the other envs
+    (:meth:`finite_envs` gives the mask). Their gradient must also be kept out of the backward
+    pass, which the window collector does (:class:`~torchrl_diffenvs.collectors.IsolatingPolicy`).
 
     **Usage.** ``forward(window)`` returns ``loss_actor`` (backpropagate it into the actor) and
     detached diagnostics (``reward_mean``, ``value_mean``), and writes the detached critic targets
@@ -133,7 +141,7 @@ class SHACLoss(LossModule):
 
     @property
     def out_keys(self):
-        return ["loss_actor", "reward_mean", "value_mean"]
+        return ["loss_actor", "reward_mean", "value_mean", "nonfinite_envs"]
 
     def make_target_updater(self, tau: float = 0.8) -> SoftUpdate:
         """TorchRL's :class:`SoftUpdate` for the target critic: ``target <- (1-tau) target + tau critic``.
@@ -199,6 +207,11 @@ class SHACLoss(LossModule):
         return TensorDict({"loss_critic": (value - target.detach()).pow(2).mean()}, batch_size=[])
 
     # ------------------------------------------------------------------ the loss
+    def finite_envs(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``[N]`` bool: the envs of a window whose rewards and critic inputs (now and next) are
+        finite and that nothing flags as non-finite (see :func:`~torchrl_diffenvs.objectives.nonfinite_envs`)."""
+        return ~nonfinite_envs(tensordict, [next_key(self.tensor_keys.reward), *now_and_next(self.critic_network.in_keys)])
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
         reward = window_entry(tensordict, keys.reward, "SHACLoss")
@@ -206,19 +219,22 @@ class SHACLoss(LossModule):
         terminated = window_entry(tensordict, keys.terminated, "SHACLoss").bool()
 
         next_value = self._next_target_values(tensordict)  # [N, H, (A,) 1], graph through the observation
+        # the critic targets of every env (NaN for the non-finite ones), then the loss of the finite ones
+        targets = self._value_targets(tensordict, next_value)
+        tensordict.set(keys.value_target, targets)
+        keep = self.finite_envs(tensordict)
+        reward, done, terminated, next_value = reward[keep], done[keep], terminated[keep], next_value[keep]
         k = like_agents(steps_since_start(done).to(reward.dtype), reward)
         # a sub-trajectory closes at an episode end or at the window end; a terminal state is worth 0
         closes = done.clone()
         closes[:, -1] = True
         bootstrap_here = like_agents(closes & ~terminated, reward)
         bootstrap = torch.where(bootstrap_here, self.gamma ** (k + 1) * next_value.reshape(reward.shape), 0.0)
-        loss_actor = -((self.gamma**k) * reward + bootstrap).sum() / reward.numel()
-
-        targets = self._value_targets(tensordict, next_value)
-        tensordict.set(keys.value_target, targets)
+        loss_actor = -((self.gamma**k) * reward + bootstrap).sum() / reward.numel()  # NaN (0 / 0) if no env is left
         out = {
             "loss_actor": loss_actor,
             "reward_mean": reward.detach().mean(),
             "value_mean": next_value.detach().mean(),
+            "nonfinite_envs": (~keep).sum(),
         }
         return TensorDict(out, batch_size=[])
