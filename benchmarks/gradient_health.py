@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
 from _common import BenchmarkSettings, print_table  # noqa: E402
 
 from torchrl_diffenvs import make_env  # noqa: E402
@@ -132,6 +133,9 @@ def main(argv=None):
     if settings.fidelity:
         headers += ["rest height - MuJoCo's (m)", "x gap after 1 s (m)", "joint RMS gap (rad)"]
     print_table(headers, rows)
+    C.write_data(settings, "gradient_health", {"gradient_health": C.data_table(
+        f"Closed-loop actor gradient at initialisation ({settings.seeds} seeds, {settings.num_envs} envs, "
+        f"{settings.horizon}-step window after {settings.warmup} steps), per physics option", headers, rows)})
     return rows
 
 

@@ -29,6 +29,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
 from _common import BenchmarkSettings, print_table  # noqa: E402
 
 from torchrl_diffenvs import make_env  # noqa: E402
@@ -122,7 +123,10 @@ def main(argv=None):
                    f"{r['max_qvel']:.3g}", f"{r['travel']:.3g}"]
             rows.append(row)
             print(" | ".join(row), flush=True)
-    print_table(["task", "policy", "envs x steps", "non-finite envs", "max |qvel|", "max travel (m)"], rows)
+    headers = ["task", "policy", "envs x steps", "non-finite envs", "max |qvel|", "max travel (m)"]
+    print_table(headers, rows)
+    C.write_data(settings, "stress", {"stress": C.data_table(
+        "Long episodes under the policies that break simulators (float32, default physics)", headers, rows)})
     return rows
 
 
