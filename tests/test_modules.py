@@ -80,3 +80,21 @@ def test_calls_the_direct_path_does_not_cover_use_probabilistic_actor():
     with set_interaction_type(InteractionType.DETERMINISTIC):
         squashed_loc = plain(td.clone())["action"]
     assert not torch.equal(mean, squashed_loc)  # an empirical mean, not the direct path's squashed loc
+
+
+def test_normalizer_does_not_amplify_a_nearly_constant_feature_beyond_min_std():
+    """A feature with std 1e-4 (a contact force while in the air) is divided by min_std (1e-2 by
+    default), not by its own std; a feature with std 3 by its own: both against hand values."""
+    norm = ObservationNormalizer(2, dtype=torch.float64)
+    data = torch.stack([1.0 + 1e-4 * torch.randn(4000, dtype=torch.float64),
+                        3.0 * torch.randn(4000, dtype=torch.float64)], dim=-1)
+    norm.update(data)
+    x = torch.tensor([[1.5, 6.0]], dtype=torch.float64, requires_grad=True)
+    out = norm(x)
+    mean, std = data.mean(0), data.std(0, unbiased=False)
+    expected = torch.stack([(1.5 - mean[0]) / 1e-2, (6.0 - mean[1]) / torch.sqrt(std[1] ** 2 + 1e-5)])
+    torch.testing.assert_close(out[0], expected)
+    (grad,) = torch.autograd.grad(out.sum(), x)
+    torch.testing.assert_close(grad[0, 0], torch.tensor(100.0, dtype=torch.float64))
+    with pytest.raises(ValueError, match="min_std must be a finite number >= 0"):
+        ObservationNormalizer(2, min_std=-1.0)

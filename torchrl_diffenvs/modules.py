@@ -58,7 +58,8 @@ NETWORK_INITS = ("default", "orthogonal")
 
 
 class ObservationNormalizer(nn.Module):
-    """``(x - mean) / sqrt(var + eps)`` with running statistics that change only in :meth:`update`.
+    """``(x - mean) / max(sqrt(var + eps), min_std)`` with running statistics that change only in
+    :meth:`update`.
 
     Design: the normaliser is an ``nn.Module`` placed as the first layer of the actor and critic
     networks (``make_actor(env, normalizer=norm)``, ``make_critic(env, normalizer=norm)``; pass the
@@ -77,23 +78,30 @@ class ObservationNormalizer(nn.Module):
     Args:
         dim: observation size (last dimension).
         eps: added to the variance before the square root.
+        min_std: the smallest divisor: a feature that barely varies (a contact force while the
+            robot is in the air) is amplified at most ``1 / min_std`` times, so its derivatives
+            do not swamp the others' (TorchRL's ``VecNorm`` floors its std at 1e-2 alike).
         clip: if given, normalised values are clamped to ``[-clip, clip]`` (which zeroes their
             gradient outside that range); ``None`` (default) does not clamp.
         dtype: dtype of the statistics and of the output.
     """
 
-    def __init__(self, dim: int, eps: float = 1e-5, clip: float | None = None, dtype: torch.dtype = torch.float32):
+    def __init__(self, dim: int, eps: float = 1e-5, clip: float | None = None, dtype: torch.dtype = torch.float32,
+                 min_std: float = 1e-2):
         super().__init__()
         if not isinstance(dim, int) or dim < 1:
             raise ValueError(f"ObservationNormalizer: dim must be a positive integer, got {dim!r}")
+        if not (isinstance(min_std, (int, float)) and 0.0 <= min_std < float("inf")):
+            raise ValueError(f"ObservationNormalizer: min_std must be a finite number >= 0, got {min_std!r}")
         self.eps = eps
+        self.min_std = float(min_std)
         self.clip = clip
         self.register_buffer("mean", torch.zeros(dim, dtype=dtype))
         self.register_buffer("var", torch.ones(dim, dtype=dtype))
         self.register_buffer("count", torch.zeros((), dtype=torch.float64))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out = (x - self.mean) / torch.sqrt(self.var + self.eps)
+        out = (x - self.mean) / torch.sqrt(self.var + self.eps).clamp(min=self.min_std)
         if self.clip is not None:
             out = out.clamp(-self.clip, self.clip)
         return out
