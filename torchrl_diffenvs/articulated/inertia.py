@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from .kinematics import Kinematics, _tree_sum, generalised_force
+from .kinematics import Kinematics, _tree_sum, forward_kinematics, generalised_force
 from .spatial import Params, _inverse, _skew, cross_force, cross_motion
 from .tree import RigidBodyTree
 
@@ -71,7 +71,7 @@ def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
     MuJoCo computes it when it compiles the model (``mj_setConst``), so a model file with other
     masses gets other values; here it follows the per-env params, as a model compiled with them.
     """
-    kin0 = tree.kin0
+    kin0 = kinematics_at_qpos0(tree)
     inertia = _spatial_inertia(tree, kin0, params)
     mass = _joint_space_inertia(tree, kin0.motion, inertia) + torch.diag_embed(params["armature"])
     weight = _inverse(mass).diagonal(dim1=-2, dim2=-1)
@@ -81,3 +81,10 @@ def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
             mean = weight[:, first:first + 3].mean(-1, keepdim=True)
             weight = torch.cat([weight[:, :first], mean.expand(-1, 3), weight[:, first + 3:]], dim=-1)
     return weight
+
+
+def kinematics_at_qpos0(tree: RigidBodyTree) -> Kinematics:
+    """The kinematics at ``qpos0`` (computed once per tree, then kept on it)."""
+    if tree.kin0 is None:
+        tree.kin0 = forward_kinematics(tree, tree.qpos0.unsqueeze(0))
+    return tree.kin0

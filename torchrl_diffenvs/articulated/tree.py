@@ -4,15 +4,11 @@ parameters a model file sets)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from .model import ArticulatedModel
-
-if TYPE_CHECKING:
-    from .kinematics import Kinematics
 
 __all__ = ['RigidBodyTree', 'default_params']
 
@@ -52,7 +48,7 @@ class RigidBodyTree:
     limit_margin: torch.Tensor
     limit_solref: torch.Tensor  # [nlimit, 2]
     limit_solimp: torch.Tensor  # [nlimit, 5]
-    kin0: Kinematics | None  # kinematics at qpos0 (for MuJoCo's dof_invweight0, see dof_invweight0())
+    kin0: object | None  # Kinematics at qpos0, for MuJoCo's dof_invweight0: see inertia.kinematics_at_qpos0
     # motors
     actuator_dof: torch.Tensor  # [nu] long
     actuator_gear: torch.Tensor
@@ -194,9 +190,6 @@ class RigidBodyTree:
             contact_pairs=pairs, contact_pair_friction=np.array(pair_friction),
             body_inertial_frame=t(np.linalg.eigh(model.body_inertia)[1]),
         )
-        from .kinematics import forward_kinematics  # kinematics reads the tree: imported here, not at the top
-
-        tree.kin0 = forward_kinematics(tree, tree.qpos0.unsqueeze(0))
         return tree
 
 

@@ -23,6 +23,7 @@ import torch
 
 from ...articulated import RigidBodyTree, load_mjcf, step
 from ...articulated.dynamics import StepResult, default_params, dof_invweight0
+from ...articulated.inertia import kinematics_at_qpos0
 from ...articulated.mjcf import ArticulatedModel, gymnasium_asset
 from ..gym_classic import GymnasiumClassicEnv
 
@@ -94,6 +95,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         dtype = kwargs.get("dtype", torch.float32)
         device = torch.device(kwargs.get("device") or "cpu")
         self.tree = RigidBodyTree.from_model(model, dtype=dtype, device=device)
+        kinematics_at_qpos0(self.tree)  # kept on the tree: computed here, not inside a compiled step
         defaults = dict(default_params(model))
         if self.tree.contact_body.numel():
             defaults.update(self.contact_params)
