@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
+from types import MappingProxyType
 
 import torch
 from tensordict import TensorDictBase
@@ -26,14 +27,14 @@ from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
 from ..modules import ObservationNormalizer, actor_from_config
 from ..objectives import BPTTLoss, GradientGuard
-from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
+from .base import ActorNetworkConfig, LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["BPTTConfig", "BPTTLearner"]
 
 
 @dataclasses.dataclass(frozen=True)
 class BPTTConfig(LearnerConfig):
-    """Settings of :class:`BPTTLearner` (the keys of ``configs/loss/bptt.yaml``)."""
+    """Settings of :class:`BPTTLearner` (the ``loss`` section of ``loss=bptt``; its defaults are this class's)."""
 
     horizon: int = checked(16, checks.positive_int)  # window length H: an iteration is N x H env steps
     gamma: float = checked(1.0, checks.in_interval(0.0, 1.0))  # discount inside a window (Brax APG: 1)
@@ -72,6 +73,10 @@ class BPTTLearner(Learner):
 
     name = "bptt"
     config_class = BPTTConfig
+    networks = MappingProxyType({"actor": ActorNetworkConfig()})
+    run_defaults = MappingProxyType({"train": {"total_env_steps": 600_000, "checkpoint_interval": 200_000},
+                                     "eval": {"interval": 100_000}})
+    compiles_windows = True
 
     def __init__(self, env, actor, config: BPTTConfig = BPTTConfig(), total_env_steps: int = 1_000_000, *,
                  normalizer: ObservationNormalizer | None = None, start_state: TensorDictBase | None = None,

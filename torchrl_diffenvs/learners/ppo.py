@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 from collections import defaultdict
 from collections.abc import Mapping
+from types import MappingProxyType
 
 import torch
 from torchrl.collectors import Collector
@@ -46,14 +47,14 @@ from ..modules import (
     update_privileged_statistics,
 )
 from ..objectives import GradientGuard
-from .base import Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
+from .base import ActorNetworkConfig, Learner, LearnerConfig, NetworkConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["PPOConfig", "PPOLearner"]
 
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig(LearnerConfig):
-    """Settings of :class:`PPOLearner` (the keys of ``configs/loss/ppo.yaml``)."""
+    """Settings of :class:`PPOLearner` (the ``loss`` section of ``loss=ppo``; its defaults are this class's)."""
 
     rollout_len: int = checked(32, checks.positive_int)  # an iteration is num_envs x rollout_len env steps
     epochs: int = checked(5, checks.positive_int)  # passes over each batch
@@ -118,6 +119,15 @@ class PPOLearner(Learner):
 
     name = "ppo"
     config_class = PPOConfig
+    networks = MappingProxyType({  # TanhNormal with a state-independent std
+        "actor": ActorNetworkConfig(activation="tanh", layer_norm=False, init_log_std=0.0),
+        "critic": NetworkConfig(activation="tanh", layer_norm=False),
+    })
+    run_defaults = MappingProxyType({"train": {"total_env_steps": 500_000, "checkpoint_interval": 250_000},
+                                     "eval": {"interval": 100_000}})
+    needs_stochastic_policy = True
+    policy_log_prob = True  # the ratio of ClipPPOLoss
+    multi_agent_choices = ("mappo", "ippo")  # presets with a centralised / decentralised critic
 
     def __init__(self, env, actor, critic, config: PPOConfig = PPOConfig(), total_env_steps: int = 1_000_000, *,
                  normalizer: ObservationNormalizer | None = None, world: World = SINGLE_PROCESS):

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
+from types import MappingProxyType
 
 import torch
 
@@ -35,14 +36,14 @@ from ..modules import (
     update_privileged_statistics,
 )
 from ..objectives import GradientGuard, SHACLoss
-from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
+from .base import ActorNetworkConfig, LR_SCHEDULES, Learner, LearnerConfig, NetworkConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["SHACConfig", "SHACLearner"]
 
 
 @dataclasses.dataclass(frozen=True)
 class SHACConfig(LearnerConfig):
-    """Settings of :class:`SHACLearner` (the keys of ``configs/loss/shac.yaml``)."""
+    """Settings of :class:`SHACLearner` (the ``loss`` section of ``loss=shac``; its defaults are this class's)."""
 
     horizon: int = checked(16, checks.positive_int)  # window length H: an iteration is N x H env steps
     gamma: float = checked(0.99, checks.in_interval(0.0, 1.0))
@@ -92,6 +93,10 @@ class SHACLearner(Learner):
 
     name = "shac"
     config_class = SHACConfig
+    networks = MappingProxyType({"actor": ActorNetworkConfig(), "critic": NetworkConfig()})  # DiffRL's critic: init=orthogonal
+    run_defaults = MappingProxyType({"train": {"total_env_steps": 400_000, "checkpoint_interval": 200_000},
+                                     "eval": {"interval": 50_000}})
+    compiles_windows = True
 
     def __init__(self, env, actor, critic, config: SHACConfig = SHACConfig(), total_env_steps: int = 1_000_000, *,
                  normalizer: ObservationNormalizer | None = None, reset_input=None, world: World = SINGLE_PROCESS):
