@@ -116,7 +116,9 @@ def test_an_env_without_state_entries_is_refused_with_the_fix():
 
 # ---------------------------------------------------------------------- the learners
 def loss_section(name: str, **settings):
-    cfg = OmegaConf.load(CONFIGS / "loss" / f"{name}.yaml").loss
+    from torchrl_diffenvs.learners import LEARNERS
+
+    cfg = OmegaConf.create(LEARNERS[name].default_config()["loss"])  # the loss=<name> section
     for network in ("actor", "critic", "qvalue"):
         if network in cfg:
             cfg[network].hidden = [16]
