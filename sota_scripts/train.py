@@ -34,7 +34,6 @@ from torchrl_diffenvs.distributed import DistributedError
 from torchrl_diffenvs.training import (
     CheckpointError,
     ConfigError,
-    TrainingInterrupted,
     load_checkpoint,
     merge_overrides,
     run,

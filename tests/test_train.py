@@ -136,6 +136,45 @@ def test_a_newly_registered_task_is_trainable_without_a_config_file():
         _REGISTRY.pop("long_pendulum_test")
 
 
+def test_a_new_learner_is_one_class_and_its_registration(tmp_path):
+    """The extension story of torchrl_diffenvs.learners: a Learner subclass with its settings
+    dataclass, registered with register_learner, is loss=<name> with its defaults, its checks,
+    its budget, training, checkpoints and mode=eval, with no configuration file."""
+    from hydra.core.config_store import ConfigStore
+
+    from torchrl_diffenvs import checks
+    from torchrl_diffenvs.learners import LEARNERS, BPTTConfig, BPTTLearner, register_learner
+    from torchrl_diffenvs.learners.base import checked
+
+    @dataclasses.dataclass(frozen=True)
+    class CautiousBPTTConfig(BPTTConfig):
+        actor_lr: float = checked(1e-3, checks.learning_rate)  # its own default
+        horizon: int = checked(4, checks.positive_int)
+
+    class CautiousBPTT(BPTTLearner):
+        name = "cautious_bptt"
+        config_class = CautiousBPTTConfig
+        run_defaults = {"train": {"total_env_steps": 32, "checkpoint_interval": 32}}
+
+    register_learner(CautiousBPTT)
+    try:
+        cfg = make_cfg("env=pendulum", "loss=cautious_bptt")
+        assert (cfg.loss.name, cfg.loss.actor_lr, cfg.loss.horizon, cfg.train.total_env_steps) == \
+            ("cautious_bptt", 1e-3, 4, 32)
+        with pytest.raises(ConfigError, match="loss.actor_lr=0: a learning rate must be a number > 0"):
+            train_script.validate_config(make_cfg("env=pendulum", "loss=cautious_bptt", "loss.actor_lr=0"))
+        tiny = [*COMMON, "loss.actor.hidden=[8]"]
+        result = train_script.run(make_cfg("env=pendulum", "loss=cautious_bptt", *tiny), tmp_path / "train")
+        assert result["loss"] == "cautious_bptt" and result["env_steps"] == 32
+        ckpt = tmp_path / "train" / "checkpoints" / "last.pt"
+        played = train_script.run(make_cfg("mode=eval", f"checkpoint={ckpt}", "logger=none", "eval.gif=false",
+                                           "eval.num_envs=2"), tmp_path / "eval")
+        assert played["loss"] == "cautious_bptt" and math.isfinite(played["eval/return"])
+    finally:
+        LEARNERS.pop("cautious_bptt")
+        ConfigStore.instance().repo["loss"].pop("cautious_bptt.yaml")
+
+
 @pytest.mark.parametrize("choice, name", [("bptt_reference", "bptt"), ("shac_reference", "shac")])
 def test_reference_configs_are_the_learner_with_the_references_settings(tmp_path, choice, name):
     cfg = make_cfg("env=pendulum", f"loss={choice}")

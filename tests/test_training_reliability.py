@@ -11,7 +11,6 @@ import json
 import math
 import os
 import signal
-import sys
 from pathlib import Path
 
 import pytest
@@ -114,7 +113,8 @@ def test_checkpoint_size_does_not_grow_with_the_run_and_resume_keeps_the_history
     def comparable(rows):
         return [{k: v for k, v in r.items() if not k.startswith("time/")} for r in rows]
 
-    assert comparable(read_jsonl(tmp_path / "b" / "metrics.jsonl")) == comparable(read_jsonl(tmp_path / "a" / "metrics.jsonl"))
+    rows_a, rows_b = read_jsonl(tmp_path / "a" / "metrics.jsonl"), read_jsonl(tmp_path / "b" / "metrics.jsonl")
+    assert comparable(rows_b) == comparable(rows_a)
 
 
 # ---------------------------------------------------------------------- SIGTERM and Ctrl-C

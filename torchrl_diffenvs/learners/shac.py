@@ -93,7 +93,8 @@ class SHACLearner(Learner):
 
     name = "shac"
     config_class = SHACConfig
-    networks = MappingProxyType({"actor": ActorNetworkConfig(), "critic": NetworkConfig()})  # DiffRL's critic: init=orthogonal
+    # DiffRL's critic: init=orthogonal (loss=shac_reference)
+    networks = MappingProxyType({"actor": ActorNetworkConfig(), "critic": NetworkConfig()})
     run_defaults = MappingProxyType({"train": {"total_env_steps": 400_000, "checkpoint_interval": 200_000},
                                      "eval": {"interval": 50_000}})
     compiles_windows = True
@@ -127,7 +128,7 @@ class SHACLearner(Learner):
         critic = critic_from_config(loss_cfg.critic, env, normalizer, loss_cfg.get("critic_input", "observation"),
                                     loss_cfg.get("centralised_critic", False))
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
-        return cls(env, actor, critic, SHACConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,
+        return cls(env, actor, critic, cls.config_class.from_mapping(settings), total_env_steps, normalizer=normalizer,
                    world=world)
 
     @property
