@@ -197,9 +197,16 @@ def test_eval_of_a_checkpoint_on_another_env_is_refused(tmp_path, monkeypatch):
     with pytest.raises(SystemExit) as err:
         _cli(*overrides, cwd=tmp_path, monkeypatch=monkeypatch)
     assert "trained on env=pendulum, not env=cartpole; drop env=" in str(err.value.code)
-    # naming the checkpoint's own env is fine
+    # naming the checkpoint's own env is fine, and env.<key>= changes the checkpoint's env (not the default env's)
     same = ["mode=eval", f"checkpoint={last}", "env=pendulum", "logger=none", "eval.gif=false", "eval.num_envs=2"]
-    assert train_script.run(make_cfg(*same), tmp_path / "same", same)["env"] == "pendulum"
+    plain = train_script.run(make_cfg(*same), tmp_path / "same", same)
+    heavier = [*same, "+env.params.mass=3.0"]
+    changed = train_script.run(make_cfg(*heavier), tmp_path / "heavier", heavier)
+    assert plain["env"] == changed["env"] == "pendulum" and plain["env_overrides"] == {}
+    assert changed["env_overrides"] == {"env.params.mass": 3.0} and changed["eval/return"] != plain["eval/return"]
+    bogus = ["mode=eval", f"checkpoint={last}", "logger=none", "eval.gif=false", "env.max_episode_steps=0"]
+    with pytest.raises(ConfigError, match="env.max_episode_steps=0: expected an integer >= 1"):
+        train_script.run(make_cfg(*bogus), tmp_path / "bogus", bogus)
 
 
 @pytest.mark.parametrize("override, shown", [("+env.params.mass=nan", "nan"), ("+env.params.g=inf", "inf"),

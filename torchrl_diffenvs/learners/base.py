@@ -244,6 +244,13 @@ class Learner(ABC):
         return problems
 
     @classmethod
+    def settings_from(cls, loss_cfg: Mapping) -> LearnerConfig:
+        """The :attr:`config_class` of a ``loss`` section: every key but ``name``, the network
+        sections and the (off) settings this learner does not support."""
+        skipped = {"name", *cls.networks, *cls.unsupported_settings}
+        return cls.config_class.from_mapping({k: v for k, v in loss_cfg.items() if k not in skipped})
+
+    @classmethod
     def policy_from_config(cls, loss_cfg: Mapping, env) -> TensorDictModuleBase:
         """The policy network alone, shaped as :meth:`from_config` builds it (``mode=eval`` loads a
         checkpoint's ``"policy"`` weights into it)."""

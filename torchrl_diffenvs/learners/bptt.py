@@ -100,8 +100,7 @@ class BPTTLearner(Learner):
     @classmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> BPTTLearner:
         actor, normalizer = actor_from_config(loss_cfg, env)
-        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor")}
-        return cls(env, actor, cls.config_class.from_mapping(settings), total_env_steps, normalizer=normalizer,
+        return cls(env, actor, cls.settings_from(loss_cfg), total_env_steps, normalizer=normalizer,
                    world=world)
 
     @property

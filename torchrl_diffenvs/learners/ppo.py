@@ -187,8 +187,7 @@ class PPOLearner(Learner):
         actor, normalizer = actor_from_config(loss_cfg, env, return_log_prob=True)
         critic = critic_from_config(loss_cfg.critic, env, normalizer, loss_cfg.get("critic_input", "observation"),
                                     loss_cfg.get("centralised_critic", False))
-        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
-        return cls(env, actor, critic, cls.config_class.from_mapping(settings), total_env_steps, normalizer=normalizer,
+        return cls(env, actor, critic, cls.settings_from(loss_cfg), total_env_steps, normalizer=normalizer,
                    world=world)
 
     @property

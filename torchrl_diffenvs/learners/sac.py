@@ -135,8 +135,7 @@ class SACLearner(Learner):
             raise ValueError("loss=sac does not support obs_norm (the replay buffer would mix statistics)")
         actor, _ = actor_from_config(loss_cfg, env)
         qvalue = qvalue_from_config(loss_cfg.qvalue, env, loss_cfg.get("critic_input", "observation"))
-        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "qvalue", "obs_norm")}
-        return cls(env, actor, qvalue, cls.config_class.from_mapping(settings), total_env_steps, world=world)
+        return cls(env, actor, qvalue, cls.settings_from(loss_cfg), total_env_steps, world=world)
 
     @property
     def steps_per_env(self) -> int:

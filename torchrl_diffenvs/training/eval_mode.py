@@ -10,7 +10,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from ..evaluation import episode_returns, evaluate_random, record_video
@@ -31,6 +31,19 @@ def chunk_length(steps: int, longest: int = 8) -> int:
 def exploration_of(cfg: DictConfig) -> ExplorationType:
     """``eval.deterministic``: the mean action (default) or sampled actions."""
     return ExplorationType.DETERMINISTIC if cfg.eval.get("deterministic", True) else ExplorationType.RANDOM
+
+
+def _diff(old: DictConfig, new: DictConfig, where: str = "env.") -> dict:
+    """``{"env.params.mass": new value}`` for every leaf of ``new`` that differs from ``old``."""
+    out = {}
+    for key, value in new.items():
+        before = old.get(key) if key in old else None
+        if isinstance(value, DictConfig):
+            out.update(_diff(before if isinstance(before, DictConfig) else OmegaConf.create({}), value,
+                             f"{where}{key}."))
+        elif value != before:
+            out[f"{where}{key}"] = value
+    return out
 
 
 def json_report(result: Mapping, reasons: Mapping[str, str] | None = None) -> str:
@@ -74,8 +87,25 @@ def write_video(cfg: DictConfig, env, policy, steps: int, stem: Path) -> Path | 
         return None
 
 
-def _named_env(overrides: Sequence[str]) -> bool:
-    return any(o.split("=", 1)[0].lstrip("+~") == "env" for o in overrides)
+def _override_key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def _env_of_checkpoint(cfg: DictConfig, trained: DictConfig, overrides: Sequence[str]) -> DictConfig:
+    """The checkpoint's ``env`` section, with the command line's ``env.<key>=...`` on top (e.g.
+    ``env.params.mass=2``: the trained policy under other physics). An ``env=<name>`` /
+    ``env.name=<name>`` must name the checkpoint's env: the policy's networks are shaped for it."""
+    keys = [_override_key(o) for o in overrides if _override_key(o) == "env" or _override_key(o).startswith("env.")]
+    if any(key in ("env", "env.name") for key in keys) and cfg.env.name != trained.env.name:
+        raise ConfigError(f"checkpoint={str(cfg.checkpoint)!r} holds a policy trained on env={trained.env.name}, "
+                          f"not env={cfg.env.name}; drop env= (mode=eval takes the env from the checkpoint) or "
+                          f"evaluate a checkpoint of an env={cfg.env.name} run")
+    env = trained.env.copy()
+    with open_dict(env):
+        for key in keys:
+            if key not in ("env", "env.name"):
+                OmegaConf.update(env, key[len("env."):], OmegaConf.select(cfg, key), merge=False)
+    return env
 
 
 def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = ()) -> dict:
@@ -84,20 +114,25 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
 
     The env, the loss (network shapes) and the dtype come from the checkpoint; ``eval.*`` and
     ``device`` from the command line. An ``env=`` on the command line (``overrides``) must name
-    the checkpoint's env: the policy's networks are shaped for it.
+    the checkpoint's env (the policy's networks are shaped for it); ``env.<key>=...`` overrides
+    change the checkpoint's env section (e.g. ``env.params.mass=2`` evaluates the policy with
+    another mass) and are recorded in ``eval_metrics.json``.
     """
     from .. import compile_physics
 
     ckpt = load_checkpoint(cfg.checkpoint)
     trained = OmegaConf.create(ckpt["config"])
-    if _named_env(overrides) and cfg.env.name != trained.env.name:
-        raise ConfigError(f"checkpoint={str(cfg.checkpoint)!r} holds a policy trained on env={trained.env.name}, "
-                          f"not env={cfg.env.name}; drop env= (mode=eval takes the env from the checkpoint) or "
-                          f"evaluate a checkpoint of an env={cfg.env.name} run")
+    env_section = _env_of_checkpoint(cfg, trained, overrides)
+    changed = {key: OmegaConf.to_container(value) if isinstance(value, (DictConfig, ListConfig)) else value
+               for key, value in _diff(trained.env, env_section).items()}
     cfg = cfg.copy()
     with open_dict(cfg):  # whole sections replaced, not merged: the trained env may have other options
-        cfg.env, cfg.loss, cfg.dtype = trained.env, trained.loss, trained.dtype
-    env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed)
+        cfg.env, cfg.loss, cfg.dtype = env_section, trained.loss, trained.dtype
+    try:
+        env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed)
+    except (ValueError, TypeError, KeyError) as err:
+        raise ConfigError(f"env overrides {changed} rejected by env {cfg.env.name!r} of checkpoint="
+                          f"{str(cfg.checkpoint)!r}: {err}") from None
     steps = cfg.eval.max_steps or env.max_episode_steps
     policy = LEARNERS[cfg.loss.name].policy_from_config(cfg.loss, env)
     policy.load_state_dict(ckpt["policy"])
@@ -116,6 +151,7 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
               "return_min": returns.min().item(), "return_max": returns.max().item()}
     result = {"env": cfg.env.name, "loss": cfg.loss.name, "checkpoint": str(cfg.checkpoint),
               "trained_env_steps": ckpt["progress"]["env_steps"], "eval_steps": steps, "games": games,
+              "env_overrides": changed,
               "returns": returns.tolist(),
               "deterministic": bool(cfg.eval.get("deterministic", True)),
               "eval/random_return": evaluate_random(env, steps, cfg.eval.seed),
