@@ -261,6 +261,9 @@ def test_unknown_env_or_loss_lists_the_valid_choices():
         (["loss=bptt", "+loss.actor.widths=[3]"], "loss.actor.widths: unknown setting of ActorNetworkConfig; valid: hidden,"),
         (["loss=ppo", "loss.critic.hidden=[0]"], "loss.critic.hidden=[0]: expected a list of positive layer widths"),
         (["loss=shac", "loss.actor.activation=gelu"], "loss.actor.activation='gelu': valid: tanh, elu, relu"),
+        (["+train.total_env_step=5"], "train.total_env_step: unknown setting of TrainSettings; valid: total_env_steps,"),
+        (["eval.num_envs=2", "eval.gif_env_index=2"], "eval.gif_env_index=2: expected an integer in [0, eval.num_envs)"),
+        (["distributed.timeout_s=0"], "distributed.timeout_s=0: expected a number > 0"),
     ],
 )
 def test_bad_configs_stop_before_training_with_a_clear_message(overrides, message):
@@ -596,6 +599,21 @@ def test_composing_a_loss_gives_its_dataclass_defaults(loss):
     for group, values in learner.run_defaults.items():
         for key, value in values.items():
             assert cfg[group][key] == value
+
+
+def test_the_run_sections_are_their_dataclasses_defaults():
+    """train / eval / selfplay / distributed come from torchrl_diffenvs.training.settings (the
+    learner then sets its budget)."""
+    from torchrl_diffenvs.learners import LEARNERS
+    from torchrl_diffenvs.training.settings import RUN_SECTIONS
+
+    cfg = make_cfg("env=swimmer", "loss=bptt", "~tuned")
+    budget = LEARNERS["bptt"].run_defaults
+    for section, settings in RUN_SECTIONS.items():
+        expected = {**settings.defaults(), **budget.get(section, {})}
+        assert OmegaConf.to_container(cfg[section]) == expected, section
+        assert settings.from_mapping(expected) is not None  # the defaults pass their own checks
+    assert not {"train", "eval", "selfplay", "distributed"} & set(OmegaConf.load(CONFIGS / "config.yaml"))
 
 
 def test_tuned_files_hold_only_what_differs_from_the_defaults():

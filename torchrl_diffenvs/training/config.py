@@ -17,6 +17,7 @@ from ..checks import is_int as _is_int
 from ..checks import is_number
 from ..envs import env_config, is_multi_agent, list_envs, make_env
 from ..learners import LEARNERS
+from .settings import RUN_SECTIONS, register_run_configs
 from ..modules import privileged_inputs
 
 __all__ = [
@@ -57,6 +58,12 @@ def register_env_configs() -> None:
 
 
 register_env_configs()
+register_run_configs()
+
+
+def _plain(values) -> dict:
+    """A configuration section as plain Python values (lists for list nodes)."""
+    return OmegaConf.to_container(values, resolve=True) if isinstance(values, DictConfig) else dict(values)
 
 
 class ConfigError(ValueError):
@@ -188,9 +195,11 @@ def _check_randomize(env_cfg, problems: list[str]) -> None:
 def validate_config(cfg: DictConfig) -> None:
     """Raises :class:`ConfigError` listing every problem of ``cfg``; returns ``None`` when it can run.
 
-    Checked: mode, env name and its options/params (by building one env), loss name and values
-    (learning rates > 0, horizons and batch sizes >= 1, gamma / lambda / tau ranges, network sizes),
-    logger, device, dtype, step counts and intervals, and the ``resume`` / ``checkpoint`` files.
+    Checked: mode, env name and its options/params (by building one env; physical parameters must
+    be finite), the loss section by its learner (:meth:`~torchrl_diffenvs.learners.Learner.config_problems`:
+    its settings dataclass, network sections and what it refuses), the ``train`` / ``eval`` /
+    ``selfplay`` / ``distributed`` sections by their dataclasses (:mod:`.settings`), logger,
+    device, dtype, and the ``resume`` / ``checkpoint`` files.
     """
     problems: list[str] = []
     try:
@@ -222,40 +231,20 @@ def validate_config(cfg: DictConfig) -> None:
 
     if not _is_int(cfg.get("seed")) or cfg.seed < 0:
         problems.append(f"seed={cfg.get('seed')!r}: expected an integer >= 0")
-    for key, minimum in (
-        ("env.num_envs", 1), ("eval.num_envs", 1), ("train.total_env_steps", 1), ("train.checkpoint_interval", 1),
-        ("train.keep_checkpoints", 0), ("train.log_interval", 1), ("eval.interval", 1), ("eval.gif_fps", 1),
-        ("eval.gif_size", 16), ("eval.seed", 0),
-    ):
-        value = OmegaConf.select(cfg, key)
-        if not _is_int(value) or value < minimum:
-            problems.append(f"{key}={value!r}: expected an integer >= {minimum}")
-    timeout = OmegaConf.select(cfg, "distributed.timeout_s", default=300)
-    if not is_number(timeout) or timeout <= 0:
-        problems.append(f"distributed.timeout_s={timeout!r}: expected a number of seconds > 0")
+    for section, settings in RUN_SECTIONS.items():  # train, eval, selfplay, distributed: their dataclasses
+        values = cfg.get(section)
+        if isinstance(values, (DictConfig, Mapping)):
+            problems.extend(settings.problems(_plain(values), f"{section}."))
+        else:
+            problems.append(f"{section}={values!r}: expected a section of settings ({', '.join(settings.defaults())})")
+    num_envs = OmegaConf.select(cfg, "env.num_envs")
+    if not _is_int(num_envs) or num_envs < 1:
+        problems.append(f"env.num_envs={num_envs!r}: expected an integer >= 1")
+    max_steps = OmegaConf.select(cfg, "env.max_episode_steps")
+    if max_steps is not None and (not _is_int(max_steps) or max_steps < 1):
+        problems.append(f"env.max_episode_steps={max_steps!r}: expected an integer >= 1, or null for the env's default")
     if not isinstance(OmegaConf.select(cfg, "compile", default=False), bool):
         problems.append(f"compile={OmegaConf.select(cfg, 'compile')!r}: expected true or false")
-    video_format = OmegaConf.select(cfg, "eval.video_format", default="gif")
-    if video_format not in ("gif", "mp4"):
-        problems.append(f"eval.video_format={video_format!r}: valid: gif, mp4")
-    if not isinstance(OmegaConf.select(cfg, "eval.deterministic", default=True), bool):
-        problems.append(f"eval.deterministic={OmegaConf.select(cfg, 'eval.deterministic')!r}: expected true or false")
-    games = OmegaConf.select(cfg, "eval.games_num")
-    if games is not None and (not _is_int(games) or games < 1):
-        problems.append(f"eval.games_num={games!r}: expected an integer >= 1, or null for eval.num_envs")
-    score_to_win = OmegaConf.select(cfg, "train.score_to_win")
-    if score_to_win is not None and not is_number(score_to_win):
-        problems.append(f"train.score_to_win={score_to_win!r}: expected a number, or null to train the whole budget")
-    best_after = OmegaConf.select(cfg, "train.save_best_after")
-    if best_after is not None and (not _is_int(best_after) or best_after < 0):
-        problems.append(f"train.save_best_after={best_after!r}: expected an integer >= 0 (env steps), or null")
-    for key in ("env.max_episode_steps", "eval.max_steps"):
-        value = OmegaConf.select(cfg, key)
-        if value is not None and (not _is_int(value) or value < 1):
-            problems.append(f"{key}={value!r}: expected an integer >= 1, or null for the env's default")
-    gif_index = cfg.eval.get("gif_env_index")
-    if not _is_int(gif_index) or not 0 <= gif_index < max(int(cfg.eval.num_envs) if _is_int(cfg.eval.num_envs) else 1, 1):
-        problems.append(f"eval.gif_env_index={gif_index!r}: expected an integer in [0, eval.num_envs)")
 
     if loss_name in LEARNERS:
         _check_loss(cfg.loss, problems)
@@ -277,11 +266,7 @@ def validate_config(cfg: DictConfig) -> None:
 
     _check_randomize(cfg.env, problems)
     _check_params(cfg.env, problems)
-    refresh, pool = OmegaConf.select(cfg, "selfplay.refresh_interval"), OmegaConf.select(cfg, "selfplay.pool_size")
-    if refresh is not None and (not _is_int(refresh) or refresh < 1):
-        problems.append(f"selfplay.refresh_interval={refresh!r}: expected an integer >= 1 (env steps), or null")
-    if not _is_int(pool) or pool < 1:
-        problems.append(f"selfplay.pool_size={pool!r}: expected an integer >= 1")
+    refresh = OmegaConf.select(cfg, "selfplay.refresh_interval")
 
     # build one env: catches bad options / params / max_episode_steps with the env's own message
     if env_name in list_envs() and not any(p.startswith(("env.", "device", "dtype")) for p in problems):
@@ -375,6 +360,11 @@ def check_resume_compatible(trained: DictConfig, cfg: DictConfig) -> None:
     for section in ("env", "loss"):
         old = OmegaConf.to_container(trained[section], resolve=True)
         new = OmegaConf.to_container(cfg[section], resolve=True)
+        learner = LEARNERS.get(old.get("name")) if section == "loss" else None
+        if learner is not None:  # a key a checkpoint lacks had its default (older checkpoints wrote fewer keys)
+            defaults = OmegaConf.create(learner.default_config()["loss"])
+            old = OmegaConf.to_container(OmegaConf.merge(defaults, old))
+            new = OmegaConf.to_container(OmegaConf.merge(defaults, new))
         for key in sorted(set(old) | set(new)):
             if old.get(key) != new.get(key):
                 problems.append(f"{section}.{key}: checkpoint {old.get(key)!r}, now {new.get(key)!r}")
