@@ -171,7 +171,11 @@ class Trainer:
         if world.is_main:
             remove_stale_temp_files(self.ckpt_dir)
         if cfg.get("resume"):
-            history, wandb_run_id = self._resume(Path(cfg.resume))
+            try:
+                history, wandb_run_id = self._resume(Path(cfg.resume))
+            except BaseException:
+                self.learner.close()  # its collector, if any, before the error leaves
+                raise
         if world.is_main:  # rank 0 alone writes the run directory
             self.logger = RunLogger(cfg, self.run_dir, history, wandb_run_id)
 
