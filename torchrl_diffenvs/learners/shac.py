@@ -36,7 +36,16 @@ from ..modules import (
     update_privileged_statistics,
 )
 from ..objectives import GradientGuard, SHACLoss
-from .base import ActorNetworkConfig, LR_SCHEDULES, Learner, LearnerConfig, NetworkConfig, checked, load_lr_scheduler, lr_scheduler
+from .base import (
+    LR_SCHEDULES,
+    ActorNetworkConfig,
+    Learner,
+    LearnerConfig,
+    NetworkConfig,
+    checked,
+    load_lr_scheduler,
+    lr_scheduler,
+)
 
 __all__ = ["SHACConfig", "SHACLearner"]
 
