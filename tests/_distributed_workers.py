@@ -24,8 +24,10 @@ SMALL_NETS = {"hidden": [16, 16]}
 
 
 def loss_config(name: str, **settings):
-    """``configs/loss/<name>.yaml`` with small networks and ``settings`` on top."""
-    cfg = OmegaConf.load(CONFIGS / "loss" / f"{name}.yaml").loss
+    """The ``loss=<name>`` section (the learner's defaults) with small networks and ``settings`` on top."""
+    from torchrl_diffenvs.learners import LEARNERS
+
+    cfg = OmegaConf.create(LEARNERS[name].default_config()["loss"])
     for network in ("actor", "critic", "qvalue"):
         if network in cfg:
             cfg[network].hidden = SMALL_NETS["hidden"]

@@ -14,7 +14,7 @@ from torchrl_diffenvs.learners import make_learner
 from torchrl_diffenvs.modules import make_critic, make_qvalue, privileged_inputs, update_privileged_statistics
 from torchrl_diffenvs.training import ConfigError, validate_config
 
-from test_train import CONFIGS, make_cfg
+from test_train import make_cfg
 
 
 # ---------------------------------------------------------------------- the partially observed pendulum
@@ -116,7 +116,9 @@ def test_an_env_without_state_entries_is_refused_with_the_fix():
 
 # ---------------------------------------------------------------------- the learners
 def loss_section(name: str, **settings):
-    cfg = OmegaConf.load(CONFIGS / "loss" / f"{name}.yaml").loss
+    from torchrl_diffenvs.learners import LEARNERS
+
+    cfg = OmegaConf.create(LEARNERS[name].default_config()["loss"])  # the loss=<name> section
     for network in ("actor", "critic", "qvalue"):
         if network in cfg:
             cfg[network].hidden = [16]

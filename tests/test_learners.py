@@ -77,20 +77,24 @@ def test_checkpoint_resume_is_exact(loss_name):
 
 
 @pytest.mark.parametrize("loss_name", ["bptt", "shac"])
-def test_resuming_with_a_larger_budget_stretches_the_schedule(loss_name):
-    """A run resumed with twice the budget continues on the schedule of a run started with it:
-    linear decay from 1e-2 to 1e-5 over 40 iterations, not the 20 it was started with."""
+def test_resuming_with_a_larger_budget_goes_on_from_the_learning_rate_reached(loss_name):
+    """A run resumed with twice the budget keeps the learning rate it had reached (no jump) and
+    decays it linearly from there to min_lr at the end of the new budget: started with 20
+    iterations, stopped after 5, resumed with 40."""
     short = make_learner(loss_name, total_env_steps=20 * 8 * 6)
     for _ in range(5):
         short.train_iteration()
     longer = make_learner(loss_name, total_env_steps=40 * 8 * 6)
     longer.load_state_dict(short.state_dict())
     lrs = [longer.train_iteration()["lr_actor"] for _ in range(10)]
-    # the lr used at iteration i (before that iteration's schedule step): 1e-2 - (1e-2 - 1e-5) i / 40
-    expected = [1e-2 - (1e-2 - 1e-5) * i / 40 for i in range(5, 15)]
+    # the lr used at iteration i (before that iteration's schedule step): from lr_5 of the 20-iteration
+    # line, straight to 1e-5 at iteration 40
+    lr_5 = 1e-2 - (1e-2 - 1e-5) * 5 / 20
+    expected = [lr_5 + (1e-5 - lr_5) * (i - 5) / 35 for i in range(5, 15)]
     assert lrs == pytest.approx(expected, rel=1e-9)
     if loss_name == "shac":  # the critic's schedule too: 1e-3 -> 1e-5, now after 15 steps
-        assert longer.critic_optim.param_groups[0]["lr"] == pytest.approx(1e-3 - (1e-3 - 1e-5) * 15 / 40, rel=1e-9)
+        c_5 = 1e-3 - (1e-3 - 1e-5) * 5 / 20
+        assert longer.critic_optim.param_groups[0]["lr"] == pytest.approx(c_5 + (1e-5 - c_5) * 10 / 35, rel=1e-9)
 
 
 def test_settings_are_checked_with_a_clear_message():

@@ -6,6 +6,7 @@ with tiny overrides); a few tests go through the command line in a subprocess.
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import math
@@ -88,8 +89,9 @@ REFERENCE_LOSSES = ("bptt_reference", "shac_reference")
 
 
 def test_every_registered_env_and_loss_has_a_config():
+    # the learners' sections are generated from their classes; configs/loss/ holds presets only
     loss_files = {p.stem for p in (CONFIGS / "loss").glob("*.yaml")}
-    assert loss_files == set(LOSSES) | set(PRESETS)
+    assert loss_files == set(PRESETS)
     assert not (CONFIGS / "env").exists(), "env sections come from the task registrations"
     for name in list_envs():
         cfg = make_cfg(f"env={name}", "loss=shac", "~tuned")  # (a tuned file may set env options)
@@ -134,6 +136,45 @@ def test_a_newly_registered_task_is_trainable_without_a_config_file():
         _REGISTRY.pop("long_pendulum_test")
 
 
+def test_a_new_learner_is_one_class_and_its_registration(tmp_path):
+    """The extension story of torchrl_diffenvs.learners: a Learner subclass with its settings
+    dataclass, registered with register_learner, is loss=<name> with its defaults, its checks,
+    its budget, training, checkpoints and mode=eval, with no configuration file."""
+    from hydra.core.config_store import ConfigStore
+
+    from torchrl_diffenvs import checks
+    from torchrl_diffenvs.learners import LEARNERS, BPTTConfig, BPTTLearner, register_learner
+    from torchrl_diffenvs.learners.base import checked
+
+    @dataclasses.dataclass(frozen=True)
+    class CautiousBPTTConfig(BPTTConfig):
+        actor_lr: float = checked(1e-3, checks.learning_rate)  # its own default
+        horizon: int = checked(4, checks.positive_int)
+
+    class CautiousBPTT(BPTTLearner):
+        name = "cautious_bptt"
+        config_class = CautiousBPTTConfig
+        run_defaults = {"train": {"total_env_steps": 32, "checkpoint_interval": 32}}
+
+    register_learner(CautiousBPTT)
+    try:
+        cfg = make_cfg("env=pendulum", "loss=cautious_bptt")
+        assert (cfg.loss.name, cfg.loss.actor_lr, cfg.loss.horizon, cfg.train.total_env_steps) == \
+            ("cautious_bptt", 1e-3, 4, 32)
+        with pytest.raises(ConfigError, match="loss.actor_lr=0: a learning rate must be a number > 0"):
+            train_script.validate_config(make_cfg("env=pendulum", "loss=cautious_bptt", "loss.actor_lr=0"))
+        tiny = [*COMMON, "loss.actor.hidden=[8]"]
+        result = train_script.run(make_cfg("env=pendulum", "loss=cautious_bptt", *tiny), tmp_path / "train")
+        assert result["loss"] == "cautious_bptt" and result["env_steps"] == 32
+        ckpt = tmp_path / "train" / "checkpoints" / "last.pt"
+        played = train_script.run(make_cfg("mode=eval", f"checkpoint={ckpt}", "logger=none", "eval.gif=false",
+                                           "eval.num_envs=2"), tmp_path / "eval")
+        assert played["loss"] == "cautious_bptt" and math.isfinite(played["eval/return"])
+    finally:
+        LEARNERS.pop("cautious_bptt")
+        ConfigStore.instance().repo["loss"].pop("cautious_bptt.yaml")
+
+
 @pytest.mark.parametrize("choice, name", [("bptt_reference", "bptt"), ("shac_reference", "shac")])
 def test_reference_configs_are_the_learner_with_the_references_settings(tmp_path, choice, name):
     cfg = make_cfg("env=pendulum", f"loss={choice}")
@@ -174,9 +215,11 @@ def test_a_tuned_file_sets_env_options_of_the_training_envs():
 
 
 def test_tuned_defaults_override_the_loss_defaults_but_not_the_command_line():
+    from torchrl_diffenvs.learners import SHACConfig
+
     tuned = yaml.safe_load((CONFIGS / "tuned" / "pendulum_shac.yaml").read_text())
     horizon = tuned["loss"]["horizon"]
-    assert horizon != yaml.safe_load((CONFIGS / "loss" / "shac.yaml").read_text())["loss"]["horizon"]
+    assert horizon != SHACConfig().horizon
     assert make_cfg("env=pendulum", "loss=shac").loss.horizon == horizon
     assert make_cfg("env=pendulum", "loss=shac", "loss.horizon=3").loss.horizon == 3
     assert make_cfg("env=CartPole-v1", "loss=bptt").train.total_env_steps == 200_000  # a per-pair budget
@@ -208,13 +251,19 @@ def test_unknown_env_or_loss_lists_the_valid_choices():
         (["env=reacher", "env.options.num_links=0"], "num_links must be an integer >= 1"),
         (["env=pendulum", "+env.params.gravity=3"], "unknown physical parameter(s) ['gravity']"),
         (["device=tpu"], "device='tpu'"),
-        (["loss=ppo", "+loss.actor.distribution=deterministic"], "loss=ppo needs a stochastic policy"),
+        (["loss=ppo", "loss.actor.distribution=deterministic"], "loss=ppo needs a stochastic policy"),
+        (["loss=sac", "loss.actor.distribution=deterministic"], "loss=sac needs a stochastic policy"),
         (["loss=sac", "+loss.obs_norm=true"], "loss.obs_norm=true is not supported by loss=sac"),
         (["loss=sac", "loss.buffer_size=10", "loss.batch_size=64"], "loss.buffer_size=10 is smaller than"),
         (["loss=shac", "loss.critic.init=xavier"], "loss.critic.init='xavier': valid: default, orthogonal"),
         (["loss=shac", "loss.critic_shuffle=never"], "loss.critic_shuffle='never': valid: every_pass, once_per_window"),
         (["loss=bptt", "loss.grad_clip=value"], "loss.grad_clip='value': valid: norm, elementwise"),
-        (["loss=bptt", "+loss.actor.widths=[3]"], "loss.actor: unknown key(s) ['widths']"),
+        (["loss=bptt", "+loss.actor.widths=[3]"], "loss.actor.widths: unknown setting of ActorNetworkConfig; valid: hidden,"),
+        (["loss=ppo", "loss.critic.hidden=[0]"], "loss.critic.hidden=[0]: expected a list of positive layer widths"),
+        (["loss=shac", "loss.actor.activation=gelu"], "loss.actor.activation='gelu': valid: tanh, elu, relu"),
+        (["+train.total_env_step=5"], "train.total_env_step: unknown setting of TrainSettings; valid: total_env_steps,"),
+        (["eval.num_envs=2", "eval.gif_env_index=2"], "eval.gif_env_index=2: expected an integer in [0, eval.num_envs)"),
+        (["distributed.timeout_s=0"], "distributed.timeout_s=0: expected a number > 0"),
     ],
 )
 def test_bad_configs_stop_before_training_with_a_clear_message(overrides, message):
@@ -533,18 +582,58 @@ def test_wandb_sweep_file_drives_the_same_script_through_hydra_overrides(sweep_f
 
 
 @pytest.mark.parametrize("loss", LOSSES)
-def test_loss_files_list_every_setting_with_the_learners_defaults(loss):
-    """configs/loss/<loss>.yaml shows every setting of the learner's dataclass, with its default (one
-    source of truth: the dataclass; the file is what users read and override)."""
+def test_composing_a_loss_gives_its_dataclass_defaults(loss):
+    """``loss=<name>`` (no tuned file) is the learner's settings dataclass with its defaults, its
+    network sections' defaults and its budget: the class is the one source of every default."""
     from torchrl_diffenvs.learners import LEARNERS
 
-    section = OmegaConf.to_container(OmegaConf.load(CONFIGS / "loss" / f"{loss}.yaml").loss)  # parses 1e-3 as Hydra does
-    settings = {k: v for k, v in section.items() if not isinstance(v, dict) and k != "name"}
-    defaults = LEARNERS[loss].config_class.defaults()
-    assert set(settings) == set(defaults)
-    for key, value in settings.items():
-        expected = list(defaults[key]) if isinstance(defaults[key], tuple) else defaults[key]
-        assert value == expected, (key, value, expected)
+    learner = LEARNERS[loss]
+    section = make_cfg("env=swimmer", f"loss={loss}", "~tuned").loss
+    settings = {k: v for k, v in section.items() if k != "name" and k not in learner.networks}
+    assert section.name == loss
+    assert learner.config_class.from_mapping(settings) == learner.config_class()  # every field, its default
+    assert set(settings) == {f.name for f in dataclasses.fields(learner.config_class)}
+    for key, network in learner.networks.items():
+        assert type(network).from_mapping(section[key]) == network
+    cfg = make_cfg("env=swimmer", f"loss={loss}", "~tuned")
+    for group, values in learner.run_defaults.items():
+        for key, value in values.items():
+            assert cfg[group][key] == value
+
+
+def test_the_run_sections_are_their_dataclasses_defaults():
+    """train / eval / selfplay / distributed come from torchrl_diffenvs.training.settings (the
+    learner then sets its budget)."""
+    from torchrl_diffenvs.learners import LEARNERS
+    from torchrl_diffenvs.training.settings import RUN_SECTIONS
+
+    cfg = make_cfg("env=swimmer", "loss=bptt", "~tuned")
+    budget = LEARNERS["bptt"].run_defaults
+    for section, settings in RUN_SECTIONS.items():
+        expected = {**settings.defaults(), **budget.get(section, {})}
+        assert OmegaConf.to_container(cfg[section]) == expected, section
+        assert settings.from_mapping(expected) is not None  # the defaults pass their own checks
+    assert not {"train", "eval", "selfplay", "distributed"} & set(OmegaConf.load(CONFIGS / "config.yaml"))
+
+
+def test_tuned_files_hold_only_what_differs_from_the_defaults():
+    """A tuned file that repeats a default is a second copy of it: each of its values must differ
+    from what env=<env> loss=<loss> gives without it."""
+    for path in sorted((CONFIGS / "tuned").glob("*.yaml")):
+        env, _, loss = path.stem.rpartition("_")
+        untuned = OmegaConf.to_container(make_cfg(f"env={env}", f"loss={loss}", "~tuned"))
+
+        def walk(node, where):
+            for key, value in node.items():
+                if isinstance(value, dict):
+                    walk(value, [*where, key])
+                else:
+                    default = untuned
+                    for part in [*where, key]:
+                        default = default.get(part) if isinstance(default, dict) else None
+                    assert value != default, f"{path.name}: {'.'.join([*where, key])}={value} is the default"
+
+        walk(yaml.safe_load(path.read_text()), [])
 
 
 def test_score_to_win_stops_training_and_best_checkpoint_keeps_the_best_evaluation(tmp_path, caplog):

@@ -2,11 +2,33 @@
 
 ``bptt`` and ``shac`` backpropagate through the differentiable env; ``ppo`` and ``sac`` are
 TorchRL's own losses and collectors. All four share :class:`Learner`'s interface, used alike by
-``sota_scripts/train.py``, the demos, the benchmarks and the tests::
+the training loop (:mod:`torchrl_diffenvs.training`), the demos, the benchmarks and the tests::
 
     learner = SHACLearner(env, make_actor(env), make_critic(env), SHACConfig(horizon=8))
     for _ in range(100):
         metrics = learner.train_iteration()
+
+Adding a learner
+----------------
+One file plus one registration line:
+
+1. ``torchrl_diffenvs/learners/<name>.py``: a frozen settings dataclass (a :class:`LearnerConfig`
+   whose fields are ``checked(default, check)``: the defaults live there and nowhere else) and a
+   :class:`Learner` subclass that implements ``from_config``, ``steps_per_env``,
+   ``train_iteration``, ``state_dict`` and ``load_state_dict``, and says in class attributes what
+   the training loop needs to know about it: ``name`` (the ``loss=<name>`` choice),
+   ``config_class``, ``networks`` (its network sections and their defaults), ``run_defaults``
+   (its budget: ``train.total_env_steps`` etc.), and where it differs from the defaults
+   ``needs_stochastic_policy``, ``policy_log_prob``, ``supports_multi_agent``,
+   ``compiles_windows``, ``unsupported_settings``;
+2. ``register_learner(MyLearner)`` at the end of this file.
+
+``python sota_scripts/train.py loss=<name>`` then works: the ``loss`` configuration group gets
+``<name>`` (generated from the class, :meth:`Learner.default_config`), the settings are checked
+with the project's one-line errors (:meth:`Learner.config_problems`), and the training loop,
+checkpoints, resume and ``mode=eval`` drive it through the interface. Presets (other settings of
+the same learner, e.g. ``loss=shac_reference``) are YAML files in ``configs/loss/`` whose defaults
+list starts with the learner's name.
 """
 from __future__ import annotations
 
@@ -14,30 +36,43 @@ from collections.abc import Mapping
 
 from ..distributed import SINGLE_PROCESS, World
 
-from .base import LR_SCHEDULES, Learner, LearnerConfig, lr_scheduler
+from .base import LR_SCHEDULES, ActorNetworkConfig, Learner, LearnerConfig, NetworkConfig, lr_scheduler
 from .bptt import BPTTConfig, BPTTLearner
 from .ppo import PPOConfig, PPOLearner
 from .sac import SACConfig, SACLearner
 from .shac import SHACConfig, SHACLearner
 
-LEARNERS: dict[str, type[Learner]] = {
-    "bptt": BPTTLearner,
-    "shac": SHACLearner,
-    "ppo": PPOLearner,
-    "sac": SACLearner,
-}
+LEARNERS: dict[str, type[Learner]] = {}
+
+
+def register_learner(learner: type[Learner]) -> type[Learner]:
+    """Makes ``learner`` available as ``loss=<learner.name>`` (:func:`make_learner` and the training
+    script's ``loss`` configuration group). Returns it, so it can decorate the class."""
+    if not (isinstance(learner, type) and issubclass(learner, Learner)) or not learner.name:
+        raise TypeError(f"register_learner needs a Learner subclass with a name, got {learner!r}")
+    LEARNERS[learner.name] = learner
+    try:  # the training script's configuration group (Hydra is a dependency, but keep learners importable without)
+        from hydra.core.config_store import ConfigStore
+    except ImportError:  # pragma: no cover
+        return learner
+    ConfigStore.instance().store(group="loss", name=learner.name, node=learner.default_config(), package="_global_")
+    return learner
 
 
 def make_learner(loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> Learner:
-    """Builds the learner named by ``loss_cfg.name`` (a ``configs/loss/*.yaml`` section) on ``env``
-    (this rank's envs when ``world`` has several ranks)."""
+    """Builds the learner named by ``loss_cfg.name`` (the training script's ``loss`` section) on
+    ``env`` (this rank's envs when ``world`` has several ranks)."""
     name = loss_cfg.get("name")
     if name not in LEARNERS:
         raise ValueError(f"unknown loss {name!r}; valid: {', '.join(LEARNERS)}")
     return LEARNERS[name].from_config(loss_cfg, env, total_env_steps, world)
 
 
+for _learner in (BPTTLearner, SHACLearner, PPOLearner, SACLearner):
+    register_learner(_learner)
+
 __all__ = [
-    "BPTTConfig", "BPTTLearner", "LEARNERS", "LR_SCHEDULES", "Learner", "LearnerConfig", "PPOConfig", "PPOLearner",
-    "SACConfig", "SACLearner", "SHACConfig", "SHACLearner", "lr_scheduler", "make_learner",
+    "ActorNetworkConfig", "BPTTConfig", "BPTTLearner", "LEARNERS", "LR_SCHEDULES", "Learner", "LearnerConfig",
+    "NetworkConfig", "PPOConfig", "PPOLearner", "SACConfig", "SACLearner", "SHACConfig", "SHACLearner", "lr_scheduler",
+    "make_learner", "register_learner",
 ]

@@ -2,18 +2,25 @@
 the learning-rate schedules."""
 from __future__ import annotations
 
+import dataclasses
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
+from types import MappingProxyType
 
 import torch
 from tensordict.nn import TensorDictModuleBase
 
+from .. import checks
 from ..checks import Settings, checked
 from ..collectors import batch_size_of
 from ..distributed import SINGLE_PROCESS, World
+from ..modules import ACTIVATIONS, DISTRIBUTIONS, NETWORK_INITS, actor_from_config
 
-__all__ = ["LR_SCHEDULES", "Learner", "LearnerConfig", "checked", "load_lr_scheduler", "lr_scheduler"]  # checked: re-exported for the learner files
+__all__ = [  # checked: re-exported for the learner files
+    "ActorNetworkConfig", "LR_SCHEDULES", "Learner", "LearnerConfig", "NetworkConfig", "checked", "load_lr_scheduler",
+    "lr_scheduler",
+]
 
 LR_SCHEDULES = ("linear", "exponential", "constant")
 
@@ -22,9 +29,56 @@ class LearnerConfig(Settings):
     """Base of a learner's settings: a frozen dataclass whose fields carry their checks
     (:func:`~torchrl_diffenvs.checks.checked`).
 
-    The fields are the keys of the learner's ``configs/loss/<name>.yaml`` (besides ``name`` and
-    the network sections), so the training script and Python code build learners alike.
+    The fields are the keys of the training script's ``loss`` section (besides ``name`` and the
+    network sections, :attr:`Learner.networks`), and their defaults are the section's defaults:
+    the configuration is generated from this class, so the training script and Python code build
+    learners alike.
     """
+
+
+def _layer_widths(value) -> str | None:
+    ok = (isinstance(value, (list, tuple)) and not isinstance(value, str) and len(value) > 0
+          and all(checks.is_int(h) and h >= 1 for h in value))
+    return None if ok else "expected a list of positive layer widths, e.g. [64, 64]"
+
+
+def _finite_number(value) -> str | None:
+    return None if checks.is_number(value) else "expected a finite number"
+
+
+@dataclasses.dataclass(frozen=True)
+class NetworkConfig(Settings):
+    """A network section of a learner's settings (``loss.critic``, ``loss.qvalue``): the MLP that
+    :func:`~torchrl_diffenvs.modules.make_critic` / ``make_qvalue`` build."""
+
+    hidden: tuple = checked((64, 64), _layer_widths)  # layer widths
+    activation: str = checked("elu", checks.one_of(tuple(ACTIVATIONS)))
+    layer_norm: bool = checked(True, checks.boolean)
+    norm_after_activation: bool = checked(False, checks.boolean)  # Linear-LayerNorm-act; true: Linear-act-LayerNorm
+    init: str = checked("default", checks.one_of(NETWORK_INITS))  # default (PyTorch's) | orthogonal (gain sqrt 2)
+
+
+@dataclasses.dataclass(frozen=True)
+class ActorNetworkConfig(NetworkConfig):
+    """``loss.actor``: the policy network (:func:`~torchrl_diffenvs.modules.make_actor`)."""
+
+    init_log_std: float = checked(-1.0, _finite_number)  # the policy's initial log standard deviation
+    distribution: str = checked("tanh_normal", checks.one_of(DISTRIBUTIONS))  # tanh_normal | deterministic
+
+
+def _plain(value):
+    """Dataclass defaults and configuration nodes as plain values: sequences become lists,
+    mappings dicts (OmegaConf's ListConfig / DictConfig included)."""
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _show(value) -> str:
+    """A value as it is written on the command line (``true``, not ``True``)."""
+    return str(value).lower() if isinstance(value, bool) else repr(value)
 
 
 def lr_scheduler(optimizer: torch.optim.Optimizer, kind: str, total_iterations: Callable[[], int], *,
@@ -33,32 +87,58 @@ def lr_scheduler(optimizer: torch.optim.Optimizer, kind: str, total_iterations: 
 
     ``"linear"`` decays from the optimiser's learning rate to ``min_lr`` over
     ``total_iterations()`` iterations, then stays there; ``"exponential"`` multiplies it by
-    ``decay`` every iteration; ``"constant"`` keeps it. ``total_iterations`` is called at every
-    step, so a run resumed with a larger budget stretches the rest of its schedule over the new
-    budget (``LinearLR`` would keep the old length saved in its state).
+    ``decay`` every iteration; ``"constant"`` keeps it.
+
+    A run resumed with another budget (:func:`load_lr_scheduler`) continues without a jump: the
+    linear schedule goes on from the learning rate it had reached, straight to ``min_lr`` at the
+    end of the new budget (from the iteration ``r`` and factor ``f_r`` of the resume,
+    ``f(i) = f_r + (end - f_r) (i - r) / (total - r)``), and holds ``min_lr`` after it. A
+    schedule that had already reached ``min_lr`` stays there. ``total_iterations`` is read at
+    every step; the anchor ``(r, f_r)`` is saved in the scheduler's state.
     """
     if kind not in LR_SCHEDULES:
         raise ValueError(f"unknown lr_schedule {kind!r}; valid: {', '.join(LR_SCHEDULES)}")
     end = min(1.0, min_lr / optimizer.param_groups[0]["lr"])
+    anchor = {"iteration": 0, "factor": 1.0}  # where the current line starts (moved by a resume)
     if kind == "linear":
         def factor(i: int) -> float:
-            return 1.0 - (1.0 - end) * min(i / max(1, total_iterations()), 1.0)
+            start, at = anchor["iteration"], anchor["factor"]
+            if start == 0:  # a fresh run: from 1 to end over the budget
+                return 1.0 - (1.0 - end) * min(i / max(1, total_iterations()), 1.0)
+            return at + (end - at) * min(max(i - start, 0) / max(1, total_iterations() - start), 1.0)
     elif kind == "exponential":
         def factor(i: int) -> float:
             return decay**i
     else:
         def factor(i: int) -> float:
             return 1.0
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+    schedule.anchor = anchor  # in the scheduler's __dict__: saved and restored with its state
+    return schedule
 
 
 def load_lr_scheduler(schedule: torch.optim.lr_scheduler.LambdaLR, state: dict) -> None:
-    """Restores a :func:`lr_scheduler` and sets the optimiser's learning rates to what the
-    schedule gives *now*: after a resume with another budget, the saved rates were the old
-    schedule's."""
+    """Restores a :func:`lr_scheduler` so that the learning rate goes on from the saved one.
+
+    With the budget it was saved with, the schedule continues exactly. With another budget the
+    saved learning rate no longer lies on the schedule's line: the schedule is re-anchored at the
+    saved iteration and rate (see :func:`lr_scheduler`), so the rate right after the resume is
+    the rate right before it, and it then decays to ``min_lr`` over the remaining budget.
+    """
+    anchor = getattr(schedule, "anchor", None)
     schedule.load_state_dict(state)
-    for group, base_lr, factor in zip(schedule.optimizer.param_groups, schedule.base_lrs, schedule.lr_lambdas):
-        group["lr"] = base_lr * factor(schedule.last_epoch)
+    if anchor is not None:  # the closure reads this dict: copy the loaded values into it
+        anchor.update(getattr(schedule, "anchor", anchor))
+        schedule.anchor = anchor
+    saved = state.get("_last_lr")
+    i = schedule.last_epoch
+    for k, (group, base_lr, factor) in enumerate(zip(schedule.optimizer.param_groups, schedule.base_lrs,
+                                                     schedule.lr_lambdas)):
+        lr = base_lr * factor(i)
+        if saved is not None and anchor is not None and lr != saved[k] and base_lr > 0:
+            anchor.update(iteration=i, factor=saved[k] / base_lr)  # the budget changed: go on from here
+            lr = base_lr * factor(i)
+        group["lr"] = lr
 
 
 class Learner(ABC):
@@ -82,8 +162,31 @@ class Learner(ABC):
             :attr:`env_steps_per_iteration` counts the env steps of all of them.
     """
 
+    # ------------------------------------------------------------------ what differs between learners
+    #: the ``loss=<name>`` of the training script (and of :func:`~torchrl_diffenvs.learners.register_learner`)
     name: str = ""
+    #: its settings: a frozen dataclass whose field defaults are the ``loss`` section's defaults
     config_class: type[LearnerConfig] = LearnerConfig
+    #: its network sections (``loss.actor``, ``loss.critic``, ...) with their defaults
+    networks: Mapping[str, NetworkConfig] = MappingProxyType({"actor": ActorNetworkConfig()})
+    #: what the learner changes in the run's other sections (its budget; SAC: fewer envs), merged
+    #: over ``configs/config.yaml`` when ``loss=<name>`` is chosen
+    run_defaults: Mapping[str, Mapping] = MappingProxyType({})
+    #: settings other learners have and this one refuses, with the reason (``loss.<key>=...``)
+    unsupported_settings: Mapping[str, str] = MappingProxyType({})
+    #: the policy must sample actions (``loss.actor.distribution=tanh_normal``): PPO, SAC
+    needs_stochastic_policy: bool = False
+    #: the policy writes its log-probability (PPO's ratio): the evaluated policy is built so too
+    policy_log_prob: bool = False
+    #: trains on multi-agent envs (``("agents", ...)`` keys)
+    supports_multi_agent: bool = True
+    #: the ``loss=`` choices to suggest for a multi-agent env (PPO: its presets mappo and ippo);
+    #: empty: ``(name,)``
+    multi_agent_choices: tuple[str, ...] = ()
+    #: collects differentiable windows through the env's own rollout (BPTT, SHAC), which
+    #: ``compile=true`` (:func:`~torchrl_diffenvs.compile_physics`) runs in compiled chunks
+    compiles_windows: bool = False
+
     policy: TensorDictModuleBase
 
     def __init__(self, env, config: LearnerConfig, total_env_steps: int, *, reset_input=None,
@@ -101,7 +204,57 @@ class Learner(ABC):
     @classmethod
     @abstractmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> Learner:
-        """Builds the learner and its networks from a ``loss`` section (``configs/loss/<name>.yaml``)."""
+        """Builds the learner and its networks from a ``loss`` section (:meth:`default_config` and overrides)."""
+
+    @classmethod
+    def default_config(cls) -> dict:
+        """The configuration ``loss=<name>`` selects, generated from the class (the only place
+        the defaults are written): ``{"loss": {"name", <settings>, <network sections>}, **run_defaults}``."""
+        section = {"name": cls.name, **_plain(cls.config_class.defaults())}
+        section.update({key: _plain(dataclasses.asdict(net)) for key, net in cls.networks.items()})
+        return {"loss": section, **_plain(dict(cls.run_defaults))}
+
+    @classmethod
+    def config_problems(cls, loss_cfg: Mapping, where: str = "loss.") -> list[str]:
+        """Every problem of a ``loss`` section for this learner (unknown keys, values failing
+        their checks, settings this learner refuses), each naming the key and what is valid."""
+        problems = []
+        settings = {}
+        loss_cfg = _plain(loss_cfg)
+        for key, value in loss_cfg.items():
+            if key == "name":
+                continue
+            if key in cls.unsupported_settings:
+                if value:  # false / null: the setting is off, as the learner works anyway
+                    problems.append(f"{where}{key}={_show(value)} is not supported by loss={cls.name} "
+                                    f"({cls.unsupported_settings[key]})")
+            elif key in cls.networks:
+                if isinstance(value, Mapping):
+                    problems.extend(type(cls.networks[key]).problems(value, f"{where}{key}."))
+                else:
+                    problems.append(f"{where}{key}={value!r}: expected a network section, e.g. {{hidden: [64, 64]}}")
+            else:
+                settings[key] = value
+        problems.extend(cls.config_class.problems(settings, where))
+        actor = loss_cfg.get("actor")
+        if cls.needs_stochastic_policy and isinstance(actor, Mapping) and \
+                actor.get("distribution", "tanh_normal") != "tanh_normal":
+            problems.append(f"{where}actor.distribution={actor.get('distribution')!r}: loss={cls.name} needs a "
+                            "stochastic policy; valid: tanh_normal")
+        return problems
+
+    @classmethod
+    def settings_from(cls, loss_cfg: Mapping) -> LearnerConfig:
+        """The :attr:`config_class` of a ``loss`` section: every key but ``name``, the network
+        sections and the (off) settings this learner does not support."""
+        skipped = {"name", *cls.networks, *cls.unsupported_settings}
+        return cls.config_class.from_mapping({k: v for k, v in loss_cfg.items() if k not in skipped})
+
+    @classmethod
+    def policy_from_config(cls, loss_cfg: Mapping, env) -> TensorDictModuleBase:
+        """The policy network alone, shaped as :meth:`from_config` builds it (``mode=eval`` loads a
+        checkpoint's ``"policy"`` weights into it)."""
+        return actor_from_config(loss_cfg, env, return_log_prob=cls.policy_log_prob)[0]
 
     @property
     def num_envs(self) -> int:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
+from types import MappingProxyType
 
 import torch
 from tensordict import TensorDictBase
@@ -27,14 +28,14 @@ from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
 from ..modules import ObservationNormalizer, actor_from_config, observation_key_of
 from ..objectives import BPTTLoss, GradientGuard, NonFiniteEnvMonitor
-from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
+from .base import ActorNetworkConfig, LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["BPTTConfig", "BPTTLearner"]
 
 
 @dataclasses.dataclass(frozen=True)
 class BPTTConfig(LearnerConfig):
-    """Settings of :class:`BPTTLearner` (the keys of ``configs/loss/bptt.yaml``)."""
+    """Settings of :class:`BPTTLearner` (the ``loss`` section of ``loss=bptt``; its defaults are this class's)."""
 
     horizon: int = checked(16, checks.positive_int)  # window length H: an iteration is N x H env steps
     gamma: float = checked(1.0, checks.in_interval(0.0, 1.0))  # discount inside a window (Brax APG: 1)
@@ -73,6 +74,10 @@ class BPTTLearner(Learner):
 
     name = "bptt"
     config_class = BPTTConfig
+    networks = MappingProxyType({"actor": ActorNetworkConfig()})
+    run_defaults = MappingProxyType({"train": {"total_env_steps": 600_000, "checkpoint_interval": 200_000},
+                                     "eval": {"interval": 100_000}})
+    compiles_windows = True
 
     def __init__(self, env, actor, config: BPTTConfig = BPTTConfig(), total_env_steps: int = 1_000_000, *,
                  normalizer: ObservationNormalizer | None = None, start_state: TensorDictBase | None = None,
@@ -97,8 +102,8 @@ class BPTTLearner(Learner):
     @classmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> BPTTLearner:
         actor, normalizer = actor_from_config(loss_cfg, env)
-        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor")}
-        return cls(env, actor, BPTTConfig.from_mapping(settings), total_env_steps, normalizer=normalizer, world=world)
+        return cls(env, actor, cls.settings_from(loss_cfg), total_env_steps, normalizer=normalizer,
+                   world=world)
 
     @property
     def steps_per_env(self) -> int:

@@ -26,6 +26,7 @@ import dataclasses
 import math
 from collections import defaultdict
 from collections.abc import Mapping
+from types import MappingProxyType
 
 import torch
 from torchrl.collectors import Collector
@@ -50,14 +51,14 @@ from ..modules import (
 )
 from ..objectives import GradientGuard, NonFiniteEnvMonitor, nonfinite_envs
 from ..objectives.nonfinite import next_key, now_and_next
-from .base import Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
+from .base import ActorNetworkConfig, Learner, LearnerConfig, NetworkConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["PPOConfig", "PPOLearner"]
 
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig(LearnerConfig):
-    """Settings of :class:`PPOLearner` (the keys of ``configs/loss/ppo.yaml``)."""
+    """Settings of :class:`PPOLearner` (the ``loss`` section of ``loss=ppo``; its defaults are this class's)."""
 
     rollout_len: int = checked(32, checks.positive_int)  # an iteration is num_envs x rollout_len env steps
     epochs: int = checked(5, checks.positive_int)  # passes over each batch
@@ -122,6 +123,15 @@ class PPOLearner(Learner):
 
     name = "ppo"
     config_class = PPOConfig
+    networks = MappingProxyType({  # TanhNormal with a state-independent std
+        "actor": ActorNetworkConfig(activation="tanh", layer_norm=False, init_log_std=0.0),
+        "critic": NetworkConfig(activation="tanh", layer_norm=False),
+    })
+    run_defaults = MappingProxyType({"train": {"total_env_steps": 500_000, "checkpoint_interval": 250_000},
+                                     "eval": {"interval": 100_000}})
+    needs_stochastic_policy = True
+    policy_log_prob = True  # the ratio of ClipPPOLoss
+    multi_agent_choices = ("mappo", "ippo")  # presets with a centralised / decentralised critic
 
     def __init__(self, env, actor, critic, config: PPOConfig = PPOConfig(), total_env_steps: int = 1_000_000, *,
                  normalizer: ObservationNormalizer | None = None, world: World = SINGLE_PROCESS):
@@ -182,8 +192,7 @@ class PPOLearner(Learner):
         actor, normalizer = actor_from_config(loss_cfg, env, return_log_prob=True)
         critic = critic_from_config(loss_cfg.critic, env, normalizer, loss_cfg.get("critic_input", "observation"),
                                     loss_cfg.get("centralised_critic", False))
-        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
-        return cls(env, actor, critic, PPOConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,
+        return cls(env, actor, critic, cls.settings_from(loss_cfg), total_env_steps, normalizer=normalizer,
                    world=world)
 
     @property

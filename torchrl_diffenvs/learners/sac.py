@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping
+from types import MappingProxyType
 
 import torch
 from torchrl.collectors import Collector
@@ -34,7 +35,7 @@ from ..collectors import EpisodeReturnTracker
 from ..distributed import SINGLE_PROCESS, World
 from ..modules import CRITIC_INPUTS, actor_from_config, qvalue_from_config
 from ..objectives import GradientGuard, NonFiniteEnvMonitor, nonfinite_envs
-from .base import Learner, LearnerConfig, checked
+from .base import ActorNetworkConfig, Learner, LearnerConfig, NetworkConfig, checked
 
 __all__ = ["SACConfig", "SACLearner"]
 
@@ -42,7 +43,7 @@ __all__ = ["SACConfig", "SACLearner"]
 
 @dataclasses.dataclass(frozen=True)
 class SACConfig(LearnerConfig):
-    """Settings of :class:`SACLearner` (the keys of ``configs/loss/sac.yaml``)."""
+    """Settings of :class:`SACLearner` (the ``loss`` section of ``loss=sac``; its defaults are this class's)."""
 
     rollout_len: int = checked(1, checks.positive_int)  # an iteration is num_envs x rollout_len env steps
     init_random_frames: int = checked(2000, checks.nonnegative_int)  # random actions before learning
@@ -85,6 +86,17 @@ class SACLearner(Learner):
 
     name = "sac"
     config_class = SACConfig
+    networks = MappingProxyType({  # the actor: TanhNormal with a state-independent std; Q(observation, action)
+        "actor": ActorNetworkConfig(activation="relu", layer_norm=False, init_log_std=0.0),
+        "qvalue": NetworkConfig(activation="relu", layer_norm=False),
+    })
+    # SAC learns per gradient step, not per env step: few envs, more updates per step
+    run_defaults = MappingProxyType({"env": {"num_envs": 8},
+                                     "train": {"total_env_steps": 15_000, "checkpoint_interval": 5_000},
+                                     "eval": {"interval": 5_000}})
+    unsupported_settings = MappingProxyType({"obs_norm": "the replay buffer would mix statistics"})
+    needs_stochastic_policy = True
+    supports_multi_agent = False
 
     def __init__(self, env, actor, qvalue, config: SACConfig = SACConfig(), total_env_steps: int = 1_000_000, *,
                  world: World = SINGLE_PROCESS):
@@ -127,8 +139,7 @@ class SACLearner(Learner):
             raise ValueError("loss=sac does not support obs_norm (the replay buffer would mix statistics)")
         actor, _ = actor_from_config(loss_cfg, env)
         qvalue = qvalue_from_config(loss_cfg.qvalue, env, loss_cfg.get("critic_input", "observation"))
-        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "qvalue", "obs_norm")}
-        return cls(env, actor, qvalue, SACConfig.from_mapping(settings), total_env_steps, world=world)
+        return cls(env, actor, qvalue, cls.settings_from(loss_cfg), total_env_steps, world=world)
 
     @property
     def steps_per_env(self) -> int:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
+from types import MappingProxyType
 
 import torch
 
@@ -38,14 +39,23 @@ from ..modules import (
     update_privileged_statistics,
 )
 from ..objectives import GradientGuard, NonFiniteEnvMonitor, SHACLoss
-from .base import LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
+from .base import (
+    LR_SCHEDULES,
+    ActorNetworkConfig,
+    Learner,
+    LearnerConfig,
+    NetworkConfig,
+    checked,
+    load_lr_scheduler,
+    lr_scheduler,
+)
 
 __all__ = ["SHACConfig", "SHACLearner"]
 
 
 @dataclasses.dataclass(frozen=True)
 class SHACConfig(LearnerConfig):
-    """Settings of :class:`SHACLearner` (the keys of ``configs/loss/shac.yaml``)."""
+    """Settings of :class:`SHACLearner` (the ``loss`` section of ``loss=shac``; its defaults are this class's)."""
 
     horizon: int = checked(16, checks.positive_int)  # window length H: an iteration is N x H env steps
     gamma: float = checked(0.99, checks.in_interval(0.0, 1.0))
@@ -95,6 +105,11 @@ class SHACLearner(Learner):
 
     name = "shac"
     config_class = SHACConfig
+    # DiffRL's critic: init=orthogonal (loss=shac_reference)
+    networks = MappingProxyType({"actor": ActorNetworkConfig(), "critic": NetworkConfig()})
+    run_defaults = MappingProxyType({"train": {"total_env_steps": 400_000, "checkpoint_interval": 200_000},
+                                     "eval": {"interval": 50_000}})
+    compiles_windows = True
 
     def __init__(self, env, actor, critic, config: SHACConfig = SHACConfig(), total_env_steps: int = 1_000_000, *,
                  normalizer: ObservationNormalizer | None = None, reset_input=None, world: World = SINGLE_PROCESS):
@@ -125,8 +140,7 @@ class SHACLearner(Learner):
         actor, normalizer = actor_from_config(loss_cfg, env)
         critic = critic_from_config(loss_cfg.critic, env, normalizer, loss_cfg.get("critic_input", "observation"),
                                     loss_cfg.get("centralised_critic", False))
-        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
-        return cls(env, actor, critic, SHACConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,
+        return cls(env, actor, critic, cls.settings_from(loss_cfg), total_env_steps, normalizer=normalizer,
                    world=world)
 
     @property

@@ -1,19 +1,39 @@
-"""The pieces of ``sota_scripts/train.py``: configuration checks, logging and checkpoints (the
-learners are :mod:`torchrl_diffenvs.learners`, evaluation is :mod:`torchrl_diffenvs.evaluation`).
-The script itself only wires them together, top to bottom."""
+"""The training loop and its pieces: configuration checks, logging, checkpoints, self-play.
+
+:func:`run` is what ``sota_scripts/train.py`` (a thin Hydra entry point) calls with the composed
+configuration; :class:`Trainer` is the loop (:mod:`.loop`), :func:`evaluate_checkpoint` the
+``mode=eval`` player (:mod:`.eval_mode`). The configuration's defaults live in dataclasses: the
+run's sections in :mod:`.settings` (``train``, ``eval``, ``selfplay``, ``distributed``), each
+learner's in its settings class (:mod:`torchrl_diffenvs.learners`); :func:`validate_config` checks
+a composed configuration with them and lists every problem at once. Evaluation rollouts are
+:mod:`torchrl_diffenvs.evaluation`.
+"""
 from .checkpoint import (
     CheckpointError,
     capture_rng_state,
     load_checkpoint,
+    remove_stale_temp_files,
     restore_rng_state,
     save_checkpoint,
 )
-from .config import ConfigError, make_env_from_config, resolve_device, resolve_dtype, validate_config
+from .config import (
+    ConfigError,
+    make_env_from_config,
+    merge_overrides,
+    resolve_device,
+    resolve_dtype,
+    validate_config,
+)
+from .eval_mode import evaluate_checkpoint
+from .interrupts import TrainingInterrupted
+from .loop import Trainer, run, train
 from .run_logger import RunLogger, plot_learning_curve
+from .settings import DistributedSettings, EvalSettings, SelfPlaySettings, TrainSettings
 
 __all__ = [
-    "CheckpointError", "ConfigError", "RunLogger",
-    "capture_rng_state", "load_checkpoint",
-    "make_env_from_config", "plot_learning_curve", "resolve_device",
-    "resolve_dtype", "restore_rng_state", "save_checkpoint", "validate_config",
+    "CheckpointError", "ConfigError", "DistributedSettings", "EvalSettings", "RunLogger", "SelfPlaySettings",
+    "TrainSettings", "Trainer", "TrainingInterrupted",
+    "capture_rng_state", "evaluate_checkpoint", "load_checkpoint",
+    "make_env_from_config", "merge_overrides", "plot_learning_curve", "remove_stale_temp_files", "resolve_device",
+    "resolve_dtype", "restore_rng_state", "run", "save_checkpoint", "train", "validate_config",
 ]

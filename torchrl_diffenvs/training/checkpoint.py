@@ -6,10 +6,18 @@ arbitrary objects, so a checkpoint from elsewhere cannot run code.
 
 Writes are atomic: the file is written to a temporary name in the same directory, flushed to disk,
 and only then renamed over the destination (``os.replace``). A crash, a full disk or an exception
-half-way through a write leaves the previous checkpoint untouched.
+half-way through a write leaves the previous checkpoint untouched; the temporary file a killed
+process leaves behind is removed by the next run that starts in (or resumes from) that directory
+(:func:`remove_stale_temp_files`).
+
+Every checkpoint carries a SHA-256 checksum of its content (each tensor's bytes, dtype and shape,
+and every other value), verified on load: a file altered after it was written (a flipped bit on
+disk, a copy cut short inside a tensor) is refused with :class:`CheckpointError` instead of
+resuming or evaluating altered weights.
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import random
 import shutil
@@ -24,20 +32,79 @@ __all__ = [
     "CheckpointError",
     "atomic_copy",
     "capture_rng_state",
+    "checksum",
     "load_checkpoint",
+    "remove_stale_temp_files",
     "restore_rng_state",
     "save_checkpoint",
 ]
 
-CHECKPOINT_FORMAT = "torchrl_diffenvs.train/2"  # 2: one learner per algorithm (torchrl_diffenvs.learners)
+# 3: a checksum, and no logged history (the run directory's metrics.jsonl holds it)
+CHECKPOINT_FORMAT = "torchrl_diffenvs.train/3"
+_READABLE_FORMATS = ("torchrl_diffenvs.train/2", CHECKPOINT_FORMAT)  # 2: no checksum to verify
 
 
 class CheckpointError(RuntimeError):
     """A file that is not a readable checkpoint of this training script (corrupt, truncated, foreign)."""
 
 
+_TMP_MARK = ".tmp-"
+
+
 def _tmp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    return path.with_name(f".{path.name}{_TMP_MARK}{os.getpid()}")
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists, owned by someone else
+    return True
+
+
+def remove_stale_temp_files(directory: str | os.PathLike) -> list[Path]:
+    """Removes the temporary files that interrupted writes (a killed process) left in
+    ``directory``: ``.<name>.tmp-<pid>`` whose process no longer runs. Returns them."""
+    removed = []
+    directory = Path(directory)
+    if not directory.is_dir():
+        return removed
+    for path in directory.glob(f".*{_TMP_MARK}*"):
+        pid = path.name.rpartition(_TMP_MARK)[2]
+        if pid.isdigit() and (int(pid) == os.getpid() or not _process_alive(int(pid))):
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
+
+
+def _digest(value, h) -> None:
+    """Feeds ``value`` (nested dicts / lists / tuples of tensors and plain values) into ``h``."""
+    if isinstance(value, torch.Tensor):
+        t = value.detach().cpu().contiguous()
+        h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    elif isinstance(value, Mapping):
+        h.update(f"D{len(value)}".encode())
+        for key, item in value.items():
+            h.update(repr(key).encode())
+            _digest(item, h)
+    elif isinstance(value, (list, tuple)):
+        h.update(f"{type(value).__name__[0]}{len(value)}".encode())
+        for item in value:
+            _digest(item, h)
+    else:
+        h.update(repr(value).encode())
+
+
+def checksum(state: Mapping) -> str:
+    """SHA-256 of a checkpoint's content (every key but ``"checksum"``), independent of the
+    device its tensors are on."""
+    h = hashlib.sha256()
+    _digest({k: v for k, v in state.items() if k != "checksum"}, h)
+    return h.hexdigest()
 
 
 def _replace_durably(tmp: Path, path: Path) -> None:
@@ -64,8 +131,10 @@ def save_checkpoint(state: Mapping, path: str | os.PathLike) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _tmp_name(path)
     try:
+        content = {"format": CHECKPOINT_FORMAT, **state}
+        content["checksum"] = checksum(content)
         with open(tmp, "wb") as f:
-            torch.save({"format": CHECKPOINT_FORMAT, **state}, f)
+            torch.save(content, f)
             f.flush()
             os.fsync(f.fileno())
         _replace_durably(tmp, path)
@@ -93,9 +162,15 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        CheckpointError: the file is truncated, corrupt, or not a checkpoint of this script.
+        CheckpointError: ``path`` is a directory, or the file is truncated, corrupt (its checksum
+            does not match its content), or not a checkpoint of this script.
     """
     path = Path(path).expanduser()
+    if path.is_dir():
+        found = [p for p in (path / "checkpoints" / "last.pt", path / "last.pt") if p.is_file()]
+        hint = f"; did you mean {str(found[0])!r}?" if found else ""
+        raise CheckpointError(f"{str(path)!r} is a directory, not a checkpoint file (<run dir>/checkpoints/last.pt "
+                              f"or ckpt_<env steps>.pt){hint}")
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist")
     try:
@@ -104,12 +179,16 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         raise CheckpointError(
             f"{str(path)!r} is not a readable checkpoint (truncated or corrupt file?): {type(err).__name__}: {err}"
         ) from None
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(state, dict) or state.get("format") not in _READABLE_FORMATS:
         found = state.get("format") if isinstance(state, dict) else type(state).__name__
         raise CheckpointError(
             f"{str(path)!r} is not a checkpoint of sota_scripts/train.py (format {found!r}, expected "
             f"{CHECKPOINT_FORMAT!r})"
         )
+    if state["format"] == CHECKPOINT_FORMAT and state.get("checksum") != checksum(state):
+        raise CheckpointError(f"{str(path)!r} is corrupt: its content does not match the checksum written with it "
+                              "(altered on disk or copied incompletely); use another checkpoint of the run "
+                              "(checkpoints/ckpt_<env steps>.pt)")
     return state
 
 

@@ -6,6 +6,7 @@ typo costs one run, not one run per typo. It runs before any env, network or log
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -16,7 +17,8 @@ from ..checks import is_int as _is_int
 from ..checks import is_number
 from ..envs import env_config, is_multi_agent, list_envs, make_env
 from ..learners import LEARNERS
-from ..modules import ACTIVATIONS, DISTRIBUTIONS, NETWORK_INITS, privileged_inputs
+from .settings import RUN_SECTIONS, register_run_configs
+from ..modules import privileged_inputs
 
 __all__ = [
     "ConfigError",
@@ -26,6 +28,8 @@ __all__ = [
     "LOSSES",
     "MODES",
     "WANDB_MODES",
+    "check_checkpoint_path",
+    "check_group_choice",
     "check_resume_compatible",
     "env_kwargs",
     "make_env_from_config",
@@ -35,7 +39,7 @@ __all__ = [
     "validate_config",
 ]
 
-LOSSES = tuple(LEARNERS)
+LOSSES = tuple(LEARNERS)  # the built-in learners (register_learner adds to LEARNERS)
 LOGGERS = ("wandb", "csv", "none")
 WANDB_MODES = ("offline", "online", "disabled")
 MODES = ("train", "eval")
@@ -54,6 +58,12 @@ def register_env_configs() -> None:
 
 
 register_env_configs()
+register_run_configs()
+
+
+def _plain(values) -> dict:
+    """A configuration section as plain Python values (lists for list nodes)."""
+    return OmegaConf.to_container(values, resolve=True) if isinstance(values, DictConfig) else dict(values)
 
 
 class ConfigError(ValueError):
@@ -130,49 +140,41 @@ def make_env_from_config(cfg: DictConfig, num_envs: int, seed: int):
     )
 
 
-_NETWORK_KEYS = ("hidden", "activation", "layer_norm", "norm_after_activation", "init", "init_log_std", "distribution")
-
-
-def _check_network(section, where: str, problems: list[str]) -> None:
-    hidden = section.get("hidden")
-    if not isinstance(hidden, (list, ListConfig)) or not all(_is_int(h) and h >= 1 for h in hidden):
-        problems.append(f"{where}.hidden={hidden!r}: expected a list of positive layer widths, e.g. [64, 64]")
-    activation = section.get("activation")
-    if activation is not None and activation not in ACTIVATIONS:
-        problems.append(f"{where}.activation={activation!r}: valid: {', '.join(ACTIVATIONS)}")
-    distribution = section.get("distribution")
-    if distribution is not None and distribution not in DISTRIBUTIONS:
-        problems.append(f"{where}.distribution={distribution!r}: valid: {', '.join(DISTRIBUTIONS)}")
-    init = section.get("init")
-    if init is not None and init not in NETWORK_INITS:
-        problems.append(f"{where}.init={init!r}: valid: {', '.join(NETWORK_INITS)}")
-    for key in ("layer_norm", "norm_after_activation"):
-        if key in section and not isinstance(section[key], bool):
-            problems.append(f"{where}.{key}={section[key]!r}: expected true or false")
-    unknown = sorted(set(section) - set(_NETWORK_KEYS))
-    if unknown:
-        problems.append(f"{where}: unknown key(s) {unknown}; valid: {', '.join(_NETWORK_KEYS)}")
-
-
 def _check_loss(loss, problems: list[str]) -> None:
-    """The learner's own settings checks (its ``LearnerConfig``) and its network sections."""
-    learner = LEARNERS[loss.name]
-    networks = {key: value for key, value in loss.items() if isinstance(value, (DictConfig, Mapping))}
-    for key, value in networks.items():
-        _check_network(value, f"loss.{key}", problems)
-    if loss.name == "sac" and loss.get("obs_norm"):
-        problems.append("loss.obs_norm=true is not supported by loss=sac (the replay buffer would mix statistics)")
-    settings = {key: value for key, value in loss.items() if key not in networks and key != "name"}
-    if loss.name == "sac":
-        settings.pop("obs_norm", None)
-    settings = {k: list(v) if isinstance(v, ListConfig) else v for k, v in settings.items()}
-    problems.extend(learner.config_class.problems(settings, "loss."))
+    """The learner's own checks: its settings dataclass, its network sections, what it refuses
+    (:meth:`~torchrl_diffenvs.learners.Learner.config_problems`)."""
+    problems.extend(LEARNERS[loss.name].config_problems(loss, "loss."))
+
+
+def _non_finite(value) -> bool:
+    """A NaN or infinite number anywhere in ``value`` (a number or nested lists of numbers)."""
+    if isinstance(value, (list, tuple, ListConfig)):
+        return any(_non_finite(v) for v in value)
+    return isinstance(value, float) and not math.isfinite(value)
+
+
+def _check_params(env_cfg, problems: list[str]) -> None:
+    """Physical parameters must be finite: one NaN mass makes an env's states NaN, and the
+    learners then skip or mask its updates; refuse it before anything is built."""
+    params = env_cfg.get("params") or {}
+    if not isinstance(params, Mapping):
+        problems.append(f"env.params={params!r}: expected a mapping of physical parameter -> value, e.g. {{mass: 1.0}}")
+        return
+    for key, value in params.items():
+        if _non_finite(value):
+            shown = OmegaConf.to_container(value) if isinstance(value, ListConfig) else value
+            problems.append(f"env.params.{key}={shown!r}: physical parameters must be finite numbers (not nan or inf)")
 
 
 def _check_file(value, key: str, problems: list[str]) -> None:
     path = Path(str(value)).expanduser()
-    if not path.is_file():
-        problems.append(f"{key}={value!r}: no such checkpoint file" + (" (it is a directory)" if path.is_dir() else ""))
+    if path.is_dir():
+        found = [p for p in (path / "checkpoints" / "last.pt", path / "last.pt") if p.is_file()]
+        problems.append(f"{key}={value!r} is a directory; valid: a checkpoint file (<run dir>/checkpoints/last.pt or "
+                        f"ckpt_<env steps>.pt)" + (f", e.g. {key}={found[0]}" if found else ""))
+    elif not path.is_file():
+        problems.append(f"{key}={value!r}: no such checkpoint file; valid: a checkpoint a training run wrote "
+                        "(<run dir>/checkpoints/last.pt or ckpt_<env steps>.pt)")
 
 
 def _check_randomize(env_cfg, problems: list[str]) -> None:
@@ -193,9 +195,11 @@ def _check_randomize(env_cfg, problems: list[str]) -> None:
 def validate_config(cfg: DictConfig) -> None:
     """Raises :class:`ConfigError` listing every problem of ``cfg``; returns ``None`` when it can run.
 
-    Checked: mode, env name and its options/params (by building one env), loss name and values
-    (learning rates > 0, horizons and batch sizes >= 1, gamma / lambda / tau ranges, network sizes),
-    logger, device, dtype, step counts and intervals, and the ``resume`` / ``checkpoint`` files.
+    Checked: mode, env name and its options/params (by building one env; physical parameters must
+    be finite), the loss section by its learner (:meth:`~torchrl_diffenvs.learners.Learner.config_problems`:
+    its settings dataclass, network sections and what it refuses), the ``train`` / ``eval`` /
+    ``selfplay`` / ``distributed`` sections by their dataclasses (:mod:`.settings`), logger,
+    device, dtype, and the ``resume`` / ``checkpoint`` files.
     """
     problems: list[str] = []
     try:
@@ -211,8 +215,8 @@ def validate_config(cfg: DictConfig) -> None:
     if env_name not in list_envs():
         problems.append(f"env.name={env_name!r}: unknown env; valid: {', '.join(list_envs())}")
     loss_name = cfg.loss.get("name")
-    if loss_name not in LOSSES:
-        problems.append(f"loss.name={loss_name!r}: unknown loss; valid: {', '.join(LOSSES)}")
+    if loss_name not in LEARNERS:
+        problems.append(f"loss.name={loss_name!r}: unknown loss; valid: {', '.join(LEARNERS)}")
     backend = cfg.logger.get("backend")
     if backend not in LOGGERS:
         problems.append(f"logger.backend={backend!r}: valid: {', '.join(LOGGERS)}")
@@ -227,45 +231,23 @@ def validate_config(cfg: DictConfig) -> None:
 
     if not _is_int(cfg.get("seed")) or cfg.seed < 0:
         problems.append(f"seed={cfg.get('seed')!r}: expected an integer >= 0")
-    for key, minimum in (
-        ("env.num_envs", 1), ("eval.num_envs", 1), ("train.total_env_steps", 1), ("train.checkpoint_interval", 1),
-        ("train.keep_checkpoints", 0), ("train.log_interval", 1), ("eval.interval", 1), ("eval.gif_fps", 1),
-        ("eval.gif_size", 16), ("eval.seed", 0),
-    ):
-        value = OmegaConf.select(cfg, key)
-        if not _is_int(value) or value < minimum:
-            problems.append(f"{key}={value!r}: expected an integer >= {minimum}")
-    timeout = OmegaConf.select(cfg, "distributed.timeout_s", default=300)
-    if not is_number(timeout) or timeout <= 0:
-        problems.append(f"distributed.timeout_s={timeout!r}: expected a number of seconds > 0")
+    for section, settings in RUN_SECTIONS.items():  # train, eval, selfplay, distributed: their dataclasses
+        values = cfg.get(section)
+        if isinstance(values, (DictConfig, Mapping)):
+            problems.extend(settings.problems(_plain(values), f"{section}."))
+        else:
+            problems.append(f"{section}={values!r}: expected a section of settings ({', '.join(settings.defaults())})")
+    num_envs = OmegaConf.select(cfg, "env.num_envs")
+    if not _is_int(num_envs) or num_envs < 1:
+        problems.append(f"env.num_envs={num_envs!r}: expected an integer >= 1")
+    max_steps = OmegaConf.select(cfg, "env.max_episode_steps")
+    if max_steps is not None and (not _is_int(max_steps) or max_steps < 1):
+        problems.append(f"env.max_episode_steps={max_steps!r}: expected an integer >= 1, or null for the env's default")
     if not isinstance(OmegaConf.select(cfg, "compile", default=False), bool):
         problems.append(f"compile={OmegaConf.select(cfg, 'compile')!r}: expected true or false")
-    video_format = OmegaConf.select(cfg, "eval.video_format", default="gif")
-    if video_format not in ("gif", "mp4"):
-        problems.append(f"eval.video_format={video_format!r}: valid: gif, mp4")
-    if not isinstance(OmegaConf.select(cfg, "eval.deterministic", default=True), bool):
-        problems.append(f"eval.deterministic={OmegaConf.select(cfg, 'eval.deterministic')!r}: expected true or false")
-    games = OmegaConf.select(cfg, "eval.games_num")
-    if games is not None and (not _is_int(games) or games < 1):
-        problems.append(f"eval.games_num={games!r}: expected an integer >= 1, or null for eval.num_envs")
-    score_to_win = OmegaConf.select(cfg, "train.score_to_win")
-    if score_to_win is not None and not is_number(score_to_win):
-        problems.append(f"train.score_to_win={score_to_win!r}: expected a number, or null to train the whole budget")
-    best_after = OmegaConf.select(cfg, "train.save_best_after")
-    if best_after is not None and (not _is_int(best_after) or best_after < 0):
-        problems.append(f"train.save_best_after={best_after!r}: expected an integer >= 0 (env steps), or null")
-    for key in ("env.max_episode_steps", "eval.max_steps"):
-        value = OmegaConf.select(cfg, key)
-        if value is not None and (not _is_int(value) or value < 1):
-            problems.append(f"{key}={value!r}: expected an integer >= 1, or null for the env's default")
-    gif_index = cfg.eval.get("gif_env_index")
-    if not _is_int(gif_index) or not 0 <= gif_index < max(int(cfg.eval.num_envs) if _is_int(cfg.eval.num_envs) else 1, 1):
-        problems.append(f"eval.gif_env_index={gif_index!r}: expected an integer in [0, eval.num_envs)")
 
-    if loss_name in LOSSES:
+    if loss_name in LEARNERS:
         _check_loss(cfg.loss, problems)
-    if loss_name in ("ppo", "sac") and OmegaConf.select(cfg, "loss.actor.distribution", default="tanh_normal") != "tanh_normal":
-        problems.append(f"loss.actor.distribution: loss={loss_name} needs a stochastic policy (tanh_normal)")
 
     if mode == "eval":
         if cfg.get("checkpoint") is None:
@@ -283,11 +265,8 @@ def validate_config(cfg: DictConfig) -> None:
             _check_file(cfg.resume, "resume", problems)
 
     _check_randomize(cfg.env, problems)
-    refresh, pool = OmegaConf.select(cfg, "selfplay.refresh_interval"), OmegaConf.select(cfg, "selfplay.pool_size")
-    if refresh is not None and (not _is_int(refresh) or refresh < 1):
-        problems.append(f"selfplay.refresh_interval={refresh!r}: expected an integer >= 1 (env steps), or null")
-    if not _is_int(pool) or pool < 1:
-        problems.append(f"selfplay.pool_size={pool!r}: expected an integer >= 1")
+    _check_params(cfg.env, problems)
+    refresh = OmegaConf.select(cfg, "selfplay.refresh_interval")
 
     # build one env: catches bad options / params / max_episode_steps with the env's own message
     if env_name in list_envs() and not any(p.startswith(("env.", "device", "dtype")) for p in problems):
@@ -300,8 +279,12 @@ def validate_config(cfg: DictConfig) -> None:
                 problems.append(f"env {env_name!r} never truncates episodes: set eval.max_steps")
             multi_agent = is_multi_agent(env)
             critic_input = OmegaConf.select(cfg, "loss.critic_input", default="observation")
-            if multi_agent and loss_name == "sac":
-                problems.append(f"loss=sac: env {env_name!r} is multi-agent; train it with bptt, shac, mappo or ippo")
+            learner = LEARNERS.get(loss_name)
+            if multi_agent and learner is not None and not learner.supports_multi_agent:
+                valid = [choice for name, other in LEARNERS.items() if other.supports_multi_agent
+                         for choice in (other.multi_agent_choices or (name,))]
+                problems.append(f"loss={loss_name}: env {env_name!r} is multi-agent; train it with "
+                                f"{', '.join(valid[:-1])} or {valid[-1]}")
             elif multi_agent and critic_input != "observation":
                 problems.append(f"loss.critic_input={critic_input}: env {env_name!r} is multi-agent; its critic reads "
                                 "the agents' observations (loss.centralised_critic=true: every agent's)")
@@ -333,6 +316,28 @@ def _override_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
+def check_checkpoint_path(value, key: str = "resume") -> None:
+    """Raises :class:`ConfigError` unless ``value`` is a checkpoint file (missing, or a directory:
+    the message names what is valid)."""
+    problems: list[str] = []
+    _check_file(value, key, problems)
+    if problems:
+        raise ConfigError(problems[0])
+
+
+def check_group_choice(group: str, overrides: list[str], options: list[str]) -> None:
+    """Raises :class:`ConfigError` when the command line chooses ``<group>=<name>`` and no such
+    config exists. For an optional group (``tuned``) Hydra would skip the missing file and train
+    without it."""
+    for override in overrides:
+        key, sep, value = override.partition("=")
+        if key.lstrip("+") != group or not sep or value in ("null", ""):
+            continue
+        if value not in options:
+            raise ConfigError(f"{group}={value!r}: no such {group} config; valid: {', '.join(sorted(options))} "
+                              f"(configs/{group}/), or {group}=null for none")
+
+
 def merge_overrides(saved: list[str], current: list[str]) -> list[str]:
     """Command-line overrides of a resumed run: those the checkpointed run was started with, then
     today's; for a key given in both, today's wins. ``hydra.*`` overrides and the original run's
@@ -355,6 +360,11 @@ def check_resume_compatible(trained: DictConfig, cfg: DictConfig) -> None:
     for section in ("env", "loss"):
         old = OmegaConf.to_container(trained[section], resolve=True)
         new = OmegaConf.to_container(cfg[section], resolve=True)
+        learner = LEARNERS.get(old.get("name")) if section == "loss" else None
+        if learner is not None:  # a key a checkpoint lacks had its default (older checkpoints wrote fewer keys)
+            defaults = OmegaConf.create(learner.default_config()["loss"])
+            old = OmegaConf.to_container(OmegaConf.merge(defaults, old))
+            new = OmegaConf.to_container(OmegaConf.merge(defaults, new))
         for key in sorted(set(old) | set(new)):
             if old.get(key) != new.get(key):
                 problems.append(f"{section}.{key}: checkpoint {old.get(key)!r}, now {new.get(key)!r}")

@@ -21,7 +21,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 from torchrl.record.loggers import get_logger
 
-__all__ = ["RunLogger", "plot_learning_curve"]
+__all__ = ["RunLogger", "plot_learning_curve", "read_history"]
 
 
 def _jsonable(value):
@@ -37,8 +37,8 @@ class RunLogger:
         cfg: the run's configuration (``cfg.logger`` selects the backend; the whole config is
             logged as hyperparameters).
         run_dir: the Hydra run directory.
-        history: rows logged before a resume (from the checkpoint); they are written again so the
-            run directory always holds the whole run.
+        history: rows logged before a resume (:func:`read_history`); they are written again so
+            the run directory always holds the whole run.
         wandb_run_id: the W&B run id to continue (resume), or ``None`` for a new run.
     """
 
@@ -139,6 +139,38 @@ class RunLogger:
         if self.backend is not None:
             self.backend.shutdown()
             self.backend = None
+
+
+def read_history(checkpoint: dict, path: str | Path) -> list[dict]:
+    """The rows logged up to a checkpoint, for the run that resumes it: the first
+    ``progress["logged_rows"]`` rows of the ``metrics.jsonl`` of the run that wrote it (its run
+    directory holds the history; the checkpoint holds only the row count, so its size does not
+    grow with the run's length). Looked for in ``<checkpoint's dir>/..`` and then in the run
+    directory recorded in the checkpoint; an older checkpoint carries its rows itself.
+
+    Returns ``[]`` (with a warning) when the file is gone: the resumed run's files then start at
+    the checkpoint.
+    """
+    import warnings
+
+    if "history" in checkpoint:  # written before the history moved out of checkpoints
+        return [dict(row) for row in checkpoint["history"]]
+    count = int(checkpoint["progress"].get("logged_rows", 0))
+    if count == 0:
+        return []
+    candidates = [Path(path).expanduser().resolve().parent.parent / "metrics.jsonl"]
+    if checkpoint.get("run_dir"):
+        candidates.append(Path(checkpoint["run_dir"]) / "metrics.jsonl")
+    for jsonl in candidates:
+        if jsonl.is_file():
+            with open(jsonl) as f:
+                rows = [json.loads(line) for line, _ in zip(f, range(count))]
+            if len(rows) == count:
+                return [{k: float(v) if isinstance(v, str) else v for k, v in row.items()} for row in rows]
+    warnings.warn(f"the metrics of the run before {str(path)!r} were not found ({candidates[0]} has fewer than "
+                  f"{count} rows or is missing): the resumed run's metrics files start at the checkpoint",
+                  stacklevel=2)
+    return []
 
 
 def plot_learning_curve(rows: Iterable[Mapping], path: str | Path, title: str = "") -> Path | None:

@@ -1,0 +1,167 @@
+"""``mode=eval``: score a saved policy on fresh envs and write its video (rl_games' player), and the
+pieces the training loop shares with it (videos, JSON reports, compiled chunk lengths)."""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import warnings
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from ..evaluation import episode_returns, evaluate_random, record_video
+from ..learners import LEARNERS
+from .checkpoint import load_checkpoint
+from .config import ConfigError, make_env_from_config
+
+__all__ = ["chunk_length", "evaluate_checkpoint", "exploration_of", "json_report", "write_video"]
+
+log = logging.getLogger("train")
+
+
+def chunk_length(steps: int, longest: int = 8) -> int:
+    """The longest chunk of at most ``longest`` steps that divides ``steps`` (no eager remainder)."""
+    return max(k for k in range(1, longest + 1) if steps % k == 0)
+
+
+def exploration_of(cfg: DictConfig) -> ExplorationType:
+    """``eval.deterministic``: the mean action (default) or sampled actions."""
+    return ExplorationType.DETERMINISTIC if cfg.eval.get("deterministic", True) else ExplorationType.RANDOM
+
+
+def _diff(old: DictConfig, new: DictConfig, where: str = "env.") -> dict:
+    """``{"env.params.mass": new value}`` for every leaf of ``new`` that differs from ``old``."""
+    out = {}
+    for key, value in new.items():
+        before = old.get(key) if key in old else None
+        if isinstance(value, DictConfig):
+            out.update(_diff(before if isinstance(before, DictConfig) else OmegaConf.create({}), value,
+                             f"{where}{key}."))
+        elif value != before:
+            out[f"{where}{key}"] = value
+    return out
+
+
+def json_report(result: Mapping, reasons: Mapping[str, str] | None = None) -> str:
+    """``result`` as strict JSON (``final_metrics.json``, ``eval_metrics.json``): a NaN or infinite
+    number becomes ``null``, and ``"non_finite"`` says for each such key what it was and why
+    (``reasons[key]``, else: the policy or the env diverged), so every JSON reader can parse the
+    file."""
+    reasons = dict(reasons or {})
+    clean, non_finite = {}, {}
+    for key, value in result.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            clean[key] = None
+            non_finite[key] = f"{value}: " + reasons.get(key, "not a finite number (a diverged policy or env)")
+        elif isinstance(value, list) and any(isinstance(v, float) and not math.isfinite(v) for v in value):
+            clean[key] = [None if isinstance(v, float) and not math.isfinite(v) else v for v in value]
+            non_finite[key] = "null elements: not finite numbers (a diverged policy or env)"
+        else:
+            clean[key] = value
+    if non_finite:
+        clean["non_finite"] = non_finite
+    return json.dumps(clean, indent=2, allow_nan=False) + "\n"
+
+
+def write_video(cfg: DictConfig, env, policy, steps: int, stem: Path) -> Path | None:
+    """The policy's video, ``<stem>.gif`` or ``<stem>.mp4`` (``eval.video_format``; MP4 falls back to
+    GIF with a warning when imageio-ffmpeg is missing); a failure to draw (e.g. Pillow missing)
+    warns instead of losing the run."""
+    from ..rendering import mp4_available  # lazy: Pillow is an optional extra
+
+    video_format = cfg.eval.get("video_format", "gif")
+    if video_format == "mp4" and not mp4_available():
+        warnings.warn('eval.video_format=mp4 needs imageio-ffmpeg (pip install "torchrl_diffenvs[video]"); '
+                      "writing a GIF instead", stacklevel=2)
+        video_format = "gif"
+    try:
+        return record_video(env, policy, steps, cfg.eval.seed, stem.with_suffix(f".{video_format}"),
+                            env_index=cfg.eval.gif_env_index, fps=cfg.eval.gif_fps, size=cfg.eval.gif_size,
+                            exploration_type=exploration_of(cfg))
+    except (ImportError, ValueError, KeyError) as err:
+        warnings.warn(f"no video written ({type(err).__name__}: {err})", stacklevel=2)
+        return None
+
+
+def _override_key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def _env_of_checkpoint(cfg: DictConfig, trained: DictConfig, overrides: Sequence[str]) -> DictConfig:
+    """The checkpoint's ``env`` section, with the command line's ``env.<key>=...`` on top (e.g.
+    ``env.params.mass=2``: the trained policy under other physics). An ``env=<name>`` /
+    ``env.name=<name>`` must name the checkpoint's env: the policy's networks are shaped for it."""
+    keys = [_override_key(o) for o in overrides if _override_key(o) == "env" or _override_key(o).startswith("env.")]
+    if any(key in ("env", "env.name") for key in keys) and cfg.env.name != trained.env.name:
+        raise ConfigError(f"checkpoint={str(cfg.checkpoint)!r} holds a policy trained on env={trained.env.name}, "
+                          f"not env={cfg.env.name}; drop env= (mode=eval takes the env from the checkpoint) or "
+                          f"evaluate a checkpoint of an env={cfg.env.name} run")
+    env = trained.env.copy()
+    with open_dict(env):
+        for key in keys:
+            if key not in ("env", "env.name"):
+                OmegaConf.update(env, key[len("env."):], OmegaConf.select(cfg, key), merge=False)
+    return env
+
+
+def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = ()) -> dict:
+    """``mode=eval``: scores the policy of ``cfg.checkpoint`` on fresh envs and writes its video
+    and ``eval_metrics.json`` into ``run_dir``.
+
+    The env, the loss (network shapes) and the dtype come from the checkpoint; ``eval.*`` and
+    ``device`` from the command line. An ``env=`` on the command line (``overrides``) must name
+    the checkpoint's env (the policy's networks are shaped for it); ``env.<key>=...`` overrides
+    change the checkpoint's env section (e.g. ``env.params.mass=2`` evaluates the policy with
+    another mass) and are recorded in ``eval_metrics.json``.
+    """
+    from .. import compile_physics
+
+    ckpt = load_checkpoint(cfg.checkpoint)
+    trained = OmegaConf.create(ckpt["config"])
+    env_section = _env_of_checkpoint(cfg, trained, overrides)
+    changed = {key: OmegaConf.to_container(value) if isinstance(value, (DictConfig, ListConfig)) else value
+               for key, value in _diff(trained.env, env_section).items()}
+    cfg = cfg.copy()
+    with open_dict(cfg):  # whole sections replaced, not merged: the trained env may have other options
+        cfg.env, cfg.loss, cfg.dtype = env_section, trained.loss, trained.dtype
+    try:
+        env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed)
+    except (ValueError, TypeError, KeyError) as err:
+        raise ConfigError(f"env overrides {changed} rejected by env {cfg.env.name!r} of checkpoint="
+                          f"{str(cfg.checkpoint)!r}: {err}") from None
+    steps = cfg.eval.max_steps or env.max_episode_steps
+    policy = LEARNERS[cfg.loss.name].policy_from_config(cfg.loss, env)
+    policy.load_state_dict(ckpt["policy"])
+    if cfg.get("compile"):
+        compile_physics(env, steps_per_chunk=chunk_length(steps))
+    # rl_games' player: eval.games_num episodes, played eval.num_envs at a time from successive seeds
+    games = int(cfg.eval.get("games_num") or cfg.eval.num_envs)
+    returns = []
+    for round_index in range(-(-games // cfg.eval.num_envs)):
+        env.set_seed(cfg.eval.seed + round_index)
+        with torch.no_grad(), set_exploration_type(exploration_of(cfg)):
+            rollout = env.rollout(steps, policy, break_when_any_done=False)
+        returns.extend(episode_returns(rollout, env.reward_key).double().tolist())
+    returns = torch.tensor(returns[:games], dtype=torch.float64)
+    scores = {"return": returns.mean().item(), "return_std": returns.std(unbiased=False).item(),
+              "return_min": returns.min().item(), "return_max": returns.max().item()}
+    result = {"env": cfg.env.name, "loss": cfg.loss.name, "checkpoint": str(cfg.checkpoint),
+              "trained_env_steps": ckpt["progress"]["env_steps"], "eval_steps": steps, "games": games,
+              "env_overrides": changed,
+              "returns": returns.tolist(),
+              "deterministic": bool(cfg.eval.get("deterministic", True)),
+              "eval/random_return": evaluate_random(env, steps, cfg.eval.seed),
+              **{f"eval/{k}": v for k, v in scores.items()}}
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if cfg.eval.gif:
+        video = write_video(cfg, env, policy, steps, run_dir / "eval")
+        result["video"] = str(video) if video else None
+    (run_dir / "eval_metrics.json").write_text(json_report(result))
+    log.info(f"{cfg.env.name} {cfg.loss.name} ({cfg.checkpoint}): eval return {scores['return']:.4g} "
+             f"+- {scores['return_std']:.3g} over {games} games (random policy "
+             f"{result['eval/random_return']:.4g}); outputs in {run_dir}")
+    return result

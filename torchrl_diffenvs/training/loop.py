@@ -1,0 +1,430 @@
+"""The training loop: build the run, then evaluate, checkpoint and train until the budget is spent.
+
+:func:`run` is what ``sota_scripts/train.py`` calls with a composed configuration; it trains
+(:func:`train`) or evaluates a checkpoint (``mode=eval``, :func:`~.eval_mode.evaluate_checkpoint`).
+The loop itself is :meth:`Trainer.fit`, readable top to bottom:
+
+1. at every ``eval.interval`` env steps (and at step 0): evaluate the deterministic policy on
+   separate envs (rank 0), keep ``best.pt`` and stop early at ``train.score_to_win``;
+2. at every ``train.checkpoint_interval`` env steps: write a checkpoint (all ranks' state);
+3. one learner iteration (``learner.train_iteration()``), its metrics logged;
+4. at the end: a last evaluation and checkpoint, the video, the learning curve and
+   ``final_metrics.json``.
+
+What differs between learners (their settings, networks, how they collect data) is the
+learner's business (:mod:`torchrl_diffenvs.learners`); this loop only drives
+:class:`~torchrl_diffenvs.learners.Learner`'s interface.
+
+Under ``torchrun`` every rank runs the same loop: each simulates ``env.num_envs`` envs of its own,
+the learners average gradients over the ranks, and rank 0 alone evaluates, logs and writes the run
+directory and its checkpoints.
+
+Stopping: SIGTERM (a cluster's preemption) or Ctrl-C (SIGINT) lets the current iteration finish,
+writes a checkpoint and raises :class:`TrainingInterrupted` with the ``resume=`` command in its
+message; a second Ctrl-C stops at once (the last checkpoint written stays the one to resume).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import random
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf, open_dict
+from tqdm.auto import tqdm
+
+from ..distributed import SINGLE_PROCESS, World, parameters_checksum, rank_seed
+from ..envs.fast_rollout import compile_report
+from ..evaluation import evaluate, evaluate_random
+from ..learners import make_learner
+from .checkpoint import (
+    CheckpointError,
+    atomic_copy,
+    capture_rng_state,
+    load_checkpoint,
+    remove_stale_temp_files,
+    restore_rng_state,
+    save_checkpoint,
+)
+from .config import (
+    ConfigError,
+    check_resume_compatible,
+    make_env_from_config,
+    resolve_device,
+    validate_config,
+)
+from .eval_mode import chunk_length, evaluate_checkpoint, json_report, write_video
+from .interrupts import StopRequests, TrainingInterrupted
+from .run_logger import RunLogger, plot_learning_curve, read_history
+from .selfplay import SelfPlay
+
+__all__ = ["Trainer", "TrainingInterrupted", "run", "seed_everything", "train"]
+
+log = logging.getLogger("train")  # Hydra sends it to the console and <run dir>/train.log
+
+# overrides of the command line that a checkpoint does not carry on to a resumed run
+_PER_INVOCATION = ("resume=", "mode=", "checkpoint=")
+
+
+def run(cfg: DictConfig, run_dir: str | Path, overrides: Sequence[str] = ()) -> dict:
+    """Checks ``cfg`` and trains, or evaluates a checkpoint (``mode=eval``, on rank 0 only), in the
+    ranks ``torchrun`` started (one process without it). ``overrides`` are the command line's
+    (saved in checkpoints so that ``resume=`` alone continues the run). Returns the final metrics
+    (rank 0's, on every rank).
+
+    Raises:
+        ConfigError: the configuration cannot run (every problem listed).
+        CheckpointError: ``resume=`` / ``checkpoint=`` is not a checkpoint this loop can use.
+        TrainingInterrupted: SIGTERM or Ctrl-C stopped training (a checkpoint was written first).
+    """
+    validate_config(cfg)
+    world = join_world(cfg)
+    try:
+        if cfg.mode == "eval":
+            result = evaluate_checkpoint(cfg, Path(run_dir), overrides) if world.is_main else None
+            return world.broadcast_object(result)
+        return train(cfg, Path(run_dir), overrides, world)
+    finally:
+        world.close()
+
+
+def join_world(cfg: DictConfig) -> World:
+    """The ranks torchrun started (``WORLD_SIZE`` etc.), or one process."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    in_multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and in_multirun:
+        raise ConfigError("a multirun (-m) cannot run under torchrun: launch one torchrun per configuration, or "
+                          "sweep single-process runs with a launcher (hydra/launcher=joblib or submitit_local)")
+    return World.from_environment(resolve_device(cfg.device), timeout_s=float(cfg.distributed.timeout_s))
+
+
+def seed_everything(seed: int) -> None:
+    """Seeds Python's, numpy's and torch's global generators."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def train(cfg: DictConfig, run_dir: str | Path, overrides: Sequence[str] = (), world: World = SINGLE_PROCESS) -> dict:
+    """Trains as ``cfg`` says (resuming ``cfg.resume`` if set); returns the final metrics."""
+    trainer = Trainer(cfg, Path(run_dir), overrides, world)
+    try:
+        return trainer.fit()
+    finally:
+        trainer.close()
+
+
+class Trainer:
+    """One training run: its envs, learner, logger and counters, and the loop (:meth:`fit`).
+
+    Args:
+        cfg: the composed configuration (already checked by :func:`validate_config`).
+        run_dir: where rank 0 writes metrics, checkpoints, the video and the learning curve.
+        overrides: the command line's overrides (kept in checkpoints for ``resume=``).
+        world: the ranks training together.
+    """
+
+    def __init__(self, cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = (), world: World = SINGLE_PROCESS):
+        world.check_same(OmegaConf.to_yaml(cfg, resolve=True), "configuration")
+        cfg = cfg.copy()
+        with open_dict(cfg):  # recorded in the checkpoints' config and the logger's hyperparameters
+            cfg.distributed.world_size, cfg.distributed.backend = world.size, world.backend
+            cfg.device = str(world.device(resolve_device(cfg.device)))  # cuda -> cuda:<local rank>
+        self.cfg, self.run_dir, self.world = cfg, Path(run_dir), world
+        self.overrides = [o for o in overrides if not o.startswith(_PER_INVOCATION)]
+        self.ckpt_dir = self.run_dir / "checkpoints"
+        self.logger: RunLogger | None = None
+
+        # ------------------------------------------------------------ envs, learner, opponents
+        seed_everything(cfg.seed)  # the same networks on every rank
+        self.env = make_env_from_config(cfg, cfg.env.num_envs, seed=rank_seed(cfg.seed, world.rank))
+        self.learner = make_learner(cfg.loss, self.env, cfg.train.total_env_steps, world)
+        world.check_same(parameters_checksum(self.learner.policy.state_dict().values()), "initial policy")
+        if not world.is_main:  # its own exploration noise and minibatch order (rank 0 goes on as one process would)
+            seed_everything(rank_seed(cfg.seed, world.rank))
+        self.selfplay = None
+        if cfg.selfplay.refresh_interval is not None:  # the opponent: snapshots of the policy (rl_games' self-play)
+            self.selfplay = SelfPlay(self.env, self.learner.policy, cfg.selfplay.refresh_interval,
+                                     cfg.selfplay.pool_size, seed=cfg.seed)
+        self.eval_env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed) if world.is_main else None
+        self.eval_steps = cfg.eval.max_steps or (self.eval_env or self.env).max_episode_steps
+        if cfg.get("compile"):
+            self._compile()
+        self.total = int(cfg.train.total_env_steps)
+        if world.size > 1:
+            log.info(f"data parallel: {world.size} ranks ({world.backend}), env.num_envs={cfg.env.num_envs} per rank "
+                     f"({cfg.env.num_envs * world.size} in all), "
+                     f"{self.learner.env_steps_per_iteration:,} env steps per iteration")
+
+        # ------------------------------------------------------------ counters (saved in checkpoints)
+        self.progress = {"iteration": 0, "env_steps": 0, "wall_time_s": 0.0, "next_eval": 0,
+                         "next_checkpoint": int(cfg.train.checkpoint_interval), "logged_rows": 0,
+                         "last": {"eval/return": math.nan, "train/return": math.nan}}
+        history, wandb_run_id = [], None
+        if world.is_main:
+            remove_stale_temp_files(self.ckpt_dir)
+        if cfg.get("resume"):
+            try:
+                history, wandb_run_id = self._resume(Path(cfg.resume))
+            except BaseException:
+                self.learner.close()  # its collector, if any, before the error leaves
+                raise
+        if world.is_main:  # rank 0 alone writes the run directory
+            self.logger = RunLogger(cfg, self.run_dir, history, wandb_run_id)
+
+    # ------------------------------------------------------------------ the loop
+    def fit(self) -> dict:
+        """Trains until the budget is spent (or ``train.score_to_win`` is reached); returns the
+        final metrics."""
+        cfg, progress, last = self.cfg, self.progress, self.progress["last"]
+        bar = tqdm(total=self.total, initial=min(progress["env_steps"], self.total), unit="step", unit_scale=True,
+                   dynamic_ncols=True, disable=not (cfg.train.progress_bar and self.world.is_main),
+                   desc=f"{cfg.env.name} {cfg.loss.name}")
+        start = time.perf_counter() - progress["wall_time_s"]
+        with StopRequests() as stop, bar:
+            try:
+                while True:
+                    if progress["env_steps"] >= progress["next_eval"]:
+                        self.evaluate()
+                        while progress["next_eval"] <= progress["env_steps"]:
+                            progress["next_eval"] += int(cfg.eval.interval)
+                    if progress["env_steps"] >= progress["next_checkpoint"]:
+                        while progress["next_checkpoint"] <= progress["env_steps"]:
+                            progress["next_checkpoint"] += int(cfg.train.checkpoint_interval)
+                        self.checkpoint()
+                    if progress["env_steps"] >= self.total or progress.get("won"):
+                        break
+                    if self.world.mean(float(stop.requested is not None)) > 0:  # every rank stops together
+                        self._stop(stop.requested or "a signal on another rank")
+
+                    tic = time.perf_counter()
+                    metrics, logging_now = self.iteration()
+                    progress["wall_time_s"] = time.perf_counter() - start
+                    if "return" in metrics:
+                        last["train/return"] = metrics["return"]
+                    if self.world.is_main and logging_now:
+                        row = {f"train/{k}": v for k, v in metrics.items()}
+                        row.update({"time/iteration": progress["iteration"], "time/wall_s": progress["wall_time_s"],
+                                    "time/steps_per_s": self.learner.env_steps_per_iteration
+                                    / (time.perf_counter() - tic)})
+                        self.log(row)
+                    bar.update(self.learner.env_steps_per_iteration)
+                    bar.set_postfix({"return": f"{last['train/return']:.3g}", "eval": f"{last['eval/return']:.3g}"},
+                                    refresh=False)
+            except KeyboardInterrupt as err:
+                if isinstance(err, TrainingInterrupted):
+                    raise
+                self._interrupted_mid_iteration()
+        return self.finish()
+
+    def iteration(self) -> tuple[dict[str, float], bool]:
+        """One learner iteration (the self-play schedule before it); returns its metrics (means
+        over the ranks when a row is logged) and whether this iteration logs a row."""
+        progress = self.progress
+        tic = time.perf_counter()
+        if self.selfplay is not None:
+            self.selfplay.step(progress["env_steps"])
+        metrics = self.learner.train_iteration()
+        if self.selfplay is not None:
+            metrics.update(self.selfplay.metrics())
+        progress["iteration"] += 1
+        progress["env_steps"] += self.learner.env_steps_per_iteration  # all ranks'
+        logging_now = progress["iteration"] % self.cfg.train.log_interval == 0
+        if logging_now:  # a collective: only when a row is logged
+            metrics = self.world.mean_metrics(metrics)
+        if self.cfg.get("compile") and progress["iteration"] == 1 and self.world.is_main:
+            self._report_compile(time.perf_counter() - tic)
+        return metrics, logging_now
+
+    def log(self, row: dict) -> None:
+        self.logger.log(row, self.progress["env_steps"])
+        self.progress["logged_rows"] = len(self.logger.rows)
+
+    def evaluate(self) -> None:
+        """Rank 0 evaluates; every rank learns its verdicts (best so far? won?) and acts on them."""
+        cfg, progress, last = self.cfg, self.progress, self.progress["last"]
+        score = None
+        if self.world.is_main:
+            if "eval/random_return" not in last:
+                last["eval/random_return"] = evaluate_random(self.eval_env, self.eval_steps, cfg.eval.seed)
+                self.log({"eval/random_return": last["eval/random_return"]})
+            scores = evaluate(self.eval_env, self.learner.policy, self.eval_steps, cfg.eval.seed)
+            score = last["eval/return"] = scores["return"]
+            self.log({f"eval/{k}": v for k, v in scores.items()})
+        score = self.world.broadcast_object(score)
+        progress["last_eval"] = progress["env_steps"]
+        best_after = cfg.train.get("save_best_after")
+        if best_after is not None and progress["env_steps"] >= best_after and \
+                score > progress.get("best_eval_return", -math.inf):
+            progress["best_eval_return"] = score  # set first: best.pt records itself as the best
+            self.checkpoint("best.pt")
+        win = cfg.train.get("score_to_win")
+        if win is not None and score >= win and not progress.get("won"):
+            progress["won"] = True
+            log.info(f"evaluation return {score:.4g} >= train.score_to_win={win}: stopping at env step "
+                     f"{progress['env_steps']:,}")
+
+    def checkpoint(self, name: str | None = None) -> Path | None:
+        """Writes a numbered checkpoint (and ``last.pt``), or the one called ``name``
+        (``best.pt``), with every rank's state; every rank calls it, rank 0 writes.
+
+        The logged history is not in it: it is the run directory's ``metrics.jsonl``, of which
+        the checkpoint records how many rows belong to it (``progress["logged_rows"]``).
+        """
+        world, learner = self.world, self.learner
+        ranks = world.gather_object({
+            "learner": learner.state_dict(), "rng": capture_rng_state({"env": self.env.rng}),
+            "selfplay": self.selfplay.state_dict() if self.selfplay is not None else None,
+        })
+        if not world.is_main:
+            return None
+        state = {
+            "config": OmegaConf.to_container(self.cfg, resolve=True),
+            "overrides": self.overrides,
+            **ranks[0],  # rank 0's learner and random streams
+            "other_ranks": ranks[1:],
+            "world_size": world.size,
+            "policy": learner.policy.state_dict(),
+            "progress": dict(self.progress),
+            "run_dir": str(self.run_dir),
+            "wandb_run_id": self.logger.wandb_run_id,
+        }
+        if name is not None:
+            return save_checkpoint(state, self.ckpt_dir / name)
+        path = save_checkpoint(state, self.ckpt_dir / f"ckpt_{self.progress['env_steps']:012d}.pt")
+        atomic_copy(path, self.ckpt_dir / "last.pt")
+        numbered = sorted(self.ckpt_dir.glob("ckpt_*.pt"))
+        for old in numbered[: len(numbered) - self.cfg.train.keep_checkpoints]:  # the newest keep_checkpoints stay
+            old.unlink()
+        self.logger.write_csv()
+        return path
+
+    def finish(self) -> dict:
+        """The last evaluation and checkpoint, the video, the learning curve and
+        ``final_metrics.json``; returns the final metrics (rank 0's, on every rank)."""
+        cfg, progress, last, world = self.cfg, self.progress, self.progress["last"], self.world
+        if progress.get("last_eval") != progress["env_steps"]:
+            self.evaluate()
+        self.checkpoint()
+        if not world.is_main:
+            return world.broadcast_object(None)
+        files = {}
+        if cfg.eval.gif:
+            files["final_gif"] = write_video(cfg, self.eval_env, self.learner.policy, self.eval_steps,
+                                             self.run_dir / "final")
+        curve = plot_learning_curve(self.logger.rows, self.run_dir / "learning_curve.png",
+                                    title=f"{cfg.env.name} - {cfg.loss.name} - seed {cfg.seed}")
+        self.logger.log_files(images={"learning_curve": curve} if curve else {},
+                              gifs={"final_gif": files["final_gif"]} if files.get("final_gif") else {})
+        result = {
+            "env": cfg.env.name, "loss": cfg.loss.name, "seed": cfg.seed, "world_size": world.size,
+            "env_steps": progress["env_steps"], "iterations": progress["iteration"],
+            "wall_time_s": progress["wall_time_s"],
+            "steps_per_s": progress["env_steps"] / max(progress["wall_time_s"], 1e-9),
+            "eval/return": last["eval/return"], "eval/random_return": last.get("eval/random_return"),
+            "train/return": last["train/return"], "checkpoint": str(self.ckpt_dir / "last.pt"),
+            "run_dir": str(self.run_dir),
+            "wandb_dir": str(self.logger.wandb_dir) if self.logger.wandb_dir else None,
+        }
+        (self.run_dir / "final_metrics.json").write_text(json_report(result, reasons={
+            "train/return": "no training episode finished (the episodes are longer than the run, or the returns "
+                            "diverged)"}))
+        log.info(f"{cfg.env.name} {cfg.loss.name}: eval return {result['eval/return']:.4g} "
+                 f"(random policy {result['eval/random_return']:.4g}) after {progress['env_steps']:,} env steps "
+                 f"in {progress['wall_time_s']:.0f} s; outputs in {self.run_dir}")
+        return world.broadcast_object(result)
+
+    def close(self) -> None:
+        if self.logger is not None:
+            self.logger.close()
+        self.learner.close()
+
+    # ------------------------------------------------------------------ resuming and stopping
+    def _resume(self, path: Path) -> tuple[list[dict], str | None]:
+        """Restores a checkpoint's state into the learner, the opponents and the counters;
+        returns the rows logged before it and its W&B run id."""
+        cfg, world = self.cfg, self.world
+        ckpt = load_checkpoint(path, map_location=self.env.device)
+        check_resume_compatible(OmegaConf.create(ckpt["config"]), cfg)
+        if ckpt.get("world_size", 1) != world.size:
+            raise CheckpointError(
+                f"resume={str(path)!r} was written by {ckpt.get('world_size', 1)} rank(s) and holds each rank's env "
+                f"state, replay buffer and random streams; resume it with as many ranks "
+                f"(torchrun --nproc_per_node={ckpt.get('world_size', 1)}), not {world.size}")
+        mine = ckpt if world.is_main else ckpt["other_ranks"][world.rank - 1]
+        self.learner.load_state_dict(mine["learner"])
+        if self.selfplay is not None:
+            self.selfplay.load_state_dict(mine["selfplay"])
+        self.progress.update(ckpt["progress"])
+        self.progress.pop("won", None)  # a resumed run trains on, even past an earlier score_to_win
+        restore_rng_state(mine["rng"], {"env": self.env.rng})  # last: building the learner drew numbers
+        history = []
+        if world.is_main:
+            remove_stale_temp_files(path.parent)
+            history = read_history(ckpt, path)
+            for row in history:  # what the progress bar and the final metrics show (checkpoints before "last")
+                self.progress["last"].update({k: v for k, v in row.items()
+                                              if k in ("eval/return", "train/return", "eval/random_return")})
+        log.info(f"resumed {path} at env step {self.progress['env_steps']:,}")
+        return history, ckpt.get("wandb_run_id")
+
+    def _stop(self, reason: str) -> None:
+        """A stop request between iterations: writes a checkpoint, then raises
+        :class:`TrainingInterrupted` with the command that continues the run."""
+        self.checkpoint()
+        last = self.ckpt_dir / "last.pt"
+        message = (f"stopped by {reason} at env step {self.progress['env_steps']:,}; checkpoint written: continue "
+                   f"with resume={last}")
+        if self.world.is_main:
+            log.warning(message)
+        raise TrainingInterrupted(message, checkpoint=last, reason=reason)
+
+    def _interrupted_mid_iteration(self) -> None:
+        """A second Ctrl-C (or a ``KeyboardInterrupt`` from inside an iteration): the learner's
+        state may be half-updated, so no checkpoint is written; the last one is the resume point."""
+        saved = self.ckpt_dir / "last.pt"
+        at = None
+        if self.world.is_main and saved.exists():
+            try:
+                at = load_checkpoint(saved)["progress"]["env_steps"]
+            except (CheckpointError, FileNotFoundError):
+                at = None
+        if at is not None:
+            message = (f"interrupted at env step {self.progress['env_steps']:,}; continue from env step {at:,} "
+                       f"with resume={saved}")
+        else:
+            message = f"interrupted at env step {self.progress['env_steps']:,}, before the first checkpoint"
+        if self.world.is_main:
+            log.warning(message)
+        raise TrainingInterrupted(message, checkpoint=saved if at is not None else None, reason="Ctrl-C")
+
+    # ------------------------------------------------------------------ compile=true
+    def _compile(self) -> None:
+        """``compile=true``: the learner's differentiable windows (when it collects through the
+        env's rollout) and the evaluation rollouts run in compiled chunks."""
+        from .. import compile_physics
+
+        windows = self.learner.compiles_windows
+        if windows:
+            compile_physics(self.env, steps_per_chunk=chunk_length(self.learner.steps_per_env))
+        if self.eval_env is not None:
+            compile_physics(self.eval_env, steps_per_chunk=chunk_length(self.eval_steps))
+        log.info("compile=true: rollouts run in compiled chunks of policy + physics "
+                 f"({'training windows, ' if windows else ''}evaluations); the first of each kind compiles")
+
+    def _report_compile(self, first_iteration_s: float) -> None:
+        report = compile_report(self.env)
+        if report is None:
+            return
+        calls = ", ".join(f"{what} {seconds:.1f} s" for what, seconds in report["first_call_seconds"].items())
+        log.info(f"compile: first iteration {first_iteration_s:.1f} s (compiling forward and backward included); "
+                 f"first calls: {calls or 'none'}" + (f"; fell back to eager: {report['fallback_reason']}"
+                                                      if report["fallback_reason"] else ""))
+

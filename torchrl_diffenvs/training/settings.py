@@ -1,0 +1,119 @@
+"""The run's own sections of the training configuration (``train``, ``eval``, ``selfplay``,
+``distributed``): frozen dataclasses whose fields carry their default and their check, as the
+learners' settings do (:class:`~torchrl_diffenvs.checks.Settings`).
+
+They are the only place these defaults are written: :func:`register_run_configs` stores them in
+Hydra's ConfigStore as ``run_settings``, which ``configs/config.yaml`` lists first in its defaults;
+a learner's ``run_defaults`` (its budget) and ``configs/tuned/`` files then change some of them.
+:func:`~torchrl_diffenvs.training.config.validate_config` checks each section with its class
+(unknown keys and bad values, each named with what is valid).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+from .. import checks
+from ..checks import Settings, checked
+
+__all__ = [
+    "DistributedSettings", "EvalSettings", "RUN_SECTIONS", "SelfPlaySettings", "TrainSettings", "register_run_configs",
+    "run_defaults",
+]
+
+
+def _optional(check: checks.Check, what: str) -> checks.Check:
+    def optional(value) -> str | None:
+        return None if value is None or check(value) is None else f"{check(value)}, or null {what}"
+
+    return optional
+
+
+def _number(value) -> str | None:
+    return None if checks.is_number(value) else "expected a number"
+
+
+def _at_least(minimum: int) -> checks.Check:
+    def check(value) -> str | None:
+        return None if checks.is_int(value) and value >= minimum else f"expected an integer >= {minimum}"
+
+    return check
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainSettings(Settings):
+    """``train.*``: the budget, checkpoints and logging of a run. Budgets and intervals count env
+    steps of all envs of the batch and of all ranks."""
+
+    total_env_steps: int = checked(300_000, checks.positive_int)  # stop after this many env steps (each learner sets its own)
+    checkpoint_interval: int = checked(100_000, checks.positive_int)  # env steps between checkpoints; one is written at the end
+    keep_checkpoints: int = checked(2, checks.nonnegative_int)  # numbered checkpoints kept besides last.pt (0: only last.pt)
+    log_interval: int = checked(1, checks.positive_int)  # iterations between rows of training metrics
+    # stop once an evaluation return reaches this (rl_games' score_to_win); null: train the whole budget
+    score_to_win: float | None = checked(None, _optional(_number, "to train the whole budget"))
+    # from this env step on, keep checkpoints/best.pt: the best evaluation so far; null: no best.pt
+    save_best_after: int | None = checked(None, _optional(checks.nonnegative_int, "(env steps)"))
+    progress_bar: bool = checked(True, checks.boolean)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalSettings(Settings):
+    """``eval.*``: the deterministic evaluations during training, the final video, and ``mode=eval``."""
+
+    interval: int = checked(50_000, checks.positive_int)  # env steps between evaluations (also at the start and the end)
+    num_envs: int = checked(32, checks.positive_int)  # evaluation envs, separate from the training envs
+    max_steps: int | None = checked(None, _optional(checks.positive_int, "for the env's max_episode_steps"))
+    seed: int = checked(1_000_003, checks.nonnegative_int)  # the eval envs restart from this seed at every evaluation
+    gif: bool = checked(True, checks.boolean)  # write <run dir>/final.gif (or .mp4); mode=eval: eval.gif
+    video_format: str = checked("gif", checks.one_of(("gif", "mp4")))  # mp4 needs the video extra (imageio-ffmpeg)
+    deterministic: bool = checked(True, checks.boolean)  # evaluate the mean action (true) or sampled actions
+    # mode=eval: episodes to play, eval.num_envs at a time; null: eval.num_envs
+    games_num: int | None = checked(None, _optional(checks.positive_int, "for eval.num_envs"))
+    gif_env_index: int = checked(0, checks.nonnegative_int)  # which evaluation env the video shows
+    gif_fps: int = checked(30, checks.positive_int)
+    gif_size: int = checked(256, _at_least(16))  # pixels
+
+    @classmethod
+    def relation_problems(cls, values, where: str = "") -> list[str]:
+        if values["gif_env_index"] >= values["num_envs"]:
+            return [f"{where}gif_env_index={values['gif_env_index']!r}: expected an integer in [0, {where}num_envs) "
+                    f"= [0, {values['num_envs']})"]
+        return []
+
+
+@dataclasses.dataclass(frozen=True)
+class SelfPlaySettings(Settings):
+    """``selfplay.*``: rl_games' self-play on a two-player env (``env=swimmer_race``): every
+    ``refresh_interval`` env steps the policy is copied into a pool of the last ``pool_size``
+    snapshots and the training envs' opponent becomes one of them, drawn uniformly. Evaluations
+    play the task's fixed scripted opponent (:mod:`torchrl_diffenvs.training.selfplay`)."""
+
+    # env steps between refreshes; null: no self-play (the opponent stays the scripted one)
+    refresh_interval: int | None = checked(None, _optional(checks.positive_int, "(env steps) for no self-play"))
+    pool_size: int = checked(1, checks.positive_int)  # snapshots kept (1: always the latest)
+
+
+@dataclasses.dataclass(frozen=True)
+class DistributedSettings(Settings):
+    """``distributed.*``: data parallel under ``torchrun --nproc_per_node=K sota_scripts/train.py``.
+    Each rank simulates ``env.num_envs`` envs and samples the loss's minibatches from its own data;
+    budgets, intervals and ``loss.utd_ratio`` count the env steps of all ranks."""
+
+    timeout_s: float = checked(300.0, checks.positive)  # a rank that waits this long for another fails with an error
+
+
+RUN_SECTIONS: dict[str, type[Settings]] = {
+    "train": TrainSettings, "eval": EvalSettings, "selfplay": SelfPlaySettings, "distributed": DistributedSettings,
+}
+
+
+def run_defaults() -> dict:
+    """``{section: {key: default}}`` of the run's sections."""
+    return {name: settings.defaults() for name, settings in RUN_SECTIONS.items()}
+
+
+def register_run_configs() -> None:
+    """Stores :func:`run_defaults` in Hydra's ConfigStore as ``run_settings`` (the first entry of
+    ``configs/config.yaml``'s defaults list)."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(name="run_settings", node=run_defaults())
