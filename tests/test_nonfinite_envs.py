@@ -7,7 +7,6 @@ parameter that became NaN); the env's own ``("next", "nonfinite")`` flag is simu
 writing it into a window.
 """
 import warnings
-from pathlib import Path
 
 import pytest
 import torch
@@ -18,7 +17,7 @@ from torchrl.envs.utils import ExplorationType
 from torchrl_diffenvs import make_env
 from torchrl_diffenvs.collectors import DiffWindowCollector
 from torchrl_diffenvs.envs.multi_agent import policy_keys
-from torchrl_diffenvs.learners import make_learner
+from torchrl_diffenvs.learners import LEARNERS, make_learner
 from torchrl_diffenvs.modules import make_actor, make_critic
 from torchrl_diffenvs.objectives import (
     BPTTLoss,
@@ -30,7 +29,6 @@ from torchrl_diffenvs.objectives import (
     nonfinite_envs,
 )
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 N, BAD, H = 16, 3, 5
 KEEP = [i for i in range(N) if i != BAD]
 
@@ -52,7 +50,7 @@ SMALL = {
 
 def learner_for(loss, env):
     torch.manual_seed(0)
-    cfg = OmegaConf.load(CONFIGS / "loss" / f"{loss}.yaml").loss
+    cfg = OmegaConf.create(LEARNERS[loss].default_config()["loss"])
     for network in ("actor", "critic", "qvalue"):
         if network in cfg:
             cfg[network].hidden = [16]

@@ -5,7 +5,6 @@ built for what the transforms output (``CatFrames`` and ``CatTensors`` change th
 ``DoubleToFloat`` the dtype, ``ObservationNorm`` neither), never for the base env, whose
 attributes (``observation_dim``, ``float_dtype``) a ``TransformedEnv`` forwards unchanged.
 """
-from pathlib import Path
 
 import pytest
 import torch
@@ -24,7 +23,6 @@ from torchrl_diffenvs import make_env
 from torchrl_diffenvs.learners import LEARNERS, make_learner
 from torchrl_diffenvs.modules import env_dims, make_actor
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 BASE_DIM = 16  # the swimmer's observation
 
 
@@ -59,7 +57,7 @@ SMALL = {
 
 
 def loss_section(name: str):
-    cfg = OmegaConf.load(CONFIGS / "loss" / f"{name}.yaml").loss
+    cfg = OmegaConf.create(LEARNERS[name].default_config()["loss"])
     for network in ("actor", "critic", "qvalue"):
         if network in cfg:
             cfg[network].hidden = [16]
