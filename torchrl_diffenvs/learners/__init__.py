@@ -14,10 +14,12 @@ from collections.abc import Mapping
 
 from ..distributed import SINGLE_PROCESS, World
 
+from .ahac import AHACConfig, AHACLearner
 from .base import LR_SCHEDULES, Learner, LearnerConfig, lr_scheduler
 from .bptt import BPTTConfig, BPTTLearner
 from .ppo import PPOConfig, PPOLearner
 from .sac import SACConfig, SACLearner
+from .sapo import SAPOConfig, SAPOLearner
 from .shac import SHACConfig, SHACLearner
 
 LEARNERS: dict[str, type[Learner]] = {
@@ -25,6 +27,8 @@ LEARNERS: dict[str, type[Learner]] = {
     "shac": SHACLearner,
     "ppo": PPOLearner,
     "sac": SACLearner,
+    "ahac": AHACLearner,
+    "sapo": SAPOLearner,
 }
 
 
@@ -38,6 +42,7 @@ def make_learner(loss_cfg: Mapping, env, total_env_steps: int, world: World = SI
 
 
 __all__ = [
-    "BPTTConfig", "BPTTLearner", "LEARNERS", "LR_SCHEDULES", "Learner", "LearnerConfig", "PPOConfig", "PPOLearner",
-    "SACConfig", "SACLearner", "SHACConfig", "SHACLearner", "lr_scheduler", "make_learner",
+    "AHACConfig", "AHACLearner", "BPTTConfig", "BPTTLearner", "LEARNERS", "LR_SCHEDULES", "Learner", "LearnerConfig",
+    "PPOConfig", "PPOLearner", "SACConfig", "SACLearner", "SAPOConfig", "SAPOLearner", "SHACConfig", "SHACLearner",
+    "lr_scheduler", "make_learner",
 ]
