@@ -82,8 +82,7 @@ class AHACLoss(SHACLoss):
     closed at episode ends and at the window end, a terminal state worth 0, the pre-reset
     observation bootstrapped on truncation, the loss divided by :math:`N H`.
 
-    The weights copy that :class:`SHACLoss` keeps for a target critic is never read here (no
-    :meth:`make_target_updater` call is needed).
+    No target weights are created (:meth:`make_target_updater` does not apply).
 
     Args:
         actor_network: the policy that collected the windows.
@@ -92,6 +91,13 @@ class AHACLoss(SHACLoss):
             a target critic.
         gamma, lmbda: discount and TD(lambda) parameter.
     """
+
+    def convert_to_functional(self, *args, create_target_params: bool = False, **kwargs):
+        """As ``LossModule``'s, never with target parameters: the critics are used as they are."""
+        return super().convert_to_functional(*args, create_target_params=False, **kwargs)
+
+    def make_target_updater(self, tau: float = 0.8):
+        raise RuntimeError(f"{type(self).__name__} has no target critic: its bootstrap uses the current critics")
 
     def _next_target_values(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``min`` over the critics of ``V(("next", obs))`` ``[N, H, 1]``: the live critics (no

@@ -11,12 +11,13 @@ from tensordict.utils import NestedKey
 from torch import nn
 
 from ._windows import steps_since_start, window_entry
+from .ahac import AHACLoss
 from .shac import SHACLoss
 
 __all__ = ["SAPOLoss"]
 
 
-class SAPOLoss(SHACLoss):
+class SAPOLoss(AHACLoss):
     r"""Soft analytic policy optimisation: SHAC's window loss with an entropy bonus.
 
     Per step the reward becomes the *soft* reward :math:`r_t + \alpha\, e_t`, with the entropy
@@ -41,8 +42,8 @@ class SAPOLoss(SHACLoss):
     **Critic targets**: TD(:math:`\lambda`) of the detached soft rewards bootstrapped by the
     *minimum* of the two critics (the reference's ``compute_target_values_with_entropy``), the
     window end treated as a trajectory end; both critics fit them (:meth:`critic_loss`). There is
-    no target critic: values come from the live critics (the weights copy :class:`SHACLoss` keeps
-    is never read).
+    no target critic: values come from the current critics (as in
+    :class:`~torchrl_diffenvs.objectives.AHACLoss`).
 
     **Temperature**: :attr:`log_alpha` (initial ``log(init_alpha)``) is trained on
     :meth:`alpha_loss` ``= alpha' * (H_est - target_entropy)`` with ``H_est`` the window's mean
