@@ -3,6 +3,7 @@ soft critic targets against hand-computed values; the squashed-normal log-probab
 TorchRL's ``TanhNormal``; the learners on small envs and through ``sota_scripts/train.py``."""
 from __future__ import annotations
 
+import copy
 import importlib.util
 import math
 import sys
@@ -276,6 +277,30 @@ def test_sapo_temperature_update_by_hand():
     assert learner.loss.alpha.item() == pytest.approx(math.exp(la), rel=1e-5)
 
 
+def test_sapo_critic_fits_soft_targets_of_the_temperature_after_its_step():
+    """The reference computes the critic targets after the temperature's step: the critic's
+    minibatches carry the targets of the new alpha (not the window's)."""
+    env = make_env("pendulum", num_envs=4, seed=0)
+    config = SAPOConfig(horizon=4, critic_passes=1, critic_minibatches=1, critic_lr=1e-12, obs_norm=False)
+    learner = SAPOLearner(env, make_sapo_actor(env, hidden=(8,)), tiny_twin_critic(env), config, 1000)
+    windows, targets = [], []
+    rollout, critic_loss = learner.collector.rollout, learner.loss.critic_loss
+    learner.collector.rollout = lambda: windows.append(rollout()) or windows[-1]
+    learner.loss.critic_loss = lambda batch: targets.append(batch["value_target"].clone()) or critic_loss(batch)
+    metrics = learner.train_iteration()
+    assert metrics["alpha"] != metrics["alpha_window"]
+    window = windows[0].detach()
+    expected = learner.loss.compute_value_targets(window).reshape(-1, 1)  # the new alpha, (almost) the same critics
+    used = targets[0]
+    order = torch.argsort(used.reshape(-1))
+    torch.testing.assert_close(used.reshape(-1)[order], expected.reshape(-1)[torch.argsort(expected.reshape(-1))],
+                               rtol=0, atol=1e-6)
+    with torch.no_grad():
+        learner.loss.log_alpha.fill_(math.log(metrics["alpha_window"]))
+    stale = learner.loss.compute_value_targets(window.clone()).reshape(-1)
+    assert (stale.sort().values - used.reshape(-1).sort().values).abs().max() > 1e-4
+
+
 # ---------------------------------------------------------------------- the learners run
 def test_ahac_learner_windows_follow_the_horizon_rule_on_pendulum():
     """Constant force 1500 (C = 500), dual lr 0.01: lambda = 10, 20, 30, 40 per step;
@@ -325,6 +350,33 @@ def test_ahac_resumes_its_horizon_from_a_state_dict():
     assert other.collector.horizon == 11 and other.adaptive_horizon.horizon == pytest.approx(10.6)
     other.train_iteration()
     assert other.env_steps_per_iteration == 4 * 11
+
+
+@pytest.mark.parametrize("name", ["ahac", "sapo"])
+def test_learner_state_dict_resumes_exactly(name):
+    """Learner A trains 4 iterations; learner B loads A's state (and the random stream) after 2 and
+    trains 2: the same weights, horizon and temperature."""
+    def build():
+        torch.manual_seed(0)
+        env = pendulum_with_contact(num_envs=4)
+        cfg = OmegaConf.load(CONFIGS / "loss" / f"{name}.yaml").loss
+        extra = {"ahac": {"max_critic_passes": 3, "horizon_lr": 0.05}, "sapo": {"horizon": 4, "critic_passes": 2}}[name]
+        return make_learner(OmegaConf.merge(cfg, {"actor": {"hidden": [8]}, "critic": {"hidden": [8]}, **extra}), env, 2000)
+
+    a = build()
+    for _ in range(2):
+        a.train_iteration()
+    state, rng = copy.deepcopy(a.state_dict()), torch.get_rng_state()
+    metrics_a = [a.train_iteration() for _ in range(2)]
+    b = build()
+    b.load_state_dict(state)
+    torch.set_rng_state(rng)
+    metrics_b = [b.train_iteration() for _ in range(2)]
+    assert metrics_a == metrics_b
+    for pa, pb in zip(a.loss.parameters(), b.loss.parameters(), strict=True):
+        assert torch.equal(pa, pb)
+    if name == "ahac":
+        assert a.adaptive_horizon.horizon == b.adaptive_horizon.horizon and a.collector.horizon == b.collector.horizon
 
 
 @pytest.mark.parametrize("name", ["ahac", "sapo"])
