@@ -429,6 +429,24 @@ def test_sapo_trains_through_the_training_script(tmp_path):
     assert (tmp_path / "checkpoints" / "last.pt").is_file()
 
 
+def test_a_sapo_checkpoints_policy_loads_into_policy_from_config(tmp_path):
+    """What evaluation must build for loss=sapo: the checkpoint's policy state loads exactly into
+    SAPOLearner.policy_from_config (SHAC's actor_from_config has another head)."""
+    from torchrl_diffenvs.modules import actor_from_config
+    from torchrl_diffenvs.training import load_checkpoint
+
+    cfg = _compose("env=pendulum", "loss=sapo", *TINY, "loss.horizon=4", "loss.critic_passes=1",
+                   "train.total_env_steps=16", "train.checkpoint_interval=16")
+    script = _train_script()
+    script.run(cfg, tmp_path)
+    ckpt = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
+    env = make_env("pendulum", num_envs=2, seed=0)
+    policy, _ = SAPOLearner.policy_from_config(OmegaConf.create(ckpt["config"]).loss, env)
+    policy.load_state_dict(ckpt["policy"])
+    with pytest.raises(RuntimeError, match="size mismatch"):
+        actor_from_config(OmegaConf.create(ckpt["config"]).loss, env)[0].load_state_dict(ckpt["policy"])
+
+
 def test_ahac_through_the_training_script_needs_an_env_with_contact_forces(tmp_path):
     cfg = _compose("env=pendulum", "loss=ahac", *TINY, "loss.max_critic_passes=2", "train.total_env_steps=64")
     script = _train_script()

@@ -279,9 +279,14 @@ class AHACLearner(TwinCriticLearner):
                          critic_max_grad_norm=config.critic_max_grad_norm)
         self.loss.set_keys(reward=self.keys.reward, value=self.keys.value)
 
+    @staticmethod
+    def policy_from_config(loss_cfg: Mapping, env):
+        """The policy of a ``loss=ahac`` section and its observation normaliser (SHAC's actor)."""
+        return actor_from_config(loss_cfg, env)
+
     @classmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> AHACLearner:
-        actor, normalizer = actor_from_config(loss_cfg, env)
+        actor, normalizer = cls.policy_from_config(loss_cfg, env)
         critic = twin_critic_from_config(loss_cfg.critic, env, normalizer)
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
         return cls(env, actor, critic, AHACConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,

@@ -236,19 +236,28 @@ class SAPOLearner(TwinCriticLearner):
                                              weight_decay=c.weight_decay)
         self.alpha_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
 
-    @classmethod
-    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> SAPOLearner:
+    @staticmethod
+    def policy_from_config(loss_cfg: Mapping, env) -> tuple[SquashedNormalActor, ObservationNormalizer | None]:
+        """The policy of a ``loss=sapo`` section (and its observation normaliser): what a
+        checkpoint's ``"policy"`` state loads into (evaluation)."""
         settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
         config = SAPOConfig.from_mapping(settings)
         normalizer = None
         if config.obs_norm:
             observation_dim, _, dtype = env_dims(env, policy_keys(env).observation)
             normalizer = ObservationNormalizer(observation_dim, dtype=dtype).to(env.device)
-        actor_kwargs = network_kwargs(loss_cfg.actor)
+        actor_kwargs = network_kwargs(loss_cfg["actor"])
         actor_kwargs.pop("init_log_std", None)  # the std is state-dependent
         actor = make_sapo_actor(env, **actor_kwargs, orthogonal_gain=config.orthogonal_gain,
                                 min_log_std=config.min_log_std, max_log_std=config.max_log_std,
                                 normalizer=normalizer).to(env.device)
+        return actor, normalizer
+
+    @classmethod
+    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> SAPOLearner:
+        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
+        config = SAPOConfig.from_mapping(settings)
+        actor, normalizer = cls.policy_from_config(loss_cfg, env)
         critics = [critic_from_config(loss_cfg.critic, env, normalizer) for _ in range(2)]
         if loss_cfg.critic.get("init") == "orthogonal":
             for critic in critics:  # make_critic's orthogonal init has gain sqrt(2)
