@@ -90,11 +90,11 @@ class SAPOLoss(AHACLoss):
             raise ValueError(f"SAPOLoss: init_alpha must be > 0, got {init_alpha!r}")
         if not target_entropy_scale > 0:
             raise ValueError(f"SAPOLoss: target_entropy_scale must be > 0, got {target_entropy_scale!r}")
-        dtype = next(critic_network.parameters()).dtype
+        reference = next(critic_network.parameters())
         self.target_entropy = -float(target_entropy_scale) * int(action_dim)
         self.entropy_offset = bool(entropy_offset)
         self.entropy_scale = bool(entropy_scale)
-        self.log_alpha = nn.Parameter(torch.tensor(math.log(init_alpha), dtype=dtype))
+        self.log_alpha = nn.Parameter(torch.tensor(math.log(init_alpha), dtype=reference.dtype, device=reference.device))
 
     @property
     def alpha(self) -> torch.Tensor:
