@@ -367,6 +367,23 @@ def test_ahac_critic_fitting_stops_when_the_pass_losses_plateau():
     assert learner.train_iteration()["critic_passes"] == 7
 
 
+def test_critic_minibatches_in_order_are_time_blocks_of_the_window():
+    """critic_shuffle=in_order (the references' unshuffled datasets): minibatch k holds steps
+    [k H / M, (k + 1) H / M) of every env."""
+    env = pendulum_with_contact(num_envs=4)
+    config = AHACConfig(critic_passes=1, critic_minibatches=2)
+    learner = AHACLearner(env, make_actor(env, hidden=(8,)), tiny_twin_critic(env), config, 10_000)
+    windows, batches = [], []
+    rollout, critic_loss = learner.collector.rollout, learner.loss.critic_loss
+    learner.collector.rollout = lambda: windows.append(rollout()) or windows[-1]
+    learner.loss.critic_loss = lambda batch: batches.append(batch["observation"].clone()) or critic_loss(batch)
+    learner.train_iteration()
+    obs = windows[0]["observation"].detach()  # [4, 8, 3]
+    assert len(batches) == 2
+    for k, batch in enumerate(batches):
+        torch.testing.assert_close(batch, obs[:, 4 * k:4 * (k + 1)].transpose(0, 1).reshape(-1, obs.shape[-1]))
+
+
 def test_ahac_resumes_its_horizon_from_a_state_dict():
     env = pendulum_with_contact(num_envs=4, constant=1500.0)
     config = AHACConfig(horizon_lr=0.01, lr_schedule="constant", critic_passes=1)

@@ -42,7 +42,9 @@ def optional_positive_int(value) -> str | None:
     return None if value is None else checks.positive_int(value)
 
 
-CRITIC_SHUFFLES = ("every_pass", "once_per_window")
+# in_order: contiguous blocks of the window in time order, [t0, t1) x all envs (the references: DiffRL and mineral
+# build their critic datasets unshuffled); once_per_window: one random split; every_pass: a new one per pass
+CRITIC_SHUFFLES = ("in_order", "once_per_window", "every_pass")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,7 +69,7 @@ class AHACConfig(LearnerConfig):
     max_critic_passes: int = checked(64, checks.positive_int)
     critic_plateau: float = checked(0.2, checks.positive)  # stop when |mean change| of the last 5 pass losses is below
     critic_minibatches: int = checked(4, checks.positive_int)
-    critic_shuffle: str = checked("once_per_window", checks.one_of(CRITIC_SHUFFLES))
+    critic_shuffle: str = checked("in_order", checks.one_of(CRITIC_SHUFFLES))  # minibatch order (see CRITIC_SHUFFLES)
     max_grad_norm: float | None = checked(1.0, checks.optional_positive)  # clip the actor's gradient norm
     critic_max_grad_norm: float | None = checked(None, checks.optional_positive)  # the reference does not clip
     skip_above: float | None = checked(1e6, checks.optional_positive)  # skip steps with a larger norm
@@ -157,15 +159,18 @@ class TwinCriticLearner(Learner):
         return self.config.critic_passes, False
 
     # ------------------------------------------------------------------ one iteration
-    def _fit_critic(self, flat) -> tuple[float, int]:
-        """Critic passes over minibatches of the flattened window; returns the last pass's mean
-        loss and the number of passes made."""
+    def _fit_critic(self, flat, window_shape: tuple[int, int]) -> tuple[float, int]:
+        """Critic passes over minibatches of the window flattened from ``window_shape`` ``(N, H)``;
+        returns the last pass's mean loss and the number of passes made."""
         c = self.config
         most, until_plateau = self._critic_pass_count()
         recent: deque[float] = deque(maxlen=5)
         pass_loss, passes = float("nan"), 0
         for critic_pass in range(most):
-            if critic_pass == 0 or c.critic_shuffle == "every_pass":
+            if critic_pass == 0 and c.critic_shuffle == "in_order":
+                n, h = window_shape
+                split = torch.arange(n * h).reshape(n, h).t().reshape(-1).chunk(c.critic_minibatches)
+            elif critic_pass == 0 or c.critic_shuffle == "every_pass":
                 split = torch.randperm(flat.shape[0]).chunk(c.critic_minibatches)
             losses = []
             for batch in split:
@@ -201,7 +206,7 @@ class TwinCriticLearner(Learner):
         del window, out  # the graph is spent
         self._critic_targets(data)
         flat = data.select(*self.loss.critic_network.in_keys, self.loss.tensor_keys.value_target).reshape(-1)
-        loss_critic, passes = self._fit_critic(flat)
+        loss_critic, passes = self._fit_critic(flat, tuple(data.batch_size))
         if self.normalizer is not None:
             self.normalizer.update(self.world.gather(data.get(self.keys.observation)))
         metrics.update({

@@ -70,7 +70,7 @@ class SAPOConfig(LearnerConfig):
     lr_decay: float = checked(0.997, checks.in_interval(0.0, 1.0))  # per iteration, exponential schedule
     critic_passes: int = checked(16, checks.positive_int)
     critic_minibatches: int = checked(4, checks.positive_int)
-    critic_shuffle: str = checked("once_per_window", checks.one_of(CRITIC_SHUFFLES))
+    critic_shuffle: str = checked("in_order", checks.one_of(CRITIC_SHUFFLES))  # minibatch order (learners/ahac.py)
     max_grad_norm: float | None = checked(0.5, checks.optional_positive)  # clips actor, critics and temperature
     skip_above: float | None = checked(1e6, checks.optional_positive)  # skip steps with a larger norm
     obs_norm: bool = checked(True, checks.boolean)  # running observation normalisation (from_config)
