@@ -64,7 +64,14 @@ TINY = {
             "loss.utd_ratio=0.25", "loss.actor.hidden=[16]", "loss.qvalue.hidden=[16]"],
 }
 TINY.update(mappo=TINY["ppo"], ippo=TINY["ppo"])
-STEPS_PER_ITER = {"bptt": 16, "shac": 16, "ppo": 16, "sac": 8, "mappo": 16, "ippo": 16}  # num_envs x horizon / rollout_len
+TINY["sapo"] = ["loss.horizon=4", "loss.actor.hidden=[16]", "loss.critic.hidden=[16]", "loss.critic_passes=2",
+                "loss.critic_minibatches=2"]
+# AHAC's window held at 4 steps (the horizon's own rule is tested in test_ahac_sapo.py)
+TINY["ahac"] = ["loss.min_horizon=4", "loss.max_horizon=5", "loss.horizon_lr=1e-9", "loss.actor.hidden=[16]",
+                "loss.critic.hidden=[16]", "loss.critic_passes=2", "loss.critic_minibatches=2"]
+STEPS_PER_ITER = {"bptt": 16, "shac": 16, "ppo": 16, "sac": 8, "mappo": 16, "ippo": 16, "sapo": 16,
+                  "ahac": 16}  # num_envs x horizon / rollout_len
+CONTACT_ENVS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5")  # they report contact forces (AHAC's signal)
 
 
 def make_cfg(*overrides: str):
@@ -297,6 +304,10 @@ def test_merge_overrides_keeps_the_saved_run_and_lets_today_win():
 @pytest.mark.parametrize("loss", LOSSES)
 @pytest.mark.parametrize("env", classic_envs() + ["HalfCheetah-v5", "Hopper-v5"])
 def test_every_env_and_loss_trains_a_few_iterations(env, loss, tmp_path):
+    if loss == "ahac" and env not in CONTACT_ENVS:
+        with pytest.raises(KeyError, match="contact_force"):
+            train_script.run(tiny_cfg(env, loss), tmp_path)
+        return
     result = train_script.run(tiny_cfg(env, loss), tmp_path)
     assert result["env_steps"] == 2 * STEPS_PER_ITER[loss] and result["iterations"] == 2
     assert math.isfinite(result["eval/return"]) and math.isfinite(result["eval/random_return"])
@@ -414,7 +425,7 @@ def test_resumed_run_continues_exactly_where_the_stopped_run_was(loss, tmp_path)
     same env states and random streams were restored."""
     steps = STEPS_PER_ITER[loss]
     extra = [f"train.checkpoint_interval={2 * steps}", "eval.interval=16"]
-    cfg = tiny_cfg("pendulum", loss, 4, *extra)
+    cfg = tiny_cfg("Hopper-v5" if loss == "ahac" else "pendulum", loss, 4, *extra)
     result_a = train_script.run(cfg, tmp_path / "a")
     stopped = tmp_path / "a" / "checkpoints" / f"ckpt_{2 * steps:012d}.pt"
     assert load_checkpoint(stopped)["progress"]["env_steps"] == 2 * steps

@@ -53,7 +53,7 @@ __all__ = [
 ]
 
 DISTRIBUTIONS = ("tanh_normal", "deterministic")
-ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "elu": nn.ELU, "relu": nn.ReLU}
+ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "elu": nn.ELU, "relu": nn.ReLU, "silu": nn.SiLU}
 NETWORK_INITS = ("default", "orthogonal")
 
 

@@ -1,7 +1,7 @@
 """One learner per algorithm, each in one file that reads like its algorithm.
 
-``bptt`` and ``shac`` backpropagate through the differentiable env; ``ppo`` and ``sac`` are
-TorchRL's own losses and collectors. All four share :class:`Learner`'s interface, used alike by
+``bptt``, ``shac``, ``ahac`` and ``sapo`` backpropagate through the differentiable env; ``ppo``
+and ``sac`` are TorchRL's own losses and collectors. All share :class:`Learner`'s interface, used alike by
 the training loop (:mod:`torchrl_diffenvs.training`), the demos, the benchmarks and the tests::
 
     learner = SHACLearner(env, make_actor(env), make_critic(env), SHACConfig(horizon=8))
@@ -36,10 +36,12 @@ from collections.abc import Mapping
 
 from ..distributed import SINGLE_PROCESS, World
 
+from .ahac import AHACConfig, AHACLearner
 from .base import LR_SCHEDULES, ActorNetworkConfig, Learner, LearnerConfig, NetworkConfig, lr_scheduler
 from .bptt import BPTTConfig, BPTTLearner
 from .ppo import PPOConfig, PPOLearner
 from .sac import SACConfig, SACLearner
+from .sapo import SAPOConfig, SAPOLearner
 from .shac import SHACConfig, SHACLearner
 
 LEARNERS: dict[str, type[Learner]] = {}
@@ -68,11 +70,11 @@ def make_learner(loss_cfg: Mapping, env, total_env_steps: int, world: World = SI
     return LEARNERS[name].from_config(loss_cfg, env, total_env_steps, world)
 
 
-for _learner in (BPTTLearner, SHACLearner, PPOLearner, SACLearner):
+for _learner in (BPTTLearner, SHACLearner, PPOLearner, SACLearner, AHACLearner, SAPOLearner):
     register_learner(_learner)
 
 __all__ = [
-    "ActorNetworkConfig", "BPTTConfig", "BPTTLearner", "LEARNERS", "LR_SCHEDULES", "Learner", "LearnerConfig",
-    "NetworkConfig", "PPOConfig", "PPOLearner", "SACConfig", "SACLearner", "SHACConfig", "SHACLearner", "lr_scheduler",
-    "make_learner", "register_learner",
+    "ActorNetworkConfig", "AHACConfig", "AHACLearner", "BPTTConfig", "BPTTLearner", "LEARNERS", "LR_SCHEDULES",
+    "Learner", "LearnerConfig", "NetworkConfig", "PPOConfig", "PPOLearner", "SACConfig", "SACLearner", "SAPOConfig",
+    "SAPOLearner", "SHACConfig", "SHACLearner", "lr_scheduler", "make_learner", "register_learner",
 ]

@@ -1,0 +1,304 @@
+"""SAPO (Xing et al., ICLR 2025, "Stabilizing reinforcement learning in differentiable
+multiphysics simulation"; reference: ``etaoxing/mineral``, ``agents/diffrl/shac.py`` with
+``cfgs/agent/DFlexAntSAPO.yaml``): SHAC with maximum entropy.
+
+One iteration:
+
+1. collect a window ``[N, H]`` with the graph on; the actor (a tanh-squashed normal with a
+   state-dependent standard deviation, :func:`make_sapo_actor`) writes the log-probability of
+   every action it samples;
+2. actor step on the soft bootstrapped return (:class:`~torchrl_diffenvs.objectives.SAPOLoss`:
+   rewards plus ``alpha`` times the entropy estimate, bootstrapped by the mean of the two
+   critics), one guarded AdamW step clipped at ``max_grad_norm``;
+3. temperature step: ``log_alpha`` on the loss's ``alpha_loss`` of the window's entropy
+   (AdamW, clipped at ``max_grad_norm``);
+4. soft TD(lambda) critic targets with the new temperature, bootstrapped by the minimum of the
+   two critics;
+5. ``critic_passes`` x ``critic_minibatches`` guarded AdamW steps of both critics (no target critic);
+6. update the observation normaliser; step the learning-rate schedules of actor and critics.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import InteractionType
+from torch import nn
+
+from .. import checks
+from .._compat import current_interaction_type, standard_normal
+from ..distributed import SINGLE_PROCESS, World
+from ..envs.multi_agent import policy_keys
+from ..modules import (
+    LeanModule,
+    ObservationNormalizer,
+    TanhNormalActor,
+    critic_from_config,
+    env_dims,
+    make_mlp,
+    network_kwargs,
+)
+from ..objectives import GradientGuard, SAPOLoss, TwinCritic
+from .ahac import CRITIC_SHUFFLES, TwinCriticLearner
+from .base import LR_SCHEDULES, LearnerConfig, NetworkConfig, checked
+
+__all__ = ["SAPOConfig", "SAPOLearner", "SquashedNormalActor", "make_sapo_actor"]
+
+
+
+@dataclasses.dataclass(frozen=True)
+class SAPOConfig(LearnerConfig):
+    """Settings of :class:`SAPOLearner` (the keys of ``configs/loss/sapo.yaml``); defaults are the
+    reference's (``DFlexAntSHAC2.yaml`` + ``DFlexAntSAPO.yaml``)."""
+
+    horizon: int = checked(32, checks.positive_int)  # window length H: an iteration is N x H env steps
+    gamma: float = checked(0.99, checks.in_interval(0.0, 1.0))
+    lmbda: float = checked(0.95, checks.in_interval(0.0, 1.0, low_inclusive=True))  # TD(lambda) targets
+    actor_lr: float = checked(2e-3, checks.learning_rate)
+    critic_lr: float = checked(5e-4, checks.learning_rate)
+    alpha_lr: float = checked(5e-3, checks.learning_rate)  # the temperature's (constant)
+    betas: tuple = checked((0.7, 0.95), checks.adam_betas)  # AdamW betas of the three optimisers
+    weight_decay: float = checked(0.01, checks.nonnegative)  # AdamW's (torch's default, which the reference keeps)
+    lr_schedule: str = checked("linear", checks.one_of(LR_SCHEDULES))  # actor and critics
+    min_lr: float = checked(1e-5, checks.learning_rate)  # end of the linear schedule
+    lr_decay: float = checked(0.997, checks.in_interval(0.0, 1.0))  # per iteration, exponential schedule
+    critic_passes: int = checked(16, checks.positive_int)
+    critic_minibatches: int = checked(4, checks.positive_int)
+    critic_shuffle: str = checked("in_order", checks.one_of(CRITIC_SHUFFLES))  # minibatch order (learners/ahac.py)
+    max_grad_norm: float | None = checked(0.5, checks.optional_positive)  # clips actor, critics and temperature
+    skip_above: float | None = checked(1e6, checks.optional_positive)  # skip steps with a larger norm
+    obs_norm: bool = checked(True, checks.boolean)  # running observation normalisation (from_config)
+    init_alpha: float = checked(1.0, checks.positive)  # initial temperature
+    target_entropy_scale: float = checked(0.5, checks.positive)  # target entropy = -scale * |A|
+    entropy_offset: bool = checked(True, checks.boolean)  # entropy term (e + |target|) / 2
+    entropy_scale: bool = checked(True, checks.boolean)  # entropy term / |target| (and the temperature step x |target|)
+    min_log_std: float = checked(-5.0, checks.in_interval(-20.0, 20.0))  # the actor's log-std is clamped to this range
+    max_log_std: float = checked(2.0, checks.in_interval(-20.0, 20.0))
+    orthogonal_gain: float = checked(1.0, checks.positive)  # gain of init=orthogonal in the network sections
+
+    @classmethod
+    def relation_problems(cls, values: Mapping, where: str = "") -> list[str]:
+        if values["min_log_std"] >= values["max_log_std"]:
+            return [f"{where}min_log_std={values['min_log_std']!r} must be < {where}max_log_std="
+                    f"{values['max_log_std']!r}"]
+        return []
+
+
+# ---------------------------------------------------------------------- the actor
+class _LocScale(nn.Module):
+    """Splits ``[..., 2A]`` into ``loc`` and ``scale = exp(clamp(log_std, low, high))``."""
+
+    def __init__(self, action_dim: int, min_log_std: float, max_log_std: float):
+        super().__init__()
+        self.action_dim, self.min_log_std, self.max_log_std = int(action_dim), float(min_log_std), float(max_log_std)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc, log_std = x.split(self.action_dim, dim=-1)
+        return loc, log_std.clamp(self.min_log_std, self.max_log_std).exp()
+
+
+class SquashedNormalActor(TanhNormalActor):
+    """A ``TanhNormal`` policy that writes the exact log-probability of the actions it samples.
+
+    TorchRL's ``TanhNormal.log_prob(action)`` inverts the squashing (``atanh`` of the action),
+    which loses the pre-tanh value once ``tanh`` rounds to +-1 (in float32 from about
+    ``|u| > 9``). When it samples (``ExplorationType.RANDOM``) this actor draws
+    ``u = loc + eps * scale`` (``rsample``: the same random stream as ``Normal.rsample``) and
+    writes ``action = squash(u)`` and its log-probability from ``u``::
+
+        sum_i [ -eps_i^2 / 2 - log scale_i - log(2 pi) / 2 - log(1 - tanh(u_i)^2) - log((high - low) / 2) ]
+
+    with ``log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u))`` (finite for every ``u``). In
+    ``DETERMINISTIC`` mode it writes ``squash(loc)``. Every other call, and ``get_dist``, is
+    ``ProbabilisticActor``'s.
+    """
+
+    def __init__(self, module, low: float, high: float, log_prob_key="action_log_prob", **kwargs):
+        super().__init__(module, low, high, return_log_prob=True, log_prob_key=log_prob_key, **kwargs)
+        self._log_prob_out = log_prob_key
+        self._log_half_range = math.log((float(high) - float(low)) / 2)
+
+    def log_prob_from_noise(self, eps: torch.Tensor, scale: torch.Tensor, pre_tanh: torch.Tensor) -> torch.Tensor:
+        """Log-probability ``[...]`` of ``squash(pre_tanh)`` with ``pre_tanh = loc + eps * scale``."""
+        normal = -0.5 * eps.pow(2) - scale.log() - 0.5 * math.log(2 * math.pi)
+        log_jacobian = 2 * (math.log(2) - pre_tanh - nn.functional.softplus(-2 * pre_tanh)) + self._log_half_range
+        return (normal - log_jacobian).sum(-1)
+
+    def forward(self, tensordict, tensordict_out=None, **kwargs):
+        mode = current_interaction_type()
+        if mode is None:
+            mode = self.module[-1].default_interaction_type
+        plain = tensordict_out is None and not kwargs and isinstance(tensordict, TensorDictBase)
+        if not plain or mode not in (InteractionType.RANDOM, InteractionType.DETERMINISTIC):
+            return super().forward(tensordict, tensordict_out, **kwargs)
+        tensordict = self.module[0](tensordict)  # "loc", "scale"
+        loc_key, scale_key = self.module[0].out_keys
+        loc = tensordict.get(loc_key)
+        if mode is InteractionType.DETERMINISTIC:
+            tensordict.set(self.module[-1].out_keys[0], self.squash(loc))
+            return tensordict
+        scale = tensordict.get(scale_key)
+        eps = standard_normal(loc.shape, dtype=loc.dtype, device=loc.device)
+        pre_tanh = loc + eps * scale
+        tensordict.set(self.module[-1].out_keys[0], self.squash(pre_tanh))
+        tensordict.set(self._log_prob_out, self.log_prob_from_noise(eps, scale, pre_tanh))
+        return tensordict
+
+
+def _orthogonal_(module: nn.Module, gain: float) -> None:
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear):
+            nn.init.orthogonal_(layer.weight, gain=gain)
+            nn.init.zeros_(layer.bias)
+
+
+def _action_bounds(env) -> tuple[float, float]:
+    spec = env.full_action_spec_unbatched[env.action_key]
+    low, high = spec.space.low, spec.space.high
+    if not (torch.all(low == low.flatten()[0]) and torch.all(high == high.flatten()[0])):
+        raise ValueError(f"make_sapo_actor: expected the same bounds for every action dimension, got {low} and {high}")
+    return float(low.flatten()[0]), float(high.flatten()[0])
+
+
+def make_sapo_actor(
+    env,
+    hidden: Sequence[int] = (128, 64, 32),
+    activation: type[nn.Module] = nn.SiLU,
+    layer_norm: bool = True,
+    norm_after_activation: bool = False,
+    init: str = "orthogonal",
+    orthogonal_gain: float = 1.0,
+    min_log_std: float = -5.0,
+    max_log_std: float = 2.0,
+    normalizer: ObservationNormalizer | None = None,
+) -> SquashedNormalActor:
+    """SAPO's policy: an MLP writing ``loc`` and a state-dependent ``scale`` (log-std clamped to
+    ``[min_log_std, max_log_std]``), squashed into the action bounds
+    (:class:`SquashedNormalActor`, writing ``"action"`` and ``"action_log_prob"``).
+
+    The reference: ``[128, 64, 32]`` Linear-LayerNorm-SiLU, orthogonal weights of gain 1, log-std
+    in ``[-5, 2]``. ``init="orthogonal"`` uses ``orthogonal_gain``; ``"default"`` PyTorch's.
+    """
+    keys = policy_keys(env)
+    if keys.num_agents is not None:
+        raise ValueError(f"make_sapo_actor: {type(env).__name__} is multi-agent; SAPO is single-agent")
+    observation_dim, action_dim, dtype = env_dims(env, keys.observation)
+    low, high = _action_bounds(env)
+    net = make_mlp(observation_dim, 2 * action_dim, hidden, activation, layer_norm, dtype, norm_after_activation)
+    if init == "orthogonal":
+        _orthogonal_(net, orthogonal_gain)
+    elif init != "default":
+        raise ValueError(f"make_sapo_actor: init must be 'default' or 'orthogonal', got {init!r}")
+    prefix = [normalizer] if normalizer is not None else []
+    head = nn.Sequential(*prefix, net, _LocScale(action_dim, min_log_std, max_log_std))
+    module = LeanModule(head, in_keys=[keys.observation], out_keys=[keys.loc, keys.scale])
+    return SquashedNormalActor(module, low, high, log_prob_key=keys.log_prob,
+                               spec=env.full_action_spec_unbatched[keys.action], out_keys=[keys.action])
+
+
+# ---------------------------------------------------------------------- the learner
+class SAPOLearner(TwinCriticLearner):
+    """Soft analytic policy optimisation.
+
+    Args:
+        env: a batched differentiable single-agent env.
+        actor: a policy writing ``"action"`` and ``"action_log_prob"`` when sampling
+            (:func:`make_sapo_actor`).
+        critic: a :class:`~torchrl_diffenvs.objectives.TwinCritic`.
+        config: :class:`SAPOConfig`.
+        total_env_steps: the budget the learning-rate schedules run over.
+        normalizer, reset_input, world: as :class:`~torchrl_diffenvs.learners.SHACLearner`.
+    """
+
+    name = "sapo"
+    config_class = SAPOConfig
+    # the reference's: 128-64-32 SiLU + LayerNorm actor (its std is state-dependent: no init_log_std),
+    # orthogonal initialisation
+    networks = MappingProxyType({
+        "actor": NetworkConfig(hidden=(128, 64, 32), activation="silu", init="orthogonal"),
+        "critic": NetworkConfig(activation="silu", init="orthogonal"),
+    })
+    run_defaults = MappingProxyType({"train": {"total_env_steps": 400_000, "checkpoint_interval": 200_000},
+                                     "eval": {"interval": 50_000}})
+
+    def __init__(self, env, actor, critic: TwinCritic, config: SAPOConfig = SAPOConfig(),
+                 total_env_steps: int = 1_000_000, *, normalizer: ObservationNormalizer | None = None,
+                 reset_input=None, world: World = SINGLE_PROCESS):
+        c = config
+        action_dim = env_dims(env, policy_keys(env).observation)[1]
+        loss = SAPOLoss(actor, critic, action_dim=action_dim, gamma=c.gamma, lmbda=c.lmbda, init_alpha=c.init_alpha,
+                        target_entropy_scale=c.target_entropy_scale, entropy_offset=c.entropy_offset,
+                        entropy_scale=c.entropy_scale)
+        super().__init__(env, actor, loss, config, total_env_steps, horizon=c.horizon, normalizer=normalizer,
+                         reset_input=reset_input, world=world, optimizer=torch.optim.AdamW,
+                         optimizer_kwargs={"weight_decay": c.weight_decay}, critic_max_grad_norm=c.max_grad_norm)
+        self.loss.set_keys(reward=self.keys.reward, value=self.keys.value, log_prob=self.keys.log_prob)
+        # the reference's temperature optimiser is the actor's class (AdamW) with its own settings
+        self.alpha_optim = torch.optim.AdamW([self.loss.log_alpha], lr=c.alpha_lr, betas=c.betas,
+                                             weight_decay=c.weight_decay)
+        self.alpha_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=None)
+
+    @classmethod
+    def policy_from_config(cls, loss_cfg: Mapping, env) -> SquashedNormalActor:
+        return cls._policy_and_normalizer(loss_cfg, env)[0]
+
+    @staticmethod
+    def _policy_and_normalizer(loss_cfg: Mapping, env) -> tuple[SquashedNormalActor, ObservationNormalizer | None]:
+        """The policy of a ``loss=sapo`` section (and its observation normaliser): what a
+        checkpoint's ``"policy"`` state loads into (evaluation)."""
+        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
+        config = SAPOConfig.from_mapping(settings)
+        normalizer = None
+        if config.obs_norm:
+            observation_dim, _, dtype = env_dims(env, policy_keys(env).observation)
+            normalizer = ObservationNormalizer(observation_dim, dtype=dtype).to(env.device)
+        actor_kwargs = network_kwargs(loss_cfg["actor"])
+        actor_kwargs.pop("init_log_std", None)  # the std is state-dependent
+        actor = make_sapo_actor(env, **actor_kwargs, orthogonal_gain=config.orthogonal_gain,
+                                min_log_std=config.min_log_std, max_log_std=config.max_log_std,
+                                normalizer=normalizer).to(env.device)
+        return actor, normalizer
+
+    @classmethod
+    def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> SAPOLearner:
+        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
+        config = SAPOConfig.from_mapping(settings)
+        actor, normalizer = cls._policy_and_normalizer(loss_cfg, env)
+        critics = [critic_from_config(loss_cfg.critic, env, normalizer) for _ in range(2)]
+        if loss_cfg.critic.get("init") == "orthogonal":
+            for critic in critics:  # make_critic's orthogonal init has gain sqrt(2)
+                _orthogonal_(critic, config.orthogonal_gain)
+        return cls(env, actor, TwinCritic(*critics), config, total_env_steps, normalizer=normalizer, world=world)
+
+    def update_temperature(self, entropy: torch.Tensor | float) -> dict[str, float]:
+        """One guarded AdamW step of ``log_alpha`` on the loss's ``alpha_loss(entropy)``
+        (``entropy``: the window's mean of ``-log pi``), the gradient averaged over the ranks."""
+        loss = self.loss.alpha_loss(entropy)
+        self.alpha_optim.zero_grad(set_to_none=True)
+        loss.backward()
+        self.world.average_gradients([self.loss.log_alpha])
+        info = self.alpha_guard.step(self.alpha_optim, [self.loss.log_alpha], loss=loss)
+        return {"loss_alpha": loss.item(), "grad_norm_alpha": info["grad_norm"]}
+
+    def _after_actor_step(self, window, out) -> dict[str, float]:
+        entropy = self.world.mean(out["entropy"].item())  # every rank steps the same temperature
+        metrics = {"entropy": entropy, "alpha_window": out["alpha"].item()}
+        metrics.update(self.update_temperature(entropy))
+        metrics["alpha"] = self.loss.alpha.item()
+        return metrics
+
+    def _critic_targets(self, data) -> None:
+        self.loss.compute_value_targets(data)  # with the temperature after its step (the reference's order)
+
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "alpha_optimizer": self.alpha_optim.state_dict(),
+                "alpha_guard": self.alpha_guard.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        super().load_state_dict(state)  # the loss's state holds log_alpha
+        self.alpha_optim.load_state_dict(state["alpha_optimizer"])
+        self.alpha_guard.load_state_dict(state["alpha_guard"])
