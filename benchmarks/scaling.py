@@ -10,7 +10,7 @@ every rank): ``K`` times the env steps per iteration, a larger batch for the lea
 Reported per loss and rank count, over seeds (median, min-max): training env-steps/s (median of
 the logged per-iteration rates: collection and updates, evaluations excluded), the whole run's
 env-steps/s (evaluations on rank 0 included), the final evaluation return, and the wall time to
-reach ``level`` (default 74.2: PPO's final pendulum return in docs/sections/60-performance.md).
+reach ``level`` (default 74.2: PPO's final pendulum return in docs/performance.md).
 Scaling efficiency: ``rate(K) / (K x rate(1))``.
 
     python benchmarks/scaling.py                                  # shac and ppo, 1 and 2 ranks, seeds 0 1 2

@@ -1,6 +1,6 @@
 """Every benchmark script runs in --quick mode and writes a well-formed JSON result.
 
-The benchmarks measure (benchmarks/, docs/sections/60-performance.md); this only checks that
+The benchmarks measure (benchmarks/, docs/performance.md); this only checks that
 they run end to end and report what they claim, in seconds, in-process.
 """
 import importlib.util
