@@ -24,7 +24,7 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     ``cfrc_ext`` is MuJoCo's per-body external contact wrench (torque about the Ant's centre of
     mass, force; world frame), here from the smooth contact model instead of MuJoCo's solver, so
     its values and the trajectories differ from Gymnasium's once a leg touches the ground (the
-    contact-free dynamics equal MuJoCo's, see the README). As Gymnasium does, the torso position
+    contact-free dynamics equal MuJoCo's, see the docs). As Gymnasium does, the torso position
     and ``cfrc_ext`` are read where ``mj_step`` leaves them (the start of the last Euler step, or the last RK4 stage): they travel as
     ``("state", "torso_xy")`` and ``("state", "cfrc_ext")``; ``cfrc_ext`` is 0 after a reset.
 

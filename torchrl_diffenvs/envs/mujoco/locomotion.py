@@ -21,7 +21,7 @@ class PlanarLocomotionEnv(HealthySurrogate, MuJoCoModelEnv):
     straight-through: reward values stay Gymnasium's; :class:`~.healthy.HealthySurrogate`).
 
     Dynamics: MuJoCo's model and integrator, with a smooth penalty contact instead of MuJoCo's
-    soft-constraint solver (see the README, "Articulated robots"): trajectories differ from
+    soft-constraint solver (see the docs, "The simulator and its fidelity"): trajectories differ from
     Gymnasium's once a foot touches the ground.
     """
 
