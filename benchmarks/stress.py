@@ -37,6 +37,7 @@ from torchrl_diffenvs.checks import checked, each, one_of, parse_cli  # noqa: E4
 
 CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"]
 POLICIES = ["random", "bang-bang", "resonant", "greedy", "far"]
+HEADERS = ["task", "policy", "envs x steps", "non-finite envs", "max |qvel|", "max travel (m)"]
 
 
 @dataclass(frozen=True)
@@ -123,10 +124,10 @@ def main(argv=None):
                    f"{r['max_qvel']:.3g}", f"{r['travel']:.3g}"]
             rows.append(row)
             print(" | ".join(row), flush=True)
-    headers = ["task", "policy", "envs x steps", "non-finite envs", "max |qvel|", "max travel (m)"]
-    print_table(headers, rows)
-    C.write_data(settings, "stress", {"stress": C.data_table(
-        "Long episodes under the policies that break simulators (float32, default physics)", headers, rows)})
+            # rewritten after every row: a long run that is stopped still leaves what it measured
+            C.write_data(settings, "stress", {"stress": C.data_table(
+                "Long episodes under the policies that break simulators (float32, default physics)", HEADERS, rows)})
+    print_table(HEADERS, rows)
     return rows
 
 
