@@ -28,6 +28,7 @@ from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
 from ..modules import ObservationNormalizer, actor_from_config, observation_key_of
 from ..objectives import BPTTLoss, GradientGuard, NonFiniteEnvMonitor
+from ..objectives._windows import window_contact_force
 from .base import ActorNetworkConfig, LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["BPTTConfig", "BPTTLearner"]
@@ -129,6 +130,9 @@ class BPTTLearner(Learner):
             "skipped_actor": self.actor_guard.skipped,
             "lr_actor": self.actor_optim.param_groups[0]["lr"],
         }
+        force = window_contact_force(window)  # envs with contacts report their largest normal force
+        if force is not None:
+            metrics["contact_force_max"] = force.max().item()
         if self.collector.finished_returns:
             metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
         # 3. observation statistics, frozen during the window, move after it

@@ -39,6 +39,7 @@ from ..modules import (
     update_privileged_statistics,
 )
 from ..objectives import GradientGuard, NonFiniteEnvMonitor, SHACLoss
+from ..objectives._windows import window_contact_force
 from .base import (
     LR_SCHEDULES,
     ActorNetworkConfig,
@@ -198,6 +199,9 @@ class SHACLearner(Learner):
             "skipped_critic": self.critic_guard.skipped,
             "lr_actor": self.actor_optim.param_groups[0]["lr"],
         })
+        force = window_contact_force(data)  # envs with contacts report their largest normal force
+        if force is not None:
+            metrics["contact_force_max"] = force.max().item()
         if self.collector.finished_returns:
             metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
         # 7. learning-rate schedules

@@ -1,4 +1,4 @@
-"""Helpers shared by the window losses (BPTT, SHAC)."""
+"""Helpers shared by the window losses and learners (BPTT, SHAC, AHAC, SAPO)."""
 from __future__ import annotations
 
 import torch
@@ -41,3 +41,24 @@ def like_agents(flags: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
     """Per-env ``flags`` ``[N, H]`` (done, discounts) broadcastable against ``reward`` ``[N, H]``
     or ``[N, H, A]``: the agents of a multi-agent env share one episode."""
     return flags.reshape(*flags.shape, *([1] * (reward.ndim - flags.ndim)))
+
+
+CONTACT_FORCE_KEY = "contact_force"
+
+
+def window_contact_force(window: TensorDictBase, who: str | None = None) -> torch.Tensor | None:
+    """``("next", "contact_force")`` of a window ``[N, H]`` as ``[N, H]`` (detached).
+
+    Returns ``None`` when the window has no such entry, or raises a ``KeyError`` naming the key
+    and the envs that write it when ``who`` (the caller's name) is given.
+    """
+    value = window.get(("next", CONTACT_FORCE_KEY), None)
+    if value is None:
+        if who is None:
+            return None
+        raise KeyError(
+            f"{who}: the rollout has no ('next', {CONTACT_FORCE_KEY!r}) entry; AHAC adapts its window from the "
+            "contact force that the MuJoCo contact tasks (HalfCheetah-v5, Hopper-v5, Walker2d-v5, Ant-v5) write at "
+            "every step; for another env add a transform that writes it ([N, 1], newtons)"
+        )
+    return value.detach().reshape(window.batch_size)

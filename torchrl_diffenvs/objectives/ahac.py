@@ -15,34 +15,15 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from ._windows import CONTACT_FORCE_KEY, window_contact_force
 from .shac import SHACLoss
 
 __all__ = ["CONTACT_FORCE_KEY", "AHACLoss", "AdaptiveHorizon", "TwinCritic", "window_contact_force"]
 
+
 #: The entry the MuJoCo contact tasks write at every step: the largest contact normal force
 #: (newtons) at the step's final physics state, ``[N, 1]``, detached. A window holds it under
 #: ``("next", "contact_force")``.
-CONTACT_FORCE_KEY = "contact_force"
-
-
-def window_contact_force(window: TensorDictBase, who: str | None = None) -> torch.Tensor | None:
-    """``("next", "contact_force")`` of a window ``[N, H]`` as ``[N, H]`` (detached).
-
-    Returns ``None`` when the window has no such entry, or raises a ``KeyError`` naming the key
-    and the envs that write it when ``who`` (the caller's name) is given.
-    """
-    value = window.get(("next", CONTACT_FORCE_KEY), None)
-    if value is None:
-        if who is None:
-            return None
-        raise KeyError(
-            f"{who}: the rollout has no ('next', {CONTACT_FORCE_KEY!r}) entry; AHAC adapts its window from the "
-            "contact force that the MuJoCo contact tasks (HalfCheetah-v5, Hopper-v5, Walker2d-v5, Ant-v5) write at "
-            "every step; for another env add a transform that writes it ([N, 1], newtons)"
-        )
-    return value.detach().reshape(window.batch_size)
-
-
 class TwinCritic(TensorDictModuleBase):
     """Two state-value networks with the same inputs, read as one critic writing ``[..., 2]``.
 
