@@ -43,22 +43,27 @@ def like_agents(flags: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
     return flags.reshape(*flags.shape, *([1] * (reward.ndim - flags.ndim)))
 
 
-CONTACT_FORCE_KEY = "contact_force"
+CONTACT_FORCE_KEY = ("state", "contact_force")  # where the MuJoCo contact tasks report it
 
 
 def window_contact_force(window: TensorDictBase, who: str | None = None) -> torch.Tensor | None:
-    """``("next", "contact_force")`` of a window ``[N, H]`` as ``[N, H]`` (detached).
+    """The largest contact normal force of each step of a window ``[N, H]`` (detached), read from
+    ``("next", "state", "contact_force")`` (the MuJoCo contact tasks write it, see
+    ``MuJoCoModelEnv.reports_contact_force``) or, for any other env, from a root
+    ``("next", "contact_force")`` entry a transform writes (``[N, 1]``, newtons).
 
-    Returns ``None`` when the window has no such entry, or raises a ``KeyError`` naming the key
-    and the envs that write it when ``who`` (the caller's name) is given.
+    Returns ``None`` when the window has neither, or raises a ``KeyError`` naming the keys and
+    the envs that write them when ``who`` (the caller's name) is given.
     """
-    value = window.get(("next", CONTACT_FORCE_KEY), None)
+    value = window.get(("next", *CONTACT_FORCE_KEY), None)
+    if value is None:
+        value = window.get(("next", "contact_force"), None)
     if value is None:
         if who is None:
             return None
         raise KeyError(
-            f"{who}: the rollout has no ('next', {CONTACT_FORCE_KEY!r}) entry; AHAC adapts its window from the "
-            "contact force that the MuJoCo contact tasks (HalfCheetah-v5, Hopper-v5, Walker2d-v5, Ant-v5) write at "
-            "every step; for another env add a transform that writes it ([N, 1], newtons)"
+            f"{who}: the rollout has no ('next', 'state', 'contact_force') entry; AHAC adapts its window from the "
+            "contact force that the MuJoCo contact tasks (HalfCheetah-v5, Hopper-v5, Walker2d-v5, Ant-v5) report at "
+            "every step; for another env add a transform that writes ('next', 'contact_force') ([N, 1], newtons)"
         )
     return value.detach().reshape(window.batch_size)

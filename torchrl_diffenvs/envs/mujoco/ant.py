@@ -78,7 +78,7 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
         qpos = self.init_qpos(n) + (2 * self.uniform(0.0, 1.0, n, self.model.nq) - 1) * noise
         qvel = self.normal(n, self.model.nv) * noise
         return {"qpos": qpos, "qvel": qvel, "torso_xy": qpos[:, :2],
-                "cfrc_ext": qpos.new_zeros(n, self.model.nbody, 6)}
+                "cfrc_ext": qpos.new_zeros(n, self.model.nbody, 6), **self.contact_state(None, n)}
 
     def contact_forces(self, state, params):
         """Gymnasium's ``contact_forces``: ``cfrc_ext`` clipped to the contact force range."""
@@ -89,7 +89,8 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
         result = self.simulate(state, action, params)
         torso_xy = result.eval_qpos[:, :2]  # the free joint's coordinates are the torso's world position
         cfrc_ext = self.contact_wrenches(result.eval_qpos, result.eval_qvel, params)
-        next_state = {"qpos": result.qpos, "qvel": result.qvel, "torso_xy": torso_xy, "cfrc_ext": cfrc_ext}
+        next_state = {"qpos": result.qpos, "qvel": result.qvel, "torso_xy": torso_xy, "cfrc_ext": cfrc_ext,
+                      **self.contact_state(result, torso_xy.shape[0])}
         x_velocity = (torso_xy[:, 0] - state["torso_xy"][:, 0]) / self.dt
         finite = torch.isfinite(torch.cat([result.qpos, result.qvel], dim=-1)).all(-1)
         healthy = finite & self.healthy(result.qpos, result.qvel, params)

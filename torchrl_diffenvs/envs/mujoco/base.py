@@ -109,6 +109,36 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         """Standard normal samples from this env's seeded generator."""
         return torch.randn(shape, generator=self.rng, device=self.device, dtype=self.float_dtype)
 
+    @property
+    def reports_contact_force(self) -> bool:
+        """True for models with ground contact: their state carries ``"contact_force"`` ``[N]``,
+        the largest contact normal force (newtons, detached) over the last env step's physics
+        steps (0 after a reset): the signal AHAC adapts its horizon to, and what the learners log
+        as ``contact_force_max``. Like the Ant's ``cfrc_ext``, it is read where ``mj_step`` leaves
+        it, not an input of the next step."""
+        return bool(self.tree.contact_body.numel())
+
+    def contact_state(self, result: StepResult | None, n: int) -> dict:
+        """``{"contact_force": [N]}`` of a step's result (``None``: after a reset) for a model with
+        contacts, else ``{}``: what a task adds to its state."""
+        if not self.reports_contact_force:
+            return {}
+        if result is None:
+            return {"contact_force": torch.zeros(n, dtype=self.float_dtype, device=self.device)}
+        return {"contact_force": result.contact_force.detach()}
+
+    def _reset(self, tensordict=None, **kwargs):
+        # reset(td, set_state=True) from MuJoCo's qpos/qvel alone: the contact force is a reading, not
+        # a state anyone sets, so a missing one starts at 0
+        if kwargs.get("set_state") and tensordict is not None and self.reports_contact_force:
+            state = tensordict.get("state", None)
+            if state is not None and "contact_force" not in state.keys():
+                tensordict = tensordict.copy()
+                state = state.copy()
+                state.set("contact_force", torch.zeros(state.batch_size, dtype=self.float_dtype, device=self.device))
+                tensordict.set("state", state)
+        return super()._reset(tensordict, **kwargs)
+
     def init_qpos(self, n: int) -> torch.Tensor:
         """MuJoCo's ``qpos0`` (Gymnasium's ``init_qpos``) for ``n`` envs."""
         return self.tree.qpos0.expand(n, -1)

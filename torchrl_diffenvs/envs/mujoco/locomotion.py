@@ -47,7 +47,7 @@ class PlanarLocomotionEnv(HealthySurrogate, MuJoCoModelEnv):
             qvel = self.normal(n, self.model.nv) * noise
         else:
             qvel = (2 * self.uniform(0.0, 1.0, n, self.model.nv) - 1) * noise
-        return {"qpos": qpos, "qvel": qvel}
+        return {"qpos": qpos, "qvel": qvel, **self.contact_state(None, n)}
 
     def transition(self, state, action, params):
         result = self.simulate(state, action, params)
@@ -59,7 +59,7 @@ class PlanarLocomotionEnv(HealthySurrogate, MuJoCoModelEnv):
             reward = reward + self.healthy_bonus(healthy, result.qpos, result.qvel, params)
             reward = reward + self.posture_gradient(result.qpos, params)
             terminated = ~healthy & (params["terminate_when_unhealthy"] > 0)
-        return {"qpos": result.qpos, "qvel": result.qvel}, reward, terminated
+        return {"qpos": result.qpos, "qvel": result.qvel, **self.contact_state(result, reward.shape[0])}, reward, terminated
 
     def observation(self, state, params):
         qpos, qvel = state["qpos"], state["qvel"]
