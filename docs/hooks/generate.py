@@ -115,10 +115,12 @@ def _type_name(field: dataclasses.Field) -> str:
     return field.type if isinstance(field.type, str) else getattr(field.type, "__name__", str(field.type))
 
 
-def _settings_rows(cls, prefix: str) -> list[list[str]]:
+def _settings_rows(cls, prefix: str, instance=None) -> list[list[str]]:
+    """One row per field of the settings dataclass ``cls``; the defaults are ``instance``'s values
+    when given (a learner's network section: its own defaults, not the section class's)."""
     rows, comments = [], _field_comments(cls)
     for field in dataclasses.fields(cls):
-        default = _default(field)
+        default = getattr(instance, field.name) if instance is not None else _default(field)
         if dataclasses.is_dataclass(default):  # nested settings (e.g. the networks): their own rows
             rows += _settings_rows(type(default), f"{prefix}{field.name}.")
             continue
@@ -152,6 +154,8 @@ def render_config_reference() -> str:
         parts.append(f"### `loss={name}`: `{settings.__name__}`\n\n{summary}\n")
         parts.append("| key | default | type | accepts | what |\n|---|---|---|---|---|")
         parts += ["| " + " | ".join(row) + " |" for row in _settings_rows(settings, "loss.")]
+        for key, network in getattr(learner, "networks", {}).items():  # loss.actor.*, loss.critic.*
+            parts += ["| " + " | ".join(row) + " |" for row in _settings_rows(type(network), f"loss.{key}.", network)]
         parts.append("")
     return "\n".join(parts)
 
