@@ -1,4 +1,4 @@
-"""Train any torchrl_diffenvs env with BPTT, SHAC, PPO or SAC, or evaluate a saved policy.
+"""Train any torchrl_diffenvs env with BPTT, SHAC, AHAC, SAPO, PPO or SAC, or evaluate a saved policy.
 
     python sota_scripts/train.py env=swimmer loss=bptt
     python sota_scripts/train.py env=Pendulum-v1 loss=sac logger=csv train.total_env_steps=50000

@@ -353,7 +353,7 @@ def test_ahac_learner_refuses_an_env_without_contact_forces():
     env = make_env("pendulum", num_envs=4, seed=0)
     learner = AHACLearner(env, make_actor(env, hidden=(8,)), tiny_twin_critic(env), AHACConfig(critic_passes=1))
     before = [p.detach().clone() for p in learner.actor_params]
-    with pytest.raises(KeyError, match=r"no \('next', 'contact_force'\) entry; AHAC .* Hopper-v5"):
+    with pytest.raises(KeyError, match=r"no \('next', 'state', 'contact_force'\) entry; AHAC .* Hopper-v5"):
         learner.train_iteration()
     assert all(torch.equal(a, b) for a, b in zip(before, learner.actor_params))  # nothing was updated
 
@@ -498,10 +498,14 @@ def test_a_sapo_checkpoints_policy_loads_into_policy_from_config(tmp_path):
 
 
 def test_ahac_through_the_training_script_needs_an_env_with_contact_forces(tmp_path):
+    """A one-line configuration error that names the envs AHAC can train on, before any run."""
+    from torchrl_diffenvs.training import ConfigError
+
     cfg = _compose("env=pendulum", "loss=ahac", *TINY, "loss.max_critic_passes=2", "train.total_env_steps=64")
     script = _train_script()
-    script.validate_config(cfg)
-    with pytest.raises(KeyError, match="contact_force"):
+    with pytest.raises(ConfigError, match="loss=ahac: env 'pendulum' reports no contact force .* Hopper-v5"):
+        script.validate_config(cfg)
+    with pytest.raises(ConfigError, match="reports no contact force"):
         script.run(cfg, tmp_path)
 
 

@@ -59,7 +59,7 @@ CRITIC_SHUFFLES = ("in_order", "once_per_window", "every_pass")
 
 @dataclasses.dataclass(frozen=True)
 class AHACConfig(LearnerConfig):
-    """Settings of :class:`AHACLearner` (the keys of ``configs/loss/ahac.yaml``); defaults are the
+    """Settings of :class:`AHACLearner` (the keys of ``loss=ahac``); defaults are the
     reference's (``scripts/cfg/alg/ahac.yaml``)."""
 
     min_horizon: int = checked(8, checks.positive_int)  # the window length H stays in [min_horizon, max_horizon]
@@ -116,6 +116,8 @@ class TwinCriticLearner(Learner):
         optimizer_kwargs: its extra arguments (e.g. ``weight_decay``).
         critic_max_grad_norm: the critics' gradient-norm clip (``None``: no clipping).
     """
+
+    supports_multi_agent = False  # one actor, one value per env: the multi-agent keys are SHAC's and PPO's
 
     def __init__(self, env, actor, loss, config: LearnerConfig, total_env_steps: int, *, horizon: int,
                  normalizer: ObservationNormalizer | None = None, reset_input=None, world: World = SINGLE_PROCESS,
@@ -298,6 +300,14 @@ class AHACLearner(TwinCriticLearner):
                          normalizer=normalizer, reset_input=reset_input, world=world,
                          critic_max_grad_norm=config.critic_max_grad_norm)
         self.loss.set_keys(reward=self.keys.reward, value=self.keys.value)
+
+    @classmethod
+    def env_problems(cls, env) -> list[str]:
+        state = env.full_observation_spec.get("state", None) if hasattr(env, "full_observation_spec") else None
+        if state is not None and "contact_force" in state.keys():
+            return []
+        return [f"env {getattr(env, 'name', type(env).__name__)!r} reports no contact force (AHAC adapts its window to "
+                "it): train it with shac, or AHAC on HalfCheetah-v5, Hopper-v5, Walker2d-v5 or Ant-v5"]
 
     @staticmethod
     def _policy_and_normalizer(loss_cfg: Mapping, env):

@@ -189,6 +189,12 @@ class Learner(ABC):
 
     policy: TensorDictModuleBase
 
+    @classmethod
+    def env_problems(cls, env) -> list[str]:
+        """What this learner cannot train on ``env`` (one line each; the training script reports
+        them with the other configuration problems). AHAC: an env that reports no contact force."""
+        return []
+
     def __init__(self, env, config: LearnerConfig, total_env_steps: int, *, reset_input=None,
                  world: World = SINGLE_PROCESS):
         if not isinstance(config, self.config_class):

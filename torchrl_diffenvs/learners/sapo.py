@@ -52,7 +52,7 @@ __all__ = ["SAPOConfig", "SAPOLearner", "SquashedNormalActor", "make_sapo_actor"
 
 @dataclasses.dataclass(frozen=True)
 class SAPOConfig(LearnerConfig):
-    """Settings of :class:`SAPOLearner` (the keys of ``configs/loss/sapo.yaml``); defaults are the
+    """Settings of :class:`SAPOLearner` (the keys of ``loss=sapo``); defaults are the
     reference's (``DFlexAntSHAC2.yaml`` + ``DFlexAntSAPO.yaml``)."""
 
     horizon: int = checked(32, checks.positive_int)  # window length H: an iteration is N x H env steps

@@ -280,6 +280,8 @@ def validate_config(cfg: DictConfig) -> None:
             multi_agent = is_multi_agent(env)
             critic_input = OmegaConf.select(cfg, "loss.critic_input", default="observation")
             learner = LEARNERS.get(loss_name)
+            if learner is not None:
+                problems.extend(f"loss={loss_name}: {problem}" for problem in learner.env_problems(env))
             if multi_agent and learner is not None and not learner.supports_multi_agent:
                 valid = [choice for name, other in LEARNERS.items() if other.supports_multi_agent
                          for choice in (other.multi_agent_choices or (name,))]
