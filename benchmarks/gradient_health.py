@@ -11,8 +11,14 @@ gradient norm (median and max), the largest contact normal force seen in the win
 fidelity gaps of ``benchmarks/contact_fidelity.py`` (float64, against gymnasium's MuJoCo env)
 and the CPU time of one env step relative to the task's default option.
 
+With ``mode=learners`` it measures instead each gradient learner's shipped settings (the
+``env=<task> loss=<learner>`` configuration of the training script, tuned files included): its
+pre-clip actor gradient norm at every iteration of its first ``env_steps`` env steps (median and
+max over iterations and seeds) and its skipped updates.
+
     OMP_NUM_THREADS=1 python benchmarks/gradient_health.py
     OMP_NUM_THREADS=1 python benchmarks/gradient_health.py tasks=[Ant-v5] seeds=5 fidelity=false
+    OMP_NUM_THREADS=1 python benchmarks/gradient_health.py mode=learners learners=[shac,ahac] env_steps=20000
 """
 from __future__ import annotations
 
@@ -49,6 +55,9 @@ class GradientHealthSettings(BenchmarkSettings):
     warmup: int = 100
     gamma: float = 0.99
     fidelity: bool = True
+    mode: str = checked("options", one_of(("options", "learners")))
+    learners: tuple = checked(("bptt", "shac", "ahac", "sapo"), each(one_of(("bptt", "shac", "ahac", "sapo"))))
+    env_steps: int = 20_000  # mode=learners: the budget measured (the first env steps of a run)
 
 
 def actor_for(env, seed: int) -> nn.Module:
@@ -96,10 +105,57 @@ def option_label(integrator: str, substeps: int, env_name: str) -> str:
     return name + (f" x{substeps}" if substeps > 1 else "")
 
 
+def learner_gradients(task: str, loss: str, seed: int, env_steps: int) -> dict:
+    """The pre-clip actor gradient norms and skipped updates of ``loss``'s shipped settings on
+    ``task`` (the training script's configuration) over its first ``env_steps`` env steps."""
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_diffenvs.learners import make_learner
+    from torchrl_diffenvs.training.config import make_env_from_config
+
+    configs = Path(__file__).resolve().parent.parent / "configs"
+    with initialize_config_dir(config_dir=str(configs), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"env={task}", f"loss={loss}", f"seed={seed}"])
+    torch.manual_seed(seed)
+    env = make_env_from_config(cfg, cfg.env.num_envs, seed=seed)
+    learner = make_learner(cfg.loss, env, cfg.train.total_env_steps)
+    norms, steps, metrics = [], 0, {}
+    while steps < env_steps:
+        metrics = learner.train_iteration()
+        norms.append(metrics["grad_norm_actor"])
+        steps += learner.env_steps_per_iteration
+    return {"norms": norms, "skipped": metrics.get("skipped_actor", 0), "steps": steps}
+
+
+def learners_table(settings) -> list[list[str]]:
+    rows = []
+    for task in settings.tasks:
+        for loss in settings.learners:
+            runs = [learner_gradients(task, loss, seed, settings.env_steps) for seed in range(settings.seeds)]
+            norms = [n for r in runs for n in r["norms"]]
+            finite = [n for n in norms if n == n and n != float("inf")]
+            row = [task, loss, f"{runs[0]['steps']:,}", f"{statistics.median(finite):.3g}" if finite else "nan",
+                   f"{max(finite):.3g}" if finite else "nan", str(sum(int(r["skipped"]) for r in runs)),
+                   str(len(norms) - len(finite))]
+            rows.append(row)
+            print(" | ".join(row), flush=True)
+            headers = ["task", "learner", "env steps per seed", "pre-clip actor grad norm (median)", "max",
+                       "skipped updates (all seeds)", "non-finite norms"]
+            C.write_data(settings, "gradient_health_learners", {"learners": C.data_table(
+                f"Shipped settings: the actor's pre-clip gradient norm over the first {settings.env_steps:,} env steps "
+                f"({settings.seeds} seeds, every iteration)", headers, rows)})
+    return rows
+
+
 def main(argv=None):
     settings = parse_cli(GradientHealthSettings, argv, __doc__)
     torch.set_num_threads(settings.threads)
     warnings.filterwarnings("ignore")
+    if settings.mode == "learners":
+        if settings.quick:
+            settings = GradientHealthSettings(**{**settings.__dict__, "seeds": 1, "env_steps": 1, "learners": ("shac",),
+                                                 "tasks": settings.tasks[:1]})
+        return learners_table(settings)
     if settings.quick:
         settings = GradientHealthSettings(**{**settings.__dict__, "seeds": 1, "num_envs": 4, "horizon": 4,
                                              "warmup": 5, "fidelity": False, "tasks": settings.tasks[:1]})
