@@ -3,7 +3,7 @@
 One fixed start state; the parameters are a table of action logits ``[T, action_dim]``
 (``actions = tanh(logits)``, initialised ``U[-2, 2]``); the loss is minus the episode's rewards,
 differentiated through the whole episode. In TorchRL terms that is just an actor that reads the
-step counter (:class:`~torchrl_diffenvs.modules.OpenLoopActor`) trained with
+step counter (:class:`~torchrl_diffenvs.open_loop.OpenLoopActor`) trained with
 :class:`~torchrl_diffenvs.objectives.BPTTLoss`: no special machinery.
 
 Usage::
@@ -26,7 +26,7 @@ from demo_utils import plot_curve, start_demo
 from torchrl_diffenvs import checks, list_envs, make_env
 from torchrl_diffenvs.checks import Settings, checked
 from torchrl_diffenvs.learners import BPTTConfig, BPTTLearner
-from torchrl_diffenvs.modules import OpenLoopActor
+from torchrl_diffenvs.open_loop import OpenLoopActor
 
 @dataclass(frozen=True)
 class TrajectorySettings(Settings):

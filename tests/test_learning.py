@@ -17,7 +17,8 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl_diffenvs import make_env
 from torchrl_diffenvs.evaluation import evaluate
 from torchrl_diffenvs.learners import BPTTConfig, BPTTLearner, SHACConfig, SHACLearner
-from torchrl_diffenvs.modules import ObservationNormalizer, OpenLoopActor, make_actor, make_critic
+from torchrl_diffenvs.modules import ObservationNormalizer, make_actor, make_critic
+from torchrl_diffenvs.open_loop import OpenLoopActor
 
 
 class UniformRandomPolicy(TensorDictModuleBase):

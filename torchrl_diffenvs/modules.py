@@ -7,11 +7,10 @@
 * :func:`make_critic`: a state-value network writing ``"state_value"``.
 * :func:`make_qvalue`: ``Q(observation, action)`` writing ``"state_action_value"`` (SAC).
 * :func:`actor_from_config`, :func:`critic_from_config`, :func:`qvalue_from_config`: the same
-  builders driven by a ``loss`` configuration section (``configs/loss/*.yaml``).
-* :class:`OpenLoopActor`: a learnable table of actions indexed by ``"episode_step"`` (trajectory
-  optimisation with the ordinary BPTT loss).
-* :class:`ObservationNormalizer`: running mean / std of observations, updated explicitly outside
-  the autograd graph and applied with frozen statistics inside it.
+  builders driven by a ``loss`` configuration section (the learners' network settings).
+* :class:`~torchrl_diffenvs.normalization.ObservationNormalizer` (re-exported here): running mean /
+  std of observations, updated explicitly outside the autograd graph and applied with frozen
+  statistics inside it.
 
 All builders take sizes and dtypes from the env's (transformed) specs (:func:`env_dims`): a float64
 env gives float64 networks (gradient checks), a ``TransformedEnv`` networks sized for what its
@@ -31,11 +30,11 @@ from torchrl.modules import MLP, MultiAgentMLP, ProbabilisticActor, TanhNormal, 
 
 from ._compat import SafeTanhTransform, current_interaction_type, sampler_has_own_generator, standard_normal
 from .envs.multi_agent import policy_keys
+from .normalization import ObservationNormalizer
 
 __all__ = [
     "LeanModule",
     "ObservationNormalizer",
-    "OpenLoopActor",
     "TanhNormalActor",
     "actor_from_config",
     "env_dims",
@@ -55,84 +54,6 @@ __all__ = [
 DISTRIBUTIONS = ("tanh_normal", "deterministic")
 ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "elu": nn.ELU, "relu": nn.ReLU, "silu": nn.SiLU}
 NETWORK_INITS = ("default", "orthogonal")
-
-
-class ObservationNormalizer(nn.Module):
-    """``(x - mean) / max(sqrt(var + eps), min_std)`` with running statistics that change only in
-    :meth:`update`.
-
-    Design: the normaliser is an ``nn.Module`` placed as the first layer of the actor and critic
-    networks (``make_actor(env, normalizer=norm)``, ``make_critic(env, normalizer=norm)``; pass the
-    *same* instance to both). Its statistics are buffers, so they are saved in the actor's and the
-    critic's ``state_dict`` and an exported actor carries its normalisation with it.
-
-    Calling the module never changes the statistics: they are frozen for the duration of a
-    rollout window, so every step of the window and the backward pass see the same affine map
-    (gradients flow through it to the observation). The training loop calls :meth:`update` with
-    the window's raw observations *after* the backward pass; :meth:`update` works in place under
-    ``no_grad`` and ignores rows that contain NaN/inf.
-
-    Statistics are merged with Chan et al.'s parallel algorithm; before the first update the map
-    is the identity (mean 0, var 1).
-
-    Args:
-        dim: observation size (last dimension).
-        eps: added to the variance before the square root.
-        min_std: the smallest divisor: a feature that barely varies (a contact force while the
-            robot is in the air) is amplified at most ``1 / min_std`` times, so its derivatives
-            do not swamp the others' (TorchRL's ``VecNorm`` floors its std at 1e-2 alike).
-        clip: if given, normalised values are clamped to ``[-clip, clip]`` (which zeroes their
-            gradient outside that range); ``None`` (default) does not clamp.
-        dtype: dtype of the statistics and of the output.
-    """
-
-    def __init__(self, dim: int, eps: float = 1e-5, clip: float | None = None, dtype: torch.dtype = torch.float32,
-                 min_std: float = 1e-2):
-        super().__init__()
-        if not isinstance(dim, int) or dim < 1:
-            raise ValueError(f"ObservationNormalizer: dim must be a positive integer, got {dim!r}")
-        if not (isinstance(min_std, (int, float)) and 0.0 <= min_std < float("inf")):
-            raise ValueError(f"ObservationNormalizer: min_std must be a finite number >= 0, got {min_std!r}")
-        self.eps = eps
-        self.min_std = float(min_std)
-        self.clip = clip
-        self.register_buffer("mean", torch.zeros(dim, dtype=dtype))
-        self.register_buffer("var", torch.ones(dim, dtype=dtype))
-        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out = (x - self.mean) / torch.sqrt(self.var + self.eps).clamp(min=self.min_std)
-        if self.clip is not None:
-            out = out.clamp(-self.clip, self.clip)
-        return out
-
-    @torch.no_grad()
-    def update(self, x: torch.Tensor) -> None:
-        """Merges the observations ``x`` (``[..., dim]``) into the running statistics."""
-        if x.shape[-1] != self.mean.shape[0]:
-            raise ValueError(
-                f"ObservationNormalizer.update: expected observations of size {self.mean.shape[0]} in the last "
-                f"dimension, got shape {tuple(x.shape)}"
-            )
-        x = x.detach().reshape(-1, x.shape[-1])
-        x = x[torch.isfinite(x).all(-1)].to(torch.float64)
-        n = x.shape[0]
-        if n == 0:
-            return
-        batch_mean, batch_var = x.mean(0), x.var(0, unbiased=False)
-        mean, var, count = self.mean.to(torch.float64), self.var.to(torch.float64), self.count
-        total = count + n
-        delta = batch_mean - mean
-        new_mean = mean + delta * n / total
-        new_var = (var * count + batch_var * n + delta**2 * count * n / total) / total
-        # in place, so that every holder of these buffers (e.g. a loss module's parameter
-        # TensorDict) sees the new values
-        self.mean.copy_(new_mean)
-        self.var.copy_(new_var)
-        self.count.copy_(total)
-
-    def extra_repr(self) -> str:
-        return f"dim={self.mean.shape[0]}, eps={self.eps}, clip={self.clip}, count={int(self.count)}"
 
 
 class LeanModule(TensorDictModuleBase):
@@ -612,68 +533,3 @@ def critic_from_config(section: Mapping, env, normalizer: ObservationNormalizer 
 def qvalue_from_config(section: Mapping, env, critic_input: str = "observation") -> ValueOperator:
     """:func:`make_qvalue` from a ``loss.qvalue`` section."""
     return make_qvalue(env, **network_kwargs(section), critic_input=critic_input).to(env.device)
-
-
-class OpenLoopActor(TensorDictModuleBase):
-    """Open-loop control: ``action = squash(logits[episode_step])`` with a learnable table.
-
-    Trajectory optimisation is then ordinary BPTT: roll this actor through the env from one fixed
-    start state and minimise :class:`~torchrl_diffenvs.objectives.BPTTLoss` (Ivy Gym's
-    ``optimize_trajectory``). Every env of the batch uses the same table, indexed by its own
-    ``"episode_step"``.
-
-    Args:
-        horizon: number of time steps ``T`` (rows of the table).
-        action_dim: action size ``A``.
-        init_range: the logits start ``U[low, high]`` (Ivy: ``U[-2, 2]``).
-        low, high: action bounds; ``action = low + (tanh(logit) + 1) / 2 * (high - low)``.
-        dtype: parameter dtype.
-        generator: torch generator for the initial logits (seeding).
-    """
-
-    def __init__(
-        self,
-        horizon: int,
-        action_dim: int,
-        init_range: tuple[float, float] = (-2.0, 2.0),
-        low: float = -1.0,
-        high: float = 1.0,
-        dtype: torch.dtype = torch.float32,
-        generator: torch.Generator | None = None,
-    ):
-        super().__init__()
-        if not isinstance(horizon, int) or horizon < 1:
-            raise ValueError(f"OpenLoopActor: horizon must be a positive integer, got {horizon!r}")
-        self.in_keys = ["episode_step"]
-        self.out_keys = ["action"]
-        a, b = init_range
-        self.logits = nn.Parameter(torch.rand(horizon, action_dim, generator=generator, dtype=dtype) * (b - a) + a)
-        self.squash = _ScaledTanh(low, high)
-
-    @classmethod
-    def from_env(cls, env, horizon: int | None = None, **kwargs) -> OpenLoopActor:
-        """Sized for ``env``: ``horizon`` defaults to ``env.max_episode_steps``."""
-        horizon = horizon if horizon is not None else env.max_episode_steps
-        if horizon is None:
-            raise ValueError("OpenLoopActor.from_env: the env never truncates; pass horizon=")
-        low, high = _action_bounds(env)
-        action = env.full_action_spec[env.action_key]  # the (transformed) spec the actions must fit
-        return cls(horizon, int(action.shape[-1]), low=low, high=high, dtype=action.dtype, **kwargs)
-
-    @property
-    def horizon(self) -> int:
-        return self.logits.shape[0]
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        step = tensordict.get("episode_step")
-        if (step >= self.horizon).any() or (step < 0).any():
-            raise IndexError(
-                f"OpenLoopActor: episode_step must lie in [0, {self.horizon}), got values up to {int(step.max())}; "
-                f"use an env with max_episode_steps <= {self.horizon}"
-            )
-        tensordict.set("action", self.squash(self.logits[step]))
-        return tensordict
-
-    def actions(self) -> torch.Tensor:
-        """The whole open-loop action sequence ``[T, A]``."""
-        return self.squash(self.logits)
