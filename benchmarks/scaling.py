@@ -3,7 +3,7 @@
 Each configuration is ``torchrun --standalone --nproc_per_node=K sota_scripts/train.py ...`` with
 one torch thread per rank. ``scaling=strong`` (default) keeps the *global* batch: ``env.num_envs``
 and PPO's ``loss.minibatch_size`` (SAC's ``loss.batch_size``) are divided by ``K``, so that ``K``
-ranks run the algorithm of the 1-rank run (tests/test_distributed.py checks that equivalence) and
+ranks run the algorithm of the 1-rank run (tests/training/test_distributed.py checks that equivalence) and
 only the wall time may change. ``scaling=weak`` keeps the per-rank batch (``num_envs`` envs on
 every rank): ``K`` times the env steps per iteration, a larger batch for the learner.
 

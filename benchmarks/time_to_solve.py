@@ -49,7 +49,7 @@ SCRIPT = ROOT / "sota_scripts" / "train.py"
 CONFIGS = ROOT / "configs"
 LOSSES = ("shac", "bptt", "ppo", "sac")
 
-# quick=true: tiny networks and batches, a few iterations per learner (mirrors tests/test_train.py)
+# quick=true: tiny networks and batches, a few iterations per learner (mirrors tests/training/test_train.py)
 QUICK = {
     "common": ["env.num_envs=4", "env.max_episode_steps=12", "eval.num_envs=2", "eval.interval=16"],
     "bptt": ["loss.horizon=4", "loss.actor.hidden=[16]", "train.total_env_steps=32"],

@@ -1,4 +1,4 @@
-"""What runs inside the processes that tests/test_distributed.py starts (gloo, one thread each).
+"""What runs inside the processes that tests/training/test_distributed.py starts (gloo, one thread each).
 
 Each worker joins a process group through a file store, does its part and writes what the test
 compares to ``<out>/rank<r>.pt``.

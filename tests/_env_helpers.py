@@ -1,9 +1,14 @@
-"""Small helpers shared by the env test files (test_env_gradients/behaviour/composition).
+"""Small helpers shared by the test files: env lists and builders, the repository root and a
+loader for the scripts under ``sota_scripts/`` and ``benchmarks/``.
 
-Not a test module (the leading underscore keeps pytest from collecting it); pytest puts
-``tests/`` on ``sys.path``, so the test files import it as ``_env_helpers``.
+Not a test module (the leading underscore keeps pytest from collecting it); ``tests/`` is on
+``sys.path`` (see ``tests/conftest.py``), so the test files import it as ``_env_helpers``.
 """
 from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
 
 import torch
 from tensordict import TensorDict
@@ -12,10 +17,20 @@ from torchrl.envs.utils import step_mdp
 from torchrl_diffenvs import list_envs, make_env
 
 F64 = torch.float64
+REPO = Path(__file__).resolve().parent.parent
+
+
+def load_script(name: str, path: Path):
+    """A script file (``sota_scripts/*.py``, ``benchmarks/*.py``) imported as the module ``name``."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up while the file runs
+    spec.loader.exec_module(module)
+    return module
 
 
 def multi_agent_envs() -> list[str]:
-    """The registered tasks with TorchRL's ``("agents", ...)`` layout (tests/test_multi_agent.py)."""
+    """The registered tasks with TorchRL's ``("agents", ...)`` layout (tests/envs/test_multi_agent.py)."""
     from torchrl_diffenvs.envs import MultiAgentDiffEnv, env_class
 
     return [name for name in list_envs() if issubclass(env_class(name), MultiAgentDiffEnv)]

@@ -1,4 +1,4 @@
-"""What runs inside the processes of tests/test_nonfinite_envs.py's data-parallel test (gloo)."""
+"""What runs inside the processes of tests/learners/test_nonfinite_envs.py's data-parallel test (gloo)."""
 from __future__ import annotations
 
 import warnings

@@ -1,7 +1,7 @@
 """Every use of TorchRL's, tensordict's and torch's private names, in one fenced module.
 
 The rest of the package touches public APIs only; what it needs beyond them is here, each with
-why. Checked against the versions in :data:`CHECKED_VERSIONS`; ``tests/test_compat.py``
+why. Checked against the versions in :data:`CHECKED_VERSIONS`; ``tests/project/test_compat.py``
 exercises every assumption below and fails loudly on a version where one breaks (run it first
 after upgrading TorchRL or tensordict).
 """

@@ -10,7 +10,7 @@ union of the ranks' minibatches, the adaptive learning rate on the mean KL.
 
 With equal per-rank batches this is the single-process algorithm on the concatenated batch:
 ``K`` ranks with ``N`` envs each take the steps of one process with ``K x N`` envs (up to
-floating-point summation order), which ``tests/test_distributed.py`` checks in float64.
+floating-point summation order), which ``tests/training/test_distributed.py`` checks in float64.
 
 The learners hold a :class:`World`; the default :data:`SINGLE_PROCESS` makes every method a
 no-op, so single-process code pays nothing. ``torchrun`` sets ``WORLD_SIZE``, ``RANK`` and

@@ -225,7 +225,7 @@ class TanhNormalActor(ProbabilisticActor):
     same thing directly: ``loc + eps * scale`` with
     ``eps`` drawn exactly as ``Normal.rsample`` draws it, then TorchRL's ``SafeTanhTransform``
     and the affine map into the bounds. Same values, same gradients, same random stream
-    (``tests/test_modules.py`` checks them bit for bit against ``ProbabilisticActor.forward``).
+    (``tests/learners/test_modules.py`` checks them bit for bit against ``ProbabilisticActor.forward``).
     Every other call, and :meth:`get_dist` (used by TorchRL's PPO and SAC losses), goes
     through ``ProbabilisticActor`` unchanged.
     """

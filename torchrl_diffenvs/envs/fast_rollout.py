@@ -445,7 +445,7 @@ class _RandomActions:
     it to the bounds and sets values that rounding pushed past a bound to that bound. Here the
     same arithmetic runs on a block of steps at once: on CPU, ``uniform_`` fills a tensor from
     the generator element after element, so one draw of ``K`` steps gives the values of ``K``
-    one-step draws, bitwise (tests/test_fast_rollout.py checks it against EnvBase.rollout).
+    one-step draws, bitwise (tests/rollout/test_fast_rollout.py checks it against EnvBase.rollout).
     :meth:`close` rewinds the generator to the end of the last action actually used, so the
     global random stream continues exactly where TorchRL's rollout would leave it. (This relies
     on the physics being pure: a task draws its random start states from ``env.rng``, never from

@@ -2,7 +2,7 @@
 
 ``make_env("CartPole-v1")``, ``make_env("Pendulum-v1")`` and ``make_env("MountainCarContinuous-v0")``
 reproduce Gymnasium's dynamics, clipping, observations, rewards, termination, truncation and reset
-ranges, in Gymnasium's order of operations (tests/test_gymnasium_parity.py drives gymnasium's own envs
+ranges, in Gymnasium's order of operations (tests/envs/test_gymnasium_parity.py drives gymnasium's own envs
 and these from the same states with the same actions). The one deliberate deviation: CartPole takes a
 continuous action ``a`` (force ``10 a``) instead of ``Discrete(2)``; ``a = +1`` / ``a = -1`` are
 Gymnasium's actions ``1`` / ``0``.

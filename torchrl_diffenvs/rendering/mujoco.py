@@ -6,7 +6,7 @@ for Reacher. Each geom is convex (sphere, capsule, cylinder, ellipsoid, box), so
 the convex hull of its projected surface points; planes are drawn as the ground (side view) or
 as the arena floor (top view). Body poses come from the same kinematics the physics uses
 (:func:`~torchrl_diffenvs.articulated.dynamics.forward_kinematics`, float64 on the CPU), so the
-drawing is exactly where MuJoCo puts the geoms (``tests/test_rendering_mujoco.py`` checks this
+drawing is exactly where MuJoCo puts the geoms (``tests/rendering/test_rendering_mujoco.py`` checks this
 against ``mujoco.MjData.geom_xpos``).
 """
 from __future__ import annotations

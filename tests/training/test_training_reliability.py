@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from test_train import COMMON, STEPS_PER_ITER, TINY, _cli, make_cfg, read_jsonl, tiny_cfg, train_script
+from _train_helpers import COMMON, STEPS_PER_ITER, TINY, _cli, make_cfg, read_jsonl, tiny_cfg, train_script
 from torchrl_diffenvs.learners import BPTTLearner
 from torchrl_diffenvs.learners.base import load_lr_scheduler, lr_scheduler
 from torchrl_diffenvs.training import (

@@ -4,10 +4,8 @@ TorchRL's ``TanhNormal``; the learners on small envs and through ``sota_scripts/
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import pytest
@@ -27,7 +25,7 @@ from torchrl_diffenvs.learners.sapo import make_sapo_actor
 from torchrl_diffenvs.modules import LeanModule, make_actor, make_critic
 from torchrl_diffenvs.objectives import AHACLoss, AdaptiveHorizon, SAPOLoss, TwinCritic
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
 
 
@@ -450,14 +448,6 @@ def test_learners_run_on_hopper_with_finite_gradients(name):
 
 
 # ---------------------------------------------------------------------- through the training script
-def _train_script():
-    spec = importlib.util.spec_from_file_location("train_script_ahac_sapo", ROOT / "sota_scripts" / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 TINY = ["logger=none", "train.progress_bar=false", "eval.gif=false", "env.num_envs=4", "env.max_episode_steps=12",
         "eval.num_envs=2", "eval.interval=1000000", "loss.actor.hidden=[16]", "loss.critic.hidden=[16]"]
 
@@ -469,17 +459,17 @@ def _compose(*overrides):
         return compose(config_name="config", overrides=list(overrides))
 
 
-def test_sapo_trains_through_the_training_script(tmp_path):
+def test_sapo_trains_through_the_training_script(tmp_path, train_script):
     cfg = _compose("env=pendulum", "loss=sapo", *TINY, "loss.horizon=4", "loss.critic_passes=2",
                    "train.total_env_steps=32", "train.checkpoint_interval=32")
-    script = _train_script()
+    script = train_script
     script.validate_config(cfg)
     result = script.run(cfg, tmp_path)
     assert result["env_steps"] == 32 and result["iterations"] == 2 and math.isfinite(result["eval/return"])
     assert (tmp_path / "checkpoints" / "last.pt").is_file()
 
 
-def test_a_sapo_checkpoints_policy_loads_into_policy_from_config(tmp_path):
+def test_a_sapo_checkpoints_policy_loads_into_policy_from_config(tmp_path, train_script):
     """What evaluation must build for loss=sapo: the checkpoint's policy state loads exactly into
     SAPOLearner.policy_from_config (SHAC's actor_from_config has another head)."""
     from torchrl_diffenvs.modules import actor_from_config
@@ -487,7 +477,7 @@ def test_a_sapo_checkpoints_policy_loads_into_policy_from_config(tmp_path):
 
     cfg = _compose("env=pendulum", "loss=sapo", *TINY, "loss.horizon=4", "loss.critic_passes=1",
                    "train.total_env_steps=16", "train.checkpoint_interval=16")
-    script = _train_script()
+    script = train_script
     script.run(cfg, tmp_path)
     ckpt = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
     env = make_env("pendulum", num_envs=2, seed=0)
@@ -497,23 +487,23 @@ def test_a_sapo_checkpoints_policy_loads_into_policy_from_config(tmp_path):
         actor_from_config(OmegaConf.create(ckpt["config"]).loss, env)[0].load_state_dict(ckpt["policy"])
 
 
-def test_ahac_through_the_training_script_needs_an_env_with_contact_forces(tmp_path):
+def test_ahac_through_the_training_script_needs_an_env_with_contact_forces(tmp_path, train_script):
     """A one-line configuration error that names the envs AHAC can train on, before any run."""
     from torchrl_diffenvs.training import ConfigError
 
     cfg = _compose("env=pendulum", "loss=ahac", *TINY, "loss.max_critic_passes=2", "train.total_env_steps=64")
-    script = _train_script()
+    script = train_script
     with pytest.raises(ConfigError, match="loss=ahac: env 'pendulum' reports no contact force .* Hopper-v5"):
         script.validate_config(cfg)
     with pytest.raises(ConfigError, match="reports no contact force"):
         script.run(cfg, tmp_path)
 
 
-def test_ahac_trains_through_the_training_script_on_a_contact_task(tmp_path):
+def test_ahac_trains_through_the_training_script_on_a_contact_task(tmp_path, train_script):
     """Hopper-v5 reports its contact force in its state: AHAC reads it, logs it and trains."""
     cfg = _compose("env=Hopper-v5", "loss=ahac", *TINY, "loss.max_critic_passes=2", "train.total_env_steps=64",
                    "train.checkpoint_interval=64", "logger=csv")
-    result = _train_script().run(cfg, tmp_path)
+    result = train_script.run(cfg, tmp_path)
     assert result["env_steps"] >= 64 and math.isfinite(result["eval/return"])
     rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     forces = [row["train/contact_force_max"] for row in rows if "train/contact_force_max" in row]

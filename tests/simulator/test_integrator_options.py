@@ -104,7 +104,7 @@ def test_other_integrator_matches_mujoco_run_with_it_in_the_air(name, integrator
     ("Walker2d-v5", {"integrator": "rk4"}),
     ("HalfCheetah-v5", {"integrator": "rk4"}),
     ("Ant-v5", {"integrator": "rk4"}),
-])  # the default (Euler) of every contact task: tests/test_mujoco_gradients.py
+])  # the default (Euler) of every contact task: tests/simulator/test_mujoco_gradients.py
 def test_gradcheck_one_step_through_contact(name, options):
     """One env step, 5 mm into the floor: gradients w.r.t. the action, the state and the masses."""
     n = 1

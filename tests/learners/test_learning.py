@@ -103,7 +103,7 @@ def test_demo_scripts_write_a_learning_curve_and_a_gif(tmp_path, monkeypatch, sc
     import sys
     from pathlib import Path
 
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "sota_scripts"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "sota_scripts"))
     module = importlib.import_module(script)
     summary = module.main(["iterations=2", f"out_dir={tmp_path}", "progress=false", *extra])
     gif = "trajectory.gif" if script == "optimize_trajectory" else "policy.gif"
@@ -132,7 +132,7 @@ def test_system_identification_recovers_edited_masses_and_damping(tmp_path, monk
     import importlib
     from pathlib import Path
 
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "sota_scripts"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "sota_scripts"))
     module = importlib.import_module("system_identification")
     summary = module.main(["trajectories=3", "steps=8", "iterations=8", "true_mass=7,5,2", "true_damping=0.4,0.2,0.3",
                            f"out_dir={tmp_path}", "progress=false"])

@@ -3,24 +3,19 @@
 The benchmarks measure (benchmarks/, docs/performance.md); this only checks that
 they run end to end and report what they claim, in seconds, in-process.
 """
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from _env_helpers import load_script
 
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
 
 def load(name: str):
-    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the file runs
-    spec.loader.exec_module(module)
-    return module
+    return load_script(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
 
 
 @pytest.fixture(autouse=True)

@@ -349,7 +349,7 @@ def test_shac_loss_and_targets_are_each_agents_own():
 
 @pytest.mark.parametrize("loss", ["bptt", "shac", "mappo", "ippo"])
 def test_train_script_trains_and_resumes_exactly_on_multi_swimmer(loss, tmp_path):
-    from test_train import STEPS_PER_ITER, read_jsonl, tiny_cfg, train_script
+    from _train_helpers import STEPS_PER_ITER, read_jsonl, tiny_cfg, train_script
 
     from torchrl_diffenvs.training import load_checkpoint
 
@@ -372,7 +372,7 @@ def test_mappo_uses_a_centralised_critic_and_ippo_a_decentralised_one():
     from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
     from torchrl.objectives.value import MultiAgentGAE
 
-    from test_train import make_cfg
+    from _train_helpers import make_cfg
     from torchrl_diffenvs.learners import make_learner
 
     env = make(num_envs=4, num_agents=3, dtype=torch.float32)
@@ -401,7 +401,7 @@ def test_mappo_uses_a_centralised_critic_and_ippo_a_decentralised_one():
     (["env=multi_swimmer", "loss=shac", "compile=true"], "compile=true: env 'multi_swimmer' is multi-agent"),
 ])
 def test_train_script_rejects_what_a_multi_agent_env_cannot_do(overrides, message):
-    from test_train import make_cfg, train_script
+    from _train_helpers import make_cfg, train_script
 
     from torchrl_diffenvs.training import ConfigError
 

@@ -7,10 +7,8 @@ with tiny overrides); a few tests go through the command line in a subprocess.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -18,7 +16,6 @@ import pytest
 import torch
 import yaml
 from omegaconf import OmegaConf
-from hydra import compose, initialize_config_dir
 from hydra.errors import MissingConfigException
 
 from _env_helpers import classic_envs, multi_agent_envs
@@ -33,60 +30,10 @@ from torchrl_diffenvs.training import (
 )
 from torchrl_diffenvs.training.config import LOSSES, merge_overrides
 
-ROOT = Path(__file__).resolve().parent.parent
-CONFIGS = ROOT / "configs"
-SCRIPT = ROOT / "sota_scripts" / "train.py"
-
-
-def _load_script(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up while the file runs
-    spec.loader.exec_module(module)
-    return module
-
-
-train_script = _load_script("train_script", SCRIPT)
-results_table = _load_script("results_table", ROOT / "sota_scripts" / "results_table.py")
-
-# Tiny runs: 4 envs, 12-step episodes (so episodes finish inside the run), small networks.
-COMMON = [
-    "logger=none", "train.progress_bar=false", "eval.gif=false", "env.num_envs=4", "env.max_episode_steps=12",
-    "eval.num_envs=2", "eval.interval=1000000",
-]
-TINY = {
-    "bptt": ["loss.horizon=4", "loss.actor.hidden=[16]"],
-    "shac": ["loss.horizon=4", "loss.actor.hidden=[16]", "loss.critic.hidden=[16]", "loss.critic_passes=2",
-             "loss.critic_minibatches=2"],
-    "ppo": ["loss.rollout_len=4", "loss.epochs=2", "loss.minibatch_size=8", "loss.actor.hidden=[16]",
-            "loss.critic.hidden=[16]"],
-    "sac": ["loss.rollout_len=2", "loss.init_random_frames=8", "loss.batch_size=8", "loss.buffer_size=256",
-            "loss.utd_ratio=0.25", "loss.actor.hidden=[16]", "loss.qvalue.hidden=[16]"],
-}
-TINY.update(mappo=TINY["ppo"], ippo=TINY["ppo"])
-TINY["sapo"] = ["loss.horizon=4", "loss.actor.hidden=[16]", "loss.critic.hidden=[16]", "loss.critic_passes=2",
-                "loss.critic_minibatches=2"]
-# AHAC's window held at 4 steps (the horizon's own rule is tested in test_ahac_sapo.py)
-TINY["ahac"] = ["loss.min_horizon=4", "loss.max_horizon=5", "loss.horizon_lr=1e-9", "loss.actor.hidden=[16]",
-                "loss.critic.hidden=[16]", "loss.critic_passes=2", "loss.critic_minibatches=2"]
-STEPS_PER_ITER = {"bptt": 16, "shac": 16, "ppo": 16, "sac": 8, "mappo": 16, "ippo": 16, "sapo": 16,
-                  "ahac": 16}  # num_envs x horizon / rollout_len
-CONTACT_ENVS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5")  # they report contact forces (AHAC's signal)
-
-
-def make_cfg(*overrides: str):
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides))
-
-
-def tiny_cfg(env: str, loss: str, iterations: int = 2, *extra: str):
-    steps = iterations * STEPS_PER_ITER[loss]
-    return make_cfg(f"env={env}", f"loss={loss}", *COMMON, *TINY[loss], f"train.total_env_steps={steps}",
-                    f"train.checkpoint_interval={steps}", *extra)
-
-
-def read_jsonl(path: Path) -> list[dict]:
-    return [json.loads(line) for line in path.read_text().splitlines()]
+from _train_helpers import (  # noqa: F401  (shared with the other areas' training tests)
+    COMMON, CONFIGS, CONTACT_ENVS, ROOT, SCRIPT, STEPS_PER_ITER, TINY, _cli, make_cfg, read_jsonl, results_table,
+    tiny_cfg, train_script,
+)
 
 
 # ---------------------------------------------------------------------- configuration
@@ -525,19 +472,6 @@ def test_corrupt_truncated_or_foreign_checkpoints_give_clear_errors(tmp_path):
 
 
 # ---------------------------------------------------------------------- command line, sweeps
-def _cli(*args: str, cwd: Path, monkeypatch):
-    """Runs ``python sota_scripts/train.py *args`` in this process (Hydra's own argument parsing
-    and launcher; a subprocess would spend most of its time importing torch)."""
-    from hydra.core.global_hydra import GlobalHydra
-
-    monkeypatch.chdir(cwd)
-    monkeypatch.setattr(sys, "argv", [str(SCRIPT), *args])
-    try:
-        return train_script.main()
-    finally:
-        GlobalHydra.instance().clear()
-
-
 def test_command_line_config_error_is_a_message_not_a_traceback(tmp_path, monkeypatch):
     with pytest.raises(SystemExit) as exit_info:
         _cli("loss=shac", "loss.horizon=0", "loss.actor_lr=-1", cwd=tmp_path, monkeypatch=monkeypatch)

@@ -17,7 +17,7 @@ Two ways of driving them:
   amplifies any last-bit difference between numpy's and torch's sin/cos (here they agree bit for
   bit, but no platform promises that).
 
-``python tests/test_gymnasium_parity.py`` prints the largest differences seen (README table).
+``python tests/envs/test_gymnasium_parity.py`` prints the largest differences seen (README table).
 """
 import math
 from functools import partial

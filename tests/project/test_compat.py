@@ -20,7 +20,7 @@ def test_installed_versions_are_those_compat_was_checked_against():
     for package, checked in _compat.CHECKED_VERSIONS.items():
         installed = importlib.metadata.version(package).split("+")[0]
         assert installed.split(".")[:2] == checked.split(".")[:2], (
-            f"_compat.py was checked with {package} {checked}; {installed} is installed: run tests/test_compat.py "
+            f"_compat.py was checked with {package} {checked}; {installed} is installed: run tests/project/test_compat.py "
             "and the fast-rollout parity tests, then update CHECKED_VERSIONS")
 
 
@@ -91,6 +91,6 @@ def test_collector_carrier_holds_the_env_state_to_resume_from():
 
 
 def test_compile_errors_cover_backend_failures():
-    """The compiled rollout chunks fall back to eager on these (tests/test_compiled_rollout.py)."""
+    """The compiled rollout chunks fall back to eager on these (tests/rollout/test_compiled_rollout.py)."""
     assert issubclass(torch._dynamo.exc.BackendCompilerFailed, _compat.COMPILE_ERRORS)
     assert issubclass(torch._dynamo.exc.Unsupported, _compat.COMPILE_ERRORS)

@@ -4,23 +4,19 @@ run-through script and TorchRL's video transforms.
 Geometry is checked against positions computed by hand from the world-to-pixel map of each
 task's view; colours against Ivy Gym's rule RGB(1 - r, r, 0).
 """
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from PIL import Image
 
-from _env_helpers import classic_envs
+from _env_helpers import REPO, classic_envs, load_script
 from torchrl_diffenvs import DiffEnv, make_env
 from torchrl_diffenvs.envs import CartPoleEnv
 from torchrl_diffenvs.rendering import get_drawer, register_drawer, render_frame, rollout_frames, save_gif
 from torchrl_diffenvs.rendering import core as rendering_core
 
-REPO = Path(__file__).resolve().parents[1]
 RED, GREEN = (255, 0, 0), (0, 255, 0)
 # rewards that must give a pure green / pure red body (Gymnasium variants map their own ranges)
 GREEN_REWARD = {"Pendulum-v1": 0.0, "MountainCarContinuous-v0": 100.0}
@@ -332,11 +328,7 @@ def test_save_gif_round_trip(tmp_path):
 
 
 def load_run_through():
-    spec = importlib.util.spec_from_file_location("run_through", REPO / "sota_scripts" / "run_through.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["run_through"] = module  # dataclasses look their module up while the file runs
-    spec.loader.exec_module(module)
-    return module
+    return load_script("run_through", REPO / "sota_scripts" / "run_through.py")
 
 
 def test_run_through_script(tmp_path, capsys):

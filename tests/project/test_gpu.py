@@ -3,7 +3,7 @@ loss, checkpoints moved between CUDA and CPU, rendering from CUDA tensors.
 
 Each test compares against the same computation on the CPU (float64), the reference the rest of
 the suite checks against gymnasium, MuJoCo and finite differences. Skipped without a CUDA device:
-run ``python -m pytest -q tests/test_gpu.py`` on a GPU machine.
+run ``python -m pytest -q tests/project/test_gpu.py`` on a GPU machine.
 """
 import pytest
 import torch
@@ -55,7 +55,7 @@ def test_collector_and_compiled_chunks_on_cuda():
 
 @pytest.mark.parametrize("loss", ["bptt", "shac", "ppo", "sac"])
 def test_train_on_cuda_resume_on_cpu_and_back(loss, tmp_path):
-    from test_train import STEPS_PER_ITER, tiny_cfg, train_script
+    from _train_helpers import STEPS_PER_ITER, tiny_cfg, train_script
 
     from torchrl_diffenvs.training import load_checkpoint
 

@@ -14,7 +14,7 @@ from torchrl_diffenvs.learners import make_learner
 from torchrl_diffenvs.modules import make_critic, make_qvalue, privileged_inputs, update_privileged_statistics
 from torchrl_diffenvs.training import ConfigError, validate_config
 
-from test_train import make_cfg
+from _train_helpers import make_cfg
 
 
 # ---------------------------------------------------------------------- the partially observed pendulum

@@ -2,7 +2,7 @@
 backward) give the eager path's rollout, gradients and generator state.
 
 The reference is the eager lean path on the same env from the same generator states (itself
-checked bit for bit against TorchRL's ``EnvBase.rollout`` in tests/test_fast_rollout.py), in
+checked bit for bit against TorchRL's ``EnvBase.rollout`` in tests/rollout/test_fast_rollout.py), in
 float64. Inductor draws random numbers with its own generator; ``fallback_random`` makes it
 draw torch's, so that a stochastic policy samples the same actions on both paths.
 """
@@ -272,7 +272,7 @@ def test_plain_callable_policies_run_eagerly_with_compile_physics():
 def test_train_with_compile_true_is_the_eager_run(tmp_path, caplog):
     """``compile=true`` in train.py: SHAC windows and evaluations compiled, the same run as eagerly
     (float64; fallback_random makes the sampled actions equal), compile time logged."""
-    from test_train import tiny_cfg, train_script
+    from _train_helpers import tiny_cfg, train_script
 
     results = {}
     for compiled in (False, True):
@@ -288,7 +288,7 @@ def test_train_with_compile_true_is_the_eager_run(tmp_path, caplog):
 
 
 def test_train_rejects_a_non_boolean_compile():
-    from test_train import tiny_cfg
+    from _train_helpers import tiny_cfg
 
     from torchrl_diffenvs.training import ConfigError, validate_config
 

@@ -27,7 +27,7 @@ import _distributed_workers as workers
 from torchrl_diffenvs.distributed import SINGLE_PROCESS, World, rank_seed
 from torchrl_diffenvs.training import CheckpointError, load_checkpoint
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "sota_scripts" / "train.py"
 TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"]
 
@@ -209,7 +209,7 @@ def test_a_two_rank_run_resumes_exactly_and_only_with_two_ranks(tmp_path):
 
     # one process cannot continue two ranks' envs and streams: a clear error, nothing written
     sys.path.insert(0, str(ROOT / "tests"))
-    from test_train import make_cfg, train_script
+    from _train_helpers import make_cfg, train_script
 
     cfg = make_cfg(*common, f"resume={middle}")
     with pytest.raises(CheckpointError, match=r"written by 2 rank\(s\).*nproc_per_node=2"):

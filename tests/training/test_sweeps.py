@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_dir
 
 from torchrl_diffenvs.training.config import register_env_configs
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "sota_scripts" / "train.py"
 TINY = ["env=pendulum", "env.num_envs=4", "env.max_episode_steps=12", "eval.num_envs=2", "eval.gif=false",
         "logger=none", "train.progress_bar=false", "train.total_env_steps=96", "train.checkpoint_interval=96",

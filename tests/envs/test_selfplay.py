@@ -217,7 +217,7 @@ def test_selfplay_needs_a_two_player_env():
 
 # ---------------------------------------------------------------------------- the training script
 def test_selfplay_run_resumes_exactly_and_reports_the_win_rate(tmp_path):
-    from test_train import STEPS_PER_ITER, read_jsonl, tiny_cfg, train_script
+    from _train_helpers import STEPS_PER_ITER, read_jsonl, tiny_cfg, train_script
 
     from torchrl_diffenvs.training import load_checkpoint
 
@@ -243,7 +243,7 @@ def test_selfplay_run_resumes_exactly_and_reports_the_win_rate(tmp_path):
     (["env=swimmer_race", "selfplay.refresh_interval=10", "selfplay.pool_size=0"], "selfplay.pool_size=0"),
 ])
 def test_bad_selfplay_settings_are_refused(overrides, message):
-    from test_train import make_cfg, train_script
+    from _train_helpers import make_cfg, train_script
 
     from torchrl_diffenvs.training import ConfigError
 

@@ -4,7 +4,7 @@ import ast
 import re
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parent.parent / "torchrl_diffenvs"
+PACKAGE = Path(__file__).resolve().parents[2] / "torchrl_diffenvs"
 
 
 def module_name(path: Path) -> str:
