@@ -260,7 +260,8 @@ def test_plain_module_policy_and_trust_policy():
     env = make_fast_env("mountaincar")
 
     class Policy(nn.Module):
-        def forward(self, observation, state, params, episode_step):
+        # TorchRL wraps a plain module with every observation-spec entry as an argument
+        def forward(self, observation, state, params, episode_step, nonfinite):
             return torch.tanh(observation.sum(-1, keepdim=True) + episode_step.unsqueeze(-1))
 
     got, ref = both_paths(env, 7, Policy(), break_when_any_done=False)

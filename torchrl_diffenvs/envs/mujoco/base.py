@@ -80,10 +80,6 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         super().__init__(num_envs, **kwargs)
 
     # ------------------------------------------------------------------ helpers for tasks
-    def normal(self, *shape: int) -> torch.Tensor:
-        """Standard normal samples from this env's seeded generator."""
-        return torch.randn(shape, generator=self.rng, device=self.device, dtype=self.float_dtype)
-
     def init_qpos(self, n: int) -> torch.Tensor:
         """MuJoCo's ``qpos0`` (Gymnasium's ``init_qpos``) for ``n`` envs."""
         return self.tree.qpos0.expand(n, -1)
