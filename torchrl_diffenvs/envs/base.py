@@ -22,6 +22,7 @@ lays them out).
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Mapping
 
@@ -246,6 +247,28 @@ class DiffEnv(EnvBase):
         if draw is None:
             return torch.randn(shape, generator=self.rng, device=self.device, dtype=self.float_dtype)
         return draw.normal(shape, self.float_dtype)
+
+    @contextlib.contextmanager
+    def redraws(self):
+        """Wraps a rejection-sampling loop in ``initial_state``: its draws come from numbers of
+        their own, so the draws after the loop are the same whatever number of rounds the batch
+        needed (an env's own rounds use its own stream)::
+
+            goal = self.uniform(-0.2, 0.2, n, 2)
+            with self.redraws():
+                while (reject := goal.norm(dim=-1) >= 0.2).any():
+                    goal = torch.where(reject.unsqueeze(-1), self.uniform(-0.2, 0.2, n, 2), goal)
+        """
+        draw = self.__dict__.get("_start_draw")
+        if draw is None:
+            yield
+            return
+        main = draw.calls
+        draw.calls = (main + 1) << 20  # a range of draw numbers no main draw reaches
+        try:
+            yield
+        finally:
+            draw.calls = main + 1
 
     @property
     def episodes(self) -> torch.Tensor:
