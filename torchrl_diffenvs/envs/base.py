@@ -33,7 +33,7 @@ from torchrl.envs import EnvBase
 
 from .rollout import fast_rollout, fast_rollout_unsupported
 from .rollout.step import physics_step
-from .streams import StartDraw, seed_words
+from .streams import StartDraw, seed_key
 
 __all__ = ["DiffEnv"]
 
@@ -287,7 +287,7 @@ class DiffEnv(EnvBase):
         """``initial_state`` for every env, env ``i`` at episode ``episodes[i]`` of its own stream
         (default: :attr:`episodes`, the next ones). Pure: advances no counter (``_reset`` does)."""
         episodes = self.episodes if episodes is None else episodes
-        self.__dict__["_start_draw"] = StartDraw(self._seed_words, self._env_index, episodes)
+        self.__dict__["_start_draw"] = StartDraw(self._seed_key, self._env_index, episodes)
         try:
             return self.initial_state(params, self.num_envs)
         finally:
@@ -300,7 +300,7 @@ class DiffEnv(EnvBase):
             seed = int(torch.randint(0, 2**62, (), dtype=torch.int64).item())
         self.rng = torch.Generator(device=self.device).manual_seed(int(seed))
         # the start states' per-env streams (written into __dict__: nn.Module's setattr is slow)
-        self.__dict__["_seed_words"] = seed_words(int(seed))
+        self.__dict__["_seed_key"] = seed_key(int(seed))  # the 64-bit key of the streams
         self.__dict__["_env_index"] = torch.arange(self.num_envs, dtype=torch.int64, device=self.device)
         self.__dict__["_episodes"] = torch.zeros(self.num_envs, dtype=torch.int64, device=self.device)
 

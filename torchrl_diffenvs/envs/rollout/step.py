@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["ENV_KEYS", "FLAG_KEYS", "NESTED_ENV_KEYS", "merge_reset", "nonfinite_envs", "physics_step"]
+__all__ = ["ENV_KEYS", "FLAG_KEYS", "NESTED_ENV_KEYS", "merge_reset", "nonfinite_envs", "physics_step",
+           "zero_nonfinite"]
 
 # Entries the env owns at the root of a step TensorDict; everything else there ("action", a
 # policy's "loc"/"scale", a user's own entries) belongs to the policy or the user.
@@ -32,18 +33,19 @@ def nonfinite_envs(n: int, tensors, device=None) -> torch.Tensor:
     does a sum that overflows, i.e. values near the dtype's largest: a diverged env too).
     """
     total = None
-    for value in tensors:
-        if not value.is_floating_point():
-            continue
-        value = value.detach()  # a flag: no autograd graph for it
-        value = value if value.dim() == 1 else value.reshape(n, -1).sum(-1)
-        total = value if total is None else total + value
+    with torch.no_grad():  # a flag: no autograd graph for it
+        for value in tensors:
+            if not value.is_floating_point():
+                continue
+            value = value if value.dim() == 1 else value.reshape(n, -1).sum(-1)
+            total = value if total is None else total + value
     if total is None:
         return torch.zeros(n, dtype=torch.bool, device=device)
     return ~torch.isfinite(total)
 
 
-def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, action: torch.Tensor) -> dict:
+def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, action: torch.Tensor,
+                 zero: bool = True) -> dict:
     """One step of ``env``'s physics: the ``"next"`` entries (``"params"`` excepted: unchanged).
 
     Clips the action if the task does (``clip_actions``), runs ``transition``, counts the step,
@@ -53,6 +55,9 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
     replaced by ``0`` (their finite elements are kept), so that they cannot poison batch
     statistics. Their ``"state"`` keeps the non-finite values. For finite envs this changes
     nothing, values and gradients alike.
+
+    ``zero=False`` leaves the zeroing to the caller (:func:`zero_nonfinite`): the eager loop
+    applies it only at steps where some env is done (a flagged env is always done).
     """
     if env.clip_actions:
         action = action.clamp(env.action_low, env.action_high)
@@ -61,17 +66,25 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
     nonfinite = nonfinite_envs(episode_step.shape[0], (*state.values(), reward), episode_step.device)
     terminated = nonfinite if terminated is None else terminated | nonfinite
     truncated = env._truncated(episode_step, terminated)
-    observation = env.observation(state, params)
-    return {
-        "observation": torch.nan_to_num(observation, nan=0.0, posinf=0.0, neginf=0.0),
+    nxt = {
+        "observation": env.observation(state, params),
         "state": state,
         "episode_step": episode_step,
-        "reward": torch.nan_to_num(reward, nan=0.0, posinf=0.0, neginf=0.0),
+        "reward": reward,
         "terminated": terminated,
         "truncated": truncated,
         "done": terminated | truncated,
         "nonfinite": nonfinite,
     }
+    return zero_nonfinite(nxt) if zero else nxt
+
+
+def zero_nonfinite(nxt: dict) -> dict:
+    """Replaces the NaN/inf elements of a step's ``"observation"`` and ``"reward"`` by ``0``
+    (in place; returns ``nxt``). The gradient of the other elements passes unchanged."""
+    for key in ("observation", "reward"):
+        nxt[key] = torch.nan_to_num(nxt[key], nan=0.0, posinf=0.0, neginf=0.0)
+    return nxt
 
 
 def _where(keep: torch.Tensor, old: torch.Tensor, new) -> torch.Tensor:
