@@ -48,7 +48,8 @@ def test_a_nan_state_is_flagged_terminated_and_reset(name):
 def assert_same_with_nan(got, ref, exact):
     """:func:`assert_same_tensordict` where the entries that hold the NaN (the NaN env's
     parameters and its next states) are compared with NaN equal to NaN."""
-    nan_keys = [("params", "mass"), ("next", "params", "mass"), *[("next", "state", k) for k in ref["next", "state"].keys()]]
+    nan_keys = [("params", "mass"), ("next", "params", "mass"),
+                *[("next", "state", key) for key in ref["next", "state"].keys()]]
     assert_same_tensordict(got.exclude(*nan_keys), ref.exclude(*nan_keys), exact=exact)
     tol = dict(rtol=0, atol=0) if exact else dict(rtol=1e-10, atol=1e-12)
     for key in nan_keys:
