@@ -121,7 +121,7 @@ def test_the_samplers_have_the_right_distribution():
 
 def test_start_state_samplers_need_one_row_per_env():
     env = make_env("pendulum", num_envs=3, seed=0)
-    env.__dict__["_start_draw"] = StartDraw(env._seed_key, env._env_index, env.episodes)
+    env.__dict__["_start_draw"] = StartDraw(env.rng.key, env._env_index, env.episodes)
     try:
         with pytest.raises(ValueError, match="first dim of the shape must be n=3, got shape \\(2,\\)"):
             env.uniform(0.0, 1.0, 2)
@@ -135,3 +135,21 @@ def test_episodes_setter_checks_its_input():
         env.episodes = torch.tensor([1, 2])
     with pytest.raises(ValueError, match="episodes must be 3 non-negative integers"):
         env.episodes = torch.tensor([1, -2, 0])
+
+
+def test_env_rng_state_carries_the_streams():
+    """Checkpoints save ``env.rng.get_state()``: restored on an env built with another seed, it
+    continues the same start states (and a plain generator state leaves the streams alone)."""
+    env, other = make_env("CartPole-v1", num_envs=4, seed=1), make_env("CartPole-v1", num_envs=4, seed=2)
+    env.reset()
+    td = partial_reset(env, env.reset(), [2])
+    state = env.rng.get_state()
+    expected = [partial_reset(env, td, [0, 2])["observation"] for _ in range(2)]
+    other.rng.set_state(state)
+    assert torch.equal(other.episodes, torch.tensor([2, 2, 3, 2]))
+    got = [partial_reset(other, td, [0, 2])["observation"] for _ in range(2)]
+    assert all(a.equal(b) for a, b in zip(got, expected))
+    plain = torch.Generator().manual_seed(0).get_state()
+    other.rng.set_state(plain)
+    assert torch.equal(other.rng.get_state()[: plain.numel()], plain)
+    assert torch.equal(other.episodes, torch.tensor([4, 2, 5, 2]))

@@ -33,7 +33,7 @@ from torchrl.envs import EnvBase
 
 from .rollout import fast_rollout, fast_rollout_unsupported
 from .rollout.step import physics_step
-from .streams import StartDraw, seed_key
+from .streams import EnvGenerator, StartDraw
 
 __all__ = ["DiffEnv"]
 
@@ -65,7 +65,8 @@ class DiffEnv(EnvBase):
     inside ``initial_state`` comes from env ``i``'s own random stream, a hash of (seed, ``i``,
     ``i``'s episode count, draw number): env ``i``'s start states are the same whatever the batch
     size and however often the other envs reset (:mod:`~torchrl_diffenvs.envs.streams`).
-    :attr:`episodes` holds the counts; :meth:`set_seed` sets them back to zero.
+    :attr:`episodes` holds the counts (saved and restored with ``env.rng``'s state);
+    :meth:`set_seed` sets them back to zero.
 
     Non-finite envs: every operation is elementwise over the batch, so a NaN/inf action or
     parameter of env ``i`` can only make env ``i``'s values non-finite. After each step the base
@@ -274,20 +275,20 @@ class DiffEnv(EnvBase):
     def episodes(self) -> torch.Tensor:
         """``[N]`` int64: how many start states each env has drawn since the last :meth:`set_seed`
         (env ``i``'s next start state is the one of episode ``episodes[i]`` of its stream)."""
-        return self.__dict__["_episodes"]
+        return self.rng.episodes
 
     @episodes.setter
     def episodes(self, value: torch.Tensor) -> None:
         value = torch.as_tensor(value, dtype=torch.int64, device=self.device)
         if value.shape != (self.num_envs,) or bool((value < 0).any()):
             raise ValueError(f"{self.name}: episodes must be {self.num_envs} non-negative integers, got {value}")
-        self.__dict__["_episodes"] = value.clone()
+        self.rng.episodes = value.clone()
 
     def start_states(self, params, episodes: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """``initial_state`` for every env, env ``i`` at episode ``episodes[i]`` of its own stream
         (default: :attr:`episodes`, the next ones). Pure: advances no counter (``_reset`` does)."""
         episodes = self.episodes if episodes is None else episodes
-        self.__dict__["_start_draw"] = StartDraw(self._seed_key, self._env_index, episodes)
+        self.__dict__["_start_draw"] = StartDraw(self.rng.key, self._env_index, episodes)
         try:
             return self.initial_state(params, self.num_envs)
         finally:
@@ -298,11 +299,9 @@ class DiffEnv(EnvBase):
         # draw a seed from torch's global RNG (int(None) used to raise a TypeError here).
         if seed is None:
             seed = int(torch.randint(0, 2**62, (), dtype=torch.int64).item())
-        self.rng = torch.Generator(device=self.device).manual_seed(int(seed))
-        # the start states' per-env streams (written into __dict__: nn.Module's setattr is slow)
-        self.__dict__["_seed_key"] = seed_key(int(seed))  # the 64-bit key of the streams
+        # env.rng also holds the episode counts of the start states' per-env streams (see EnvGenerator)
+        self.rng = EnvGenerator(self.device, self.num_envs, int(seed))
         self.__dict__["_env_index"] = torch.arange(self.num_envs, dtype=torch.int64, device=self.device)
-        self.__dict__["_episodes"] = torch.zeros(self.num_envs, dtype=torch.int64, device=self.device)
 
     # ------------------------------------------------------------------ TorchRL plumbing
     def _check_action(self, action: torch.Tensor | None) -> None:
@@ -413,7 +412,7 @@ class DiffEnv(EnvBase):
             state = self.start_states(params)
             reset = given.get("_reset", None)
             advance = 1 if reset is None else reset.reshape(self.num_envs).to(torch.int64)
-            self.__dict__["_episodes"] = self.episodes + advance
+            self.rng.episodes = self.episodes + advance
         episode_step = torch.zeros(self.num_envs, dtype=torch.int64, device=self.device)
         out = self._output(state, params, episode_step)
         self._remember_for_render(out, reset_mask=given.get("_reset", None))

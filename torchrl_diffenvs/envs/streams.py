@@ -15,7 +15,7 @@ import math
 import numpy as np
 import torch
 
-__all__ = ["StartDraw", "seed_key"]
+__all__ = ["EnvGenerator", "StartDraw", "seed_key"]
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -90,3 +90,41 @@ class StartDraw:
         """Standard normal samples (Box-Muller on two uniform draws)."""
         u1, u2 = self.uniform(shape, dtype), self.uniform(shape, dtype)
         return torch.sqrt(-2.0 * torch.log1p(-u1)) * torch.cos((2 * math.pi) * u2)
+
+
+class EnvGenerator(torch.Generator):
+    """``env.rng``: a ``torch.Generator`` that also holds the env's start-state streams.
+
+    ``key`` (the seed's 64-bit key, :func:`seed_key`) and ``episodes`` (``[N]`` int64, on the
+    env's device: how many start states each env has drawn) say where every env's stream is.
+    :meth:`get_state` appends them to the generator's own state, so everything that saves and
+    restores ``env.rng`` (checkpoints, ``DiffWindowCollector.state_dict``) resumes the start
+    states exactly too; :meth:`set_state` also takes a plain generator state (the streams are
+    then left as they are).
+    """
+
+    def __new__(cls, device, num_envs: int, seed: int):  # torch.Generator takes its arguments in __new__
+        return super().__new__(cls, device)
+
+    def __init__(self, device, num_envs: int, seed: int):
+        self.manual_seed(seed)
+        self.key = seed_key(seed)
+        self.episodes = torch.zeros(num_envs, dtype=torch.int64, device=device)
+
+    def get_state(self) -> torch.Tensor:
+        counts = self.episodes.detach().cpu()
+        tail = torch.tensor([int(self.key) - (1 << 64 if int(self.key) >= 1 << 63 else 0), counts.numel()],
+                            dtype=torch.int64)
+        return torch.cat([super().get_state(), counts.view(torch.uint8), tail.view(torch.uint8)])
+
+    def set_state(self, new_state: torch.Tensor) -> EnvGenerator:
+        new_state = new_state.detach().cpu()
+        n = self.episodes.numel()
+        own = new_state.numel() - 8 * (n + 2)
+        if own <= 0 or int(new_state[-8:].clone().view(torch.int64)) != n:  # a plain generator state
+            super().set_state(new_state)
+            return self
+        super().set_state(new_state[:own].clone())
+        self.episodes = new_state[own:-16].clone().view(torch.int64).to(self.episodes.device)
+        self.key = np.uint64(int(new_state[-16:-8].clone().view(torch.int64)) & _MASK64)
+        return self

@@ -280,7 +280,7 @@ class _Loop:
         keep = {"action": extras["action"]} if self.policy is None and "action" in extras else {}
         zeroable = {key: value for key, value in extras.items() if key not in keep}
         root, extras = merge_reset(done, nxt, self.starts(), zeroable, nxt["params"], self.reset_params())
-        self.env.__dict__["_episodes"] = self.env.episodes + done.to(torch.int64)
+        self.env.rng.episodes = self.env.episodes + done.to(torch.int64)
         return root, {**extras, **keep}
 
     # ------------------------------------------------------------------ compiled chunks
@@ -352,7 +352,7 @@ class _Loop:
         what = "physics" if self.policy is None else "policy + physics"
         compiled.note_first_call(f"{what}, {len(steps)} steps", time.perf_counter() - started)
         if resets is not None:
-            env.__dict__["_episodes"] = env.episodes + resets
+            env.rng.episodes = env.episodes + resets
         if actions is not None:  # the actions as given (the same tensors as the eager loop stores)
             steps = [({"action": action}, nxt, merged) for action, (_, nxt, merged) in zip(actions, steps)]
         env._check_action(steps[0][0]["action"])
