@@ -153,3 +153,16 @@ def test_env_rng_state_carries_the_streams():
     other.rng.set_state(plain)
     assert torch.equal(other.rng.get_state()[: plain.numel()], plain)
     assert torch.equal(other.episodes, torch.tensor([4, 2, 5, 2]))
+
+
+def test_a_pickled_or_copied_env_continues_the_same_start_states():
+    """ParallelEnv workers and deepcopies get the streams too (a plain torch.Generator would not)."""
+    import copy
+    import pickle
+
+    env = make_env("pendulum", num_envs=3, seed=3)
+    env.reset()
+    a, b = copy.deepcopy(env), pickle.loads(pickle.dumps(env))
+    assert torch.equal(a.episodes, env.episodes) and torch.equal(b.episodes, env.episodes)
+    expected = env.reset()["observation"]
+    assert torch.equal(a.reset()["observation"], expected) and torch.equal(b.reset()["observation"], expected)

@@ -111,6 +111,12 @@ class EnvGenerator(torch.Generator):
         self.key = seed_key(seed)
         self.episodes = torch.zeros(num_envs, dtype=torch.int64, device=device)
 
+    def __reduce__(self):  # pickling and deepcopy (torch.Generator's would rebuild a plain Generator)
+        return _rebuild_env_generator, (str(self.device), self.episodes.numel(), self.get_state())
+
+    def __deepcopy__(self, memo):
+        return _rebuild_env_generator(str(self.device), self.episodes.numel(), self.get_state())
+
     def get_state(self) -> torch.Tensor:
         counts = self.episodes.detach().cpu()
         tail = torch.tensor([int(self.key) - (1 << 64 if int(self.key) >= 1 << 63 else 0), counts.numel()],
@@ -128,3 +134,7 @@ class EnvGenerator(torch.Generator):
         self.episodes = new_state[own:-16].clone().view(torch.int64).to(self.episodes.device)
         self.key = np.uint64(int(new_state[-16:-8].clone().view(torch.int64)) & _MASK64)
         return self
+
+
+def _rebuild_env_generator(device: str, num_envs: int, state: torch.Tensor) -> EnvGenerator:
+    return EnvGenerator(torch.device(device), num_envs, 0).set_state(state)

@@ -57,7 +57,7 @@ FAST_ROLLOUT_KWARGS: dict[str, tuple | None] = {
 # one of them gets EnvBase.rollout, which calls the override.
 _REIMPLEMENTED_METHODS = (
     "_step", "_reset", "step", "reset", "maybe_reset", "step_and_maybe_reset", "rand_action", "any_done", "_output",
-    "start_states", *ENVBASE_STEP_METHODS,
+    *ENVBASE_STEP_METHODS,
 )
 
 
