@@ -28,7 +28,7 @@ from ..._compat import (
 from .actions import RandomActions
 from .compiled import chunk_inputs
 from .output import as_tensordict, build_output, entries_of, set_truncated_last_step
-from .step import ENV_KEYS, merge_reset, physics_step, zero_nonfinite
+from .step import ENV_KEYS, merge_reset, physics_step
 
 __all__ = ["FAST_ROLLOUT_KWARGS", "fast_rollout", "fast_rollout_unsupported"]
 
@@ -173,6 +173,7 @@ class _Loop:
         self.n = env.num_envs
         self.bs = env.batch_size
         self.device = env.device
+        self.all_false = torch.zeros(self.n, dtype=torch.bool, device=self.device)
         self.compiled = env.__dict__.get("_compiled_physics")
         self.chunk = 1 if self.compiled is None else self.compiled.steps_per_chunk
 
@@ -215,15 +216,13 @@ class _Loop:
                     td0.set("action", self.first_action(action))
                 root_t = {**root, **extras, "action": action}
             self.env._check_action(action)
-            # (a flagged env is done: the zeroing of non-finite entries waits for a done env)
-            nxt = physics_step(self.env, root_t["state"], root_t["params"], root_t["episode_step"], action, zero=False)
+            nxt = physics_step(self.env, root_t["state"], root_t["params"], root_t["episode_step"], action,
+                               self.all_false)
             nxt["params"] = root_t["params"]
             roots.append(root_t)
             nexts.append(nxt)
             t += 1
             any_done = bool(nxt["done"].any())
-            if any_done:
-                zero_nonfinite(nxt)
             if t == max_steps or (break_when_any_done and any_done):
                 break
             # step_mdp: the next root is the "next" entries plus whatever else was at the root

@@ -14,10 +14,11 @@ adds a trailing ``1`` when they go into a TensorDict).
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
-__all__ = ["ENV_KEYS", "FLAG_KEYS", "NESTED_ENV_KEYS", "merge_reset", "nonfinite_envs", "physics_step",
-           "zero_nonfinite"]
+__all__ = ["ENV_KEYS", "FLAG_KEYS", "NESTED_ENV_KEYS", "merge_reset", "nonfinite_envs", "physics_step"]
 
 # Entries the env owns at the root of a step TensorDict; everything else there ("action", a
 # policy's "loc"/"scale", a user's own entries) belongs to the policy or the user.
@@ -32,20 +33,14 @@ def nonfinite_envs(n: int, tensors, device=None) -> torch.Tensor:
     One sum per entry: a NaN or inf anywhere in an env's values makes its sum non-finite (so
     does a sum that overflows, i.e. values near the dtype's largest: a diverged env too).
     """
-    total = None
-    with torch.no_grad():  # a flag: no autograd graph for it
-        for value in tensors:
-            if not value.is_floating_point():
-                continue
-            value = value if value.dim() == 1 else value.reshape(n, -1).sum(-1)
-            total = value if total is None else total + value
-    if total is None:
+    if not any(value.is_floating_point() for value in tensors):
         return torch.zeros(n, dtype=torch.bool, device=device)
-    return ~torch.isfinite(total)
+    total = _flat(n, tensors).sum(1)
+    return (total - total) != 0  # NaN exactly where the sum is NaN or inf (torch.isfinite takes 3 ops)
 
 
 def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, action: torch.Tensor,
-                 zero: bool = True) -> dict:
+                 all_false: torch.Tensor | None = None) -> dict:
     """One step of ``env``'s physics: the ``"next"`` entries (``"params"`` excepted: unchanged).
 
     Clips the action if the task does (``clip_actions``), runs ``transition``, counts the step,
@@ -56,39 +51,55 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
     statistics. Their ``"state"`` keeps the non-finite values. For finite envs this changes
     nothing, values and gradients alike.
 
-    ``zero=False`` leaves the zeroing to the caller (:func:`zero_nonfinite`): the eager loop
-    applies it only at steps where some env is done (a flagged env is always done).
+    ``all_false`` (an ``[N]`` all-``False`` tensor; eager callers only): first one check of the
+    whole batch (one host sync), and per-env flags only if something is not finite; flags that
+    need no computation are ``all_false`` itself, and ``"done"`` is ``"truncated"`` itself for
+    a task without termination: fewer ops per step, and the same tensors from step to step
+    (the rollout output expands them instead of stacking). The values are the same.
     """
     if env.clip_actions:
         action = action.clamp(env.action_low, env.action_high)
     state, reward, terminated = env.transition(state, action, params)
     episode_step = episode_step + 1
-    nonfinite = nonfinite_envs(episode_step.shape[0], (*state.values(), reward), episode_step.device)
-    terminated = nonfinite if terminated is None else terminated | nonfinite
-    truncated = env._truncated(episode_step, terminated)
-    nxt = {
-        "observation": env.observation(state, params),
-        "state": state,
-        "episode_step": episode_step,
-        "reward": reward,
-        "terminated": terminated,
-        "truncated": truncated,
-        "done": terminated | truncated,
-        "nonfinite": nonfinite,
-    }
-    return zero_nonfinite(nxt) if zero else nxt
+    observation = env.observation(state, params)
+    n, values = episode_step.shape[0], (*state.values(), reward)
+    if all_false is None or not math.isfinite(_flat(n, values).sum().item()):
+        nonfinite = nonfinite_envs(n, values, episode_step.device)
+        terminated = nonfinite if terminated is None else terminated | nonfinite
+        observation, reward = (torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for x in (observation, reward))
+    else:
+        nonfinite = all_false
+    if terminated is None:  # only with all_false: nothing terminated, done is truncated
+        if type(env)._truncated is _base_truncated():  # the base rule: one comparison
+            limit = env.max_episode_steps
+            truncated = all_false if limit is None else episode_step >= limit
+        else:
+            truncated = env._truncated(episode_step, all_false)
+        terminated, done = all_false, truncated
+    else:
+        truncated = env._truncated(episode_step, terminated)
+        done = terminated | truncated
+    return {"observation": observation, "state": state, "episode_step": episode_step, "reward": reward,
+            "terminated": terminated, "truncated": truncated, "done": done, "nonfinite": nonfinite}
 
 
-def zero_nonfinite(nxt: dict) -> dict:
-    """Replaces the NaN/inf elements of a step's ``"observation"`` and ``"reward"`` by ``0``
-    (in place; returns ``nxt``). The gradient of the other elements passes unchanged."""
-    for key in ("observation", "reward"):
-        nxt[key] = torch.nan_to_num(nxt[key], nan=0.0, posinf=0.0, neginf=0.0)
-    return nxt
+def _base_truncated():
+    from ..base import DiffEnv  # (base.py imports this module)
+
+    return DiffEnv._truncated
+
+
+def _flat(n: int, values) -> torch.Tensor:
+    """``[N, K]``: every floating-point value of each env in one row, detached (a sum of them
+    is non-finite if one is)."""
+    values = [value.detach().reshape(n, -1) for value in values if value.is_floating_point()]
+    if len({value.dtype for value in values}) > 1:
+        values = [value.to(torch.float64) for value in values]
+    return torch.cat(values, dim=1)
 
 
 def _where(keep: torch.Tensor, old: torch.Tensor, new) -> torch.Tensor:
-    return torch.where(keep.reshape(keep.shape + (1,) * (old.ndim - 1)), old, new)
+    return torch.where(keep if old.ndim == 1 else keep.reshape(keep.shape + (1,) * (old.ndim - 1)), old, new)
 
 
 def merge_reset(done: torch.Tensor, nxt: dict, start: dict, extras: dict, params: dict,
@@ -110,12 +121,12 @@ def merge_reset(done: torch.Tensor, nxt: dict, start: dict, extras: dict, params
         "state": {key: _where(keep, value, start["state"][key]) for key, value in nxt["state"].items()},
         "params": params if start_params is None else
         {key: _where(keep, value, start_params[key]) for key, value in params.items()},
-        "episode_step": _where(keep, nxt["episode_step"], torch.zeros((), dtype=nxt["episode_step"].dtype,
-                                                                    device=done.device)),
+        "episode_step": torch.where(keep, nxt["episode_step"], 0),
         **{key: false for key in FLAG_KEYS},
     }
-    keep_extras = keep | done.all()
-    extras = {key: _zero_where(keep_extras, value) for key, value in extras.items()}
+    if extras:
+        keep_extras = keep | done.all()
+        extras = {key: _zero_where(keep_extras, value) for key, value in extras.items()}
     return root, extras
 
 
