@@ -265,11 +265,11 @@ class DiffEnv(EnvBase):
             yield
             return
         main = draw.calls
-        draw.calls = (main + 1) << 20  # a range of draw numbers no main draw reaches
+        draw.calls = (main + 1) << 20  # a range of stream positions no main draw reaches
         try:
             yield
         finally:
-            draw.calls = main + 1
+            draw.calls = main
 
     @property
     def episodes(self) -> torch.Tensor:
@@ -288,11 +288,14 @@ class DiffEnv(EnvBase):
         """``initial_state`` for every env, env ``i`` at episode ``episodes[i]`` of its own stream
         (default: :attr:`episodes`, the next ones). Pure: advances no counter (``_reset`` does)."""
         episodes = self.episodes if episodes is None else episodes
-        self.__dict__["_start_draw"] = StartDraw(self.rng.key, self._env_index, episodes)
+        # hash as many words up front as the last call used (one numpy hash instead of one per draw)
+        draw = StartDraw(self.rng.key, self._env_index, episodes, self.__dict__.get("_start_words", 0))
+        self.__dict__["_start_draw"] = draw
         try:
             return self.initial_state(params, self.num_envs)
         finally:
             self.__dict__["_start_draw"] = None
+            self.__dict__["_start_words"] = draw.used
 
     def _set_seed(self, seed: int | None) -> None:
         # EnvBase.set_seed(seed=None) is valid TorchRL API: like the constructor's seed=None,

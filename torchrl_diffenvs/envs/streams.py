@@ -49,18 +49,33 @@ def seed_key(seed: int) -> np.uint64:
 class StartDraw:
     """The random numbers of one ``initial_state`` call for envs ``index`` at episode ``episode``.
 
-    Each :meth:`uniform` / :meth:`normal` call takes the next draw number (``calls``), so the
-    numbers of a task's ``initial_state`` are those of its ``k``-th sampler call, element by
-    element, for each env: independent of the batch and of how often the other envs reset.
+    Env ``i``'s stream is a sequence of 64-bit words, word ``p`` a hash of (its key, ``p``);
+    each :meth:`uniform` / :meth:`normal` call takes the next words (``calls`` is the position),
+    the same for every env, so the numbers of a task's ``initial_state`` are, element by
+    element, independent of the batch and of how often the other envs reset.
+
+    ``block``: how many words to hash at once up front (the words the task's previous
+    ``initial_state`` used: one hash of the whole block instead of one per call); a call beyond
+    it is hashed on its own, with the same result.
     """
 
-    def __init__(self, key: np.uint64, index: torch.Tensor, episode: torch.Tensor):
+    def __init__(self, key: np.uint64, index: torch.Tensor, episode: torch.Tensor, block: int = 0):
         self.device = index.device
         index = index.detach().cpu().numpy().astype(np.uint64)
         episode = episode.detach().cpu().numpy().astype(np.uint64)
         # (array arithmetic wraps modulo 2**64 silently, as the hash needs)
         self.env_keys = _mix(_mix(key ^ (index * _GOLDEN)) + episode * _M1)  # [n]
-        self.calls = 0
+        self.calls = 0  # the next word's position
+        self.used = 0  # the last position + 1 of the main words (not those of redraws)
+        self.block = None
+        self.block = self._words(0, block) if block > 0 else None
+
+    def _words(self, start: int, count: int) -> np.ndarray:
+        """``[n, count]``: the words at positions ``start ... start + count - 1`` of every env."""
+        if self.block is not None and start + count <= self.block.shape[1]:
+            return self.block[:, start:start + count]
+        position = np.arange(start + 1, start + count + 1, dtype=np.uint64) * _GOLDEN
+        return _mix(self.env_keys[:, None] ^ position[None, :])
 
     def _bits(self, shape: tuple[int, ...]) -> np.ndarray:
         """One 64-bit word per element of ``shape`` (``[n, ...]``), from the next draw number."""
@@ -71,10 +86,10 @@ class StartDraw:
                 f"n={n}, got shape {tuple(shape)}"
             )
         event = math.prod(shape[1:])
-        call = np.uint64(_mix_int(self.calls * 0x94D049BB133111EB + 0x9E3779B97F4A7C15))
-        element = np.arange(1, event + 1, dtype=np.uint64) * _GOLDEN + call
-        bits = _mix(self.env_keys[:, None] ^ element[None, :])
-        self.calls += 1
+        bits = self._words(self.calls, event)
+        self.calls += event
+        if self.calls < 1 << 20:  # a main draw (redraws take positions from 2**20 on)
+            self.used = max(self.used, self.calls)
         return bits.reshape(shape)
 
     def uniform(self, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
