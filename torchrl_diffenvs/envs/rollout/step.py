@@ -92,10 +92,13 @@ def _base_truncated():
 def _flat(n: int, values) -> torch.Tensor:
     """``[N, K]``: every floating-point value of each env in one row, detached (a sum of them
     is non-finite if one is)."""
-    values = [value.detach().reshape(n, -1) for value in values if value.is_floating_point()]
-    if len({value.dtype for value in values}) > 1:
-        values = [value.to(torch.float64) for value in values]
-    return torch.cat(values, dim=1)
+    values = [value for value in values if value.is_floating_point()]
+    with torch.no_grad():  # a flag: no autograd graph for it
+        if len({value.dtype for value in values}) > 1:
+            values = [value.to(torch.float64) for value in values]
+        if all(value.dim() == 1 for value in values):  # one op, no reshapes
+            return torch.stack(values, dim=1)
+        return torch.cat([value.reshape(n, -1) for value in values], dim=1)
 
 
 def _where(keep: torch.Tensor, old: torch.Tensor, new) -> torch.Tensor:
