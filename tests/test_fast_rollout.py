@@ -2,7 +2,7 @@
 
 The reference is TorchRL's own implementation, called as ``EnvBase.rollout(env, ...)`` on the
 same env with the same seeds (torch's global generator for random actions and policy samples, the
-env's generator for resets). Compared: TensorDict types, batch sizes, names, devices, key sets,
+env's per-env start-state streams for resets). Compared: TensorDict types, batch sizes, names, devices, key sets,
 dtypes, values (bitwise) and gradients.
 """
 
@@ -59,9 +59,9 @@ def both_paths(env, *args, seed=0, prepare=None, **kwargs):
         env.set_seed(seed + 1)
         extra = prepare() if prepare is not None else {}
         results.append(path(env, *args, **kwargs, **extra))
-        # both leave torch's and the env's generators in the same state
-        after.append((torch.rand(4), env.uniform(0, 1, 4)))
-    assert torch.equal(after[0][0], after[1][0]) and torch.equal(after[0][1], after[1][1])
+        # both leave torch's generator, the env's and its start-state streams in the same state
+        after.append((torch.rand(4), env.uniform(0, 1, 4), env.episodes.clone()))
+    assert all(torch.equal(a, b) for a, b in zip(*after))
     return results
 
 
