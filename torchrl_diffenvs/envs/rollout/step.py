@@ -14,6 +14,7 @@ adds a trailing ``1`` when they go into a TensorDict).
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -83,6 +84,7 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
             "terminated": terminated, "truncated": truncated, "done": done, "nonfinite": nonfinite}
 
 
+@functools.cache
 def _base_truncated():
     from ..base import DiffEnv  # (base.py imports this module)
 
