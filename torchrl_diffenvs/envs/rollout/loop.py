@@ -215,7 +215,8 @@ class _Loop:
                 if t == 0:  # EnvBase writes step 0's action into the input tensordict
                     td0.set("action", self.first_action(action))
                 root_t = {**root, **extras, "action": action}
-            self.env._check_action(action)
+            if not isinstance(self.action_source, RandomActions) or self.policy is not None:  # (ours are valid)
+                self.env._check_action(action)
             nxt = physics_step(self.env, root_t["state"], root_t["params"], root_t["episode_step"], action,
                                self.all_false)
             nxt["params"] = root_t["params"]
