@@ -433,7 +433,7 @@ class DiffEnv(EnvBase):
     def rollout(self, max_steps: int, policy=None, callback=None, **kwargs) -> TensorDictBase:
         """``EnvBase.rollout`` (same arguments, same result), through a lean loop when possible.
 
-        The lean loop (:mod:`torchrl_diffenvs.envs.fast_rollout`) steps the pure physics on plain
+        The lean loop (:mod:`torchrl_diffenvs.envs.rollout`) steps the pure physics on plain
         tensors and builds the output TensorDict once; it is taken unless a ``callback`` or an
         argument it does not reproduce is given (see ``fast_rollout_unsupported``).
         ``TransformedEnv`` never calls this method: it steps the base env itself.
