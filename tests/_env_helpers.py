@@ -133,3 +133,24 @@ class ReplayPolicy:
         td["action"] = self.actions[:, self.t]
         self.t += 1
         return td
+
+
+def assert_same_tensordict(got, ref, path="root", exact=True):
+    """Same structure, dtypes and values (bitwise when ``exact``, else to float64 rounding)."""
+    assert type(got) is type(ref), f"{path}: {type(got).__name__} != {type(ref).__name__}"
+    assert got.batch_size == ref.batch_size, f"{path}: batch size {got.batch_size} != {ref.batch_size}"
+    assert got.names == ref.names, f"{path}: names {got.names} != {ref.names}"
+    assert got.device == ref.device, f"{path}: device {got.device} != {ref.device}"
+    assert set(got.keys()) == set(ref.keys()), f"{path}: keys differ by {set(got.keys()) ^ set(ref.keys())}"
+    for key in ref.keys():
+        x, y = got.get(key), ref.get(key)
+        where = f"{path}/{key}"
+        if isinstance(y, torch.Tensor):
+            assert x.shape == y.shape and x.dtype == y.dtype, f"{where}: {x.shape} {x.dtype} != {y.shape} {y.dtype}"
+            assert x.is_contiguous() == y.is_contiguous(), f"{where}: contiguity differs"
+            if exact:
+                assert torch.equal(x, y), f"{where}: values differ, max |diff| {(x.double() - y.double()).abs().max()}"
+            else:
+                torch.testing.assert_close(x, y, rtol=1e-10, atol=1e-12, msg=where)
+        else:
+            assert_same_tensordict(x, y, where, exact)

@@ -24,7 +24,7 @@ __all__ = [
 CHECKED_VERSIONS = {"torchrl": "0.14.1", "tensordict": "0.14.3", "torch": "2.13.0"}
 
 
-# ---------------------------------------------------------------------- the lean rollout (envs/fast_rollout.py)
+# ---------------------------------------------------------------------- the lean rollout (envs/rollout/)
 # TorchRL's private EnvBase methods that ``EnvBase.rollout`` goes through and the lean loop
 # reimplements: an env class overriding one of them must take ``EnvBase.rollout``.
 ENVBASE_STEP_METHODS = ("_step_proc_data", "_reset_proc_data", "_step_and_maybe_reset")

@@ -492,8 +492,8 @@ def test_bad_task_options():
 @pytest.mark.parametrize("fast", [True, False], ids=["fast_rollout", "EnvBase.rollout"])
 @pytest.mark.parametrize("name", ALL_ENVS)
 def test_nan_action_touches_only_its_env(name, fast):
-    """base.py: a NaN action makes only that env non-finite, the others are bit-identical,
-    and that env is finite again after its reset."""
+    """base.py: a NaN action makes only that env non-finite; it is flagged, terminated (so
+    reset), its observation and reward zeroed; the others are bit-identical."""
     n, steps = 3, 5
 
     def make_env_(seed=4):
@@ -511,9 +511,20 @@ def test_nan_action_touches_only_its_env(name, fast):
     dirty = env.rollout(steps, ReplayPolicy(with_nan), break_when_any_done=False)
     others = [0, 2]
     assert (dirty[others] == clean[others]).all(), "a NaN action changed another env"
-    assert not torch.isfinite(dirty["next", "observation"][1, :2]).all(-1).any(), "NaN env should be non-finite"
-    assert torch.isfinite(dirty["next", "observation"][1, 2:]).all(), "the reset should clear the NaN"
-    assert torch.equal(dirty["next", "done"], clean["next", "done"])
+    # the NaN action's step: env 1's state is NaN, it is flagged and terminated
+    assert any(not torch.isfinite(value[1, 0]).all() for value in dirty["next", "state"].values())
+    assert dirty["next", "nonfinite"][1, 0].item() and dirty["next", "terminated"][1, 0].item()
+    assert not dirty["next", "nonfinite"][others].any() and not clean["next", "nonfinite"].any()
+    # what a learner averages stays finite: the non-finite elements are zeroed
+    assert torch.isfinite(dirty["next", "observation"]).all() and torch.isfinite(dirty["next", "reward"]).all()
+    # the auto-reset restarts it from a finite start state; its own later steps stay finite
+    assert dirty["episode_step"][1, 1].item() == 0
+    for key, value in dirty["state"].items():
+        assert torch.isfinite(value[1, 1:]).all(), f"the reset should clear the NaN in state {key!r}"
+    expected_done = clean["next", "done"].clone()
+    expected_done[1, 0] = True
+    assert torch.equal(dirty["next", "done"][1, :1], expected_done[1, :1])
+    assert torch.equal(dirty["next", "done"][others], clean["next", "done"][others])
     # gradients of the other envs stay finite and equal to the clean run's
     w = obs_weights(env)
     (grad,) = torch.autograd.grad(signal(dirty[others], w).sum(), poisoned)

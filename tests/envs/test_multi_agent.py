@@ -267,8 +267,10 @@ def test_a_nan_action_stays_in_its_env():
     a = actions(3, 1, 2)[:, 0]
     a[1, 0, 0] = float("nan")
     out = env.step(td.set(("agents", "action"), a))["next"]
-    finite = torch.isfinite(out["agents", "reward"]).reshape(3, -1).all(-1)
-    assert finite.tolist() == [True, False, True]
+    # env 1 alone is flagged and terminated; its non-finite rewards are zeroed (the batch stays finite)
+    assert out["nonfinite"].reshape(3).tolist() == [False, True, False]
+    assert out["terminated"].reshape(3).tolist() == [False, True, False]
+    assert torch.isfinite(out["agents", "reward"]).all() and (out["agents", "reward"][1] == 0).any()
 
 
 def test_render_draws_every_fish():

@@ -1,5 +1,5 @@
 """``compile_physics`` with a policy: compiled chunks of policy + physics + resets (and their
-backward) give the eager path's rollout, gradients and generator state.
+backward) give the eager path's rollout, gradients and episode counts.
 
 The reference is the eager lean path on the same env from the same generator states (itself
 checked bit for bit against TorchRL's ``EnvBase.rollout`` in tests/rollout/test_fast_rollout.py), in
@@ -18,10 +18,10 @@ from torchrl_diffenvs.collectors import DiffWindowCollector
 from torchrl_diffenvs.envs.fast_rollout import compile_report
 from torchrl_diffenvs.modules import make_actor
 
-from test_fast_rollout import assert_same_tensordict
+from _env_helpers import assert_same_tensordict
 
 
-# Tests of the loop's bookkeeping (resets, generators, speculation, windows) trace with dynamo and
+# Tests of the loop's bookkeeping (resets, episode counts, windows) trace with dynamo and
 # AOTAutograd but skip inductor's code generation (seconds instead of tens of seconds); the tests
 # of values and gradients under fused kernels use inductor, the default.
 BOOKKEEPING = "aot_eager"
@@ -45,7 +45,8 @@ def staggered_start(env, limit):
 
 def rollout_and_grads(env, actor, steps, start, exploration=ExplorationType.RANDOM, params_grad=False, **kwargs):
     """One rollout from ``start`` (cloned) with torch's generator seeded; its gradients w.r.t. the
-    actor's parameters (and the start's physical parameters), and both generators' states after."""
+    actor's parameters (and the start's physical parameters), torch's generator state and the
+    env's episode counts (which start states its envs draw next) after."""
     torch.manual_seed(0)
     env.set_seed(1)
     td0 = start.clone()
@@ -58,7 +59,7 @@ def rollout_and_grads(env, actor, steps, start, exploration=ExplorationType.RAND
         out = env.rollout(steps, actor, auto_reset=False, tensordict=td0, **kwargs)
     loss = (out["next", "reward"] ** 2).sum() + out["next", "observation"].sum() + out["action"].sum()
     grads = torch.autograd.grad(loss, inputs, allow_unused=True)
-    return out.detach(), grads, td0.exclude("next").detach(), (torch.get_rng_state(), env.rng.get_state())
+    return out.detach(), grads, td0.exclude("next").detach(), (torch.get_rng_state(), env.episodes.clone())
 
 
 def parameters_of(actor, start):
@@ -81,7 +82,7 @@ def compare_paths(env, actor, steps, start, chunk=4, backend="inductor", **kwarg
         torch.testing.assert_close(zeros if got is None else got, zeros if want is None else want,
                                    rtol=1e-10, atol=1e-12)
     assert_same_tensordict(compiled[2], eager[2], exact=False)  # the input tensordict's side effects
-    assert torch.equal(compiled[3][1], eager[3][1]), "env.rng must end where the eager path leaves it"
+    assert torch.equal(compiled[3][1], eager[3][1]), "every env must have drawn as many start states as eagerly"
     assert report["fallback_reason"] is None
     assert any(name.startswith("policy + physics") for name in report["first_call_seconds"]), report
     return eager[0]
@@ -89,7 +90,7 @@ def compare_paths(env, actor, steps, start, chunk=4, backend="inductor", **kwarg
 
 def test_policy_chunks_match_eager_with_resets_inside_chunks():
     """Truncations at different steps inside 4-step chunks (several resets per chunk), the last
-    two steps of 14 eager; values, gradients w.r.t. the policy and env.rng as eagerly."""
+    two steps of 14 eager; values, gradients w.r.t. the policy and episode counts as eagerly."""
     env = make_env("pendulum", num_envs=6, seed=0, max_episode_steps=5, dtype=torch.float64)
     actor = make_actor(env, hidden=(16, 16)).double()
     out = compare_paths(env, actor, 14, staggered_start(env, 5), break_when_any_done=False)
@@ -97,9 +98,9 @@ def test_policy_chunks_match_eager_with_resets_inside_chunks():
     assert len([t for t in done_steps if t < 3]) >= 2, f"want several resets inside the first chunk: {done_steps}"
 
 
-def test_a_chunk_first_run_without_resets_is_run_again_with_the_same_noise():
-    """The first chunk has no reset, so the second is first run without resets; an env's time
-    limit inside it makes the loop run it again with resets, with the same sampled noise."""
+def test_a_chunk_reaching_the_time_limit_draws_start_states_ahead():
+    """The first chunk has no reset; the second reaches the envs' time limit before its last
+    step, so it runs with start states drawn ahead (the same as the eager path's)."""
     env = make_env("pendulum", num_envs=3, seed=0, max_episode_steps=6, dtype=torch.float64)
     actor = make_actor(env, hidden=(16,)).double()
     out = compare_paths(env, actor, 12, env.reset(), backend=BOOKKEEPING, break_when_any_done=False)
@@ -116,6 +117,36 @@ def test_policy_chunks_match_eager_with_termination_and_parameter_gradients():
     out = compare_paths(env, actor, 12, start, chunk=4, backend=BOOKKEEPING, params_grad=True,
                         break_when_any_done=False, exploration=ExplorationType.DETERMINISTIC)
     assert out["next", "terminated"].any() and out["next", "truncated"].any()
+
+
+def test_a_chunk_with_an_unexpected_termination_is_cut_after_it():
+    """A chunk run without start states drawn ahead (none expected: no time limit near, the last
+    chunk had no reset) in which CartPole-v1 terminates before the chunk's last step: the steps
+    up to the termination are kept, the env is reset eagerly and the rollout goes on; the result
+    is the eager path's (deterministic actions: the cut chunk's later steps are dropped)."""
+    env = make_env("CartPole-v1", num_envs=4, seed=0, max_episode_steps=100, dtype=torch.float64)
+    actor = make_actor(env, hidden=(8,)).double()
+    start = env.reset()
+    start["state"].apply_(lambda x: x * 8)  # far off balance: terminations within a few steps
+
+    def rollout():
+        torch.manual_seed(0)
+        env.set_seed(1)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return env.rollout(16, actor, auto_reset=False, tensordict=start.clone(),
+                               break_when_any_done=False).detach(), env.episodes.clone()
+
+    eager, eager_episodes = rollout()
+    compile_physics(env, steps_per_chunk=4, backend=BOOKKEEPING)
+    env.__dict__["_compiled_physics"].expect_resets = False  # the first chunk runs without start states
+    try:
+        compiled, compiled_episodes = rollout()
+    finally:
+        eager_physics(env)
+    first_done = int(eager["next", "terminated"][..., 0].any(0).nonzero()[0])
+    assert first_done < 3, "the first chunk should see a termination before its last step"
+    assert_same_tensordict(compiled, eager, exact=False)
+    assert torch.equal(compiled_episodes, eager_episodes)
 
 
 def test_policy_chunks_match_eager_when_breaking_at_the_first_done():
@@ -158,7 +189,8 @@ def test_collector_windows_match_eager():
 @pytest.mark.parametrize("break_when_any_done", [False, True])
 def test_random_action_chunks_match_eager_with_resets_inside_chunks(break_when_any_done):
     """Without a policy (random actions from torch's generator, drawn eagerly): CartPole-v1
-    terminating and truncating inside 4-step chunks; both generators end where eagerly."""
+    terminating and truncating inside 4-step chunks; torch's generator and the episode counts end
+    where eagerly."""
     env = make_env("CartPole-v1", num_envs=8, seed=0, max_episode_steps=5, dtype=torch.float64)
     results = []
     for compiled in (False, True):
@@ -167,7 +199,7 @@ def test_random_action_chunks_match_eager_with_resets_inside_chunks(break_when_a
         env.set_seed(1)
         start = staggered_start(env, 5)
         out = env.rollout(14, auto_reset=False, tensordict=start, break_when_any_done=break_when_any_done)
-        results.append((out, start.exclude("next"), torch.get_rng_state(), env.rng.get_state()))
+        results.append((out, start.exclude("next"), torch.get_rng_state(), env.episodes.clone()))
     report = compile_report(env)
     eager_physics(env)
     (out_e, start_e, global_e, env_e), (out_c, start_c, global_c, env_c) = results
@@ -180,9 +212,9 @@ def test_random_action_chunks_match_eager_with_resets_inside_chunks(break_when_a
 
 
 def test_policy_chunk_is_one_graph():
-    """The whole chunk (policy, physics, resets) is one graph: no graph break per step. Two
-    variants run here: with resets inside (the first chunk), and without (the second chunk is
-    first tried without, as the first had none, then run again with resets)."""
+    """The whole chunk (policy, physics, resets) is one graph: no graph break per step. Both
+    chunks here run with resets inside (the first expects them, the second reaches the time
+    limit), so one graph."""
     graphs = []
 
     def counting_backend(graph_module, example_inputs):
@@ -194,7 +226,7 @@ def test_policy_chunk_is_one_graph():
     compile_physics(env, steps_per_chunk=4, backend=counting_backend)
     with set_exploration_type(ExplorationType.RANDOM):
         env.rollout(8, actor, break_when_any_done=False)
-    assert len(graphs) == 2  # a graph break would add graphs
+    assert len(graphs) == 1  # a graph break would add graphs
     assert compile_report(env)["fallback_reason"] is None
 
 
@@ -231,7 +263,7 @@ def test_many_envs_in_one_process_all_run_compiled():
         compile_physics(env, steps_per_chunk=4, backend=counting_backend)
         with set_exploration_type(ExplorationType.RANDOM):
             env.rollout(8, make_actor(env, hidden=(8,)), break_when_any_done=False)
-    assert len(graphs) == 10  # two variants per env (see test_policy_chunk_is_one_graph)
+    assert len(graphs) == 5  # one per env (see test_policy_chunk_is_one_graph)
 
 
 def test_compile_failure_falls_back_to_eager_with_the_reason(caplog):

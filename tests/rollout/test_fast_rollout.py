@@ -2,7 +2,7 @@
 
 The reference is TorchRL's own implementation, called as ``EnvBase.rollout(env, ...)`` on the
 same env with the same seeds (torch's global generator for random actions and policy samples, the
-env's generator for resets). Compared: TensorDict types, batch sizes, names, devices, key sets,
+env's per-env start-state streams for resets). Compared: TensorDict types, batch sizes, names, devices, key sets,
 dtypes, values (bitwise) and gradients.
 """
 
@@ -14,7 +14,7 @@ from torchrl.envs import EnvBase, StepCounter, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
-from _env_helpers import single_agent_envs
+from _env_helpers import assert_same_tensordict, single_agent_envs
 
 from torchrl_diffenvs import make_env
 from torchrl_diffenvs.envs.fast_rollout import (
@@ -30,27 +30,6 @@ STEPS = 11
 MAX_EPISODE_STEPS = 4  # short episodes: auto-resets happen inside the rollouts
 
 
-def assert_same_tensordict(got, ref, path="root", exact=True):
-    """Same structure, dtypes and values (bitwise when ``exact``, else to float64 rounding)."""
-    assert type(got) is type(ref), f"{path}: {type(got).__name__} != {type(ref).__name__}"
-    assert got.batch_size == ref.batch_size, f"{path}: batch size {got.batch_size} != {ref.batch_size}"
-    assert got.names == ref.names, f"{path}: names {got.names} != {ref.names}"
-    assert got.device == ref.device, f"{path}: device {got.device} != {ref.device}"
-    assert set(got.keys()) == set(ref.keys()), f"{path}: keys differ by {set(got.keys()) ^ set(ref.keys())}"
-    for key in ref.keys():
-        x, y = got.get(key), ref.get(key)
-        where = f"{path}/{key}"
-        if isinstance(y, torch.Tensor):
-            assert x.shape == y.shape and x.dtype == y.dtype, f"{where}: {x.shape} {x.dtype} != {y.shape} {y.dtype}"
-            assert x.is_contiguous() == y.is_contiguous(), f"{where}: contiguity differs"
-            if exact:
-                assert torch.equal(x, y), f"{where}: values differ, max |diff| {(x.double() - y.double()).abs().max()}"
-            else:
-                torch.testing.assert_close(x, y, rtol=1e-10, atol=1e-12, msg=where)
-        else:
-            assert_same_tensordict(x, y, where, exact)
-
-
 def both_paths(env, *args, seed=0, prepare=None, **kwargs):
     """(fast path, EnvBase.rollout) from identical generator states; ``prepare()`` builds fresh inputs."""
     results, after = [], []
@@ -59,9 +38,9 @@ def both_paths(env, *args, seed=0, prepare=None, **kwargs):
         env.set_seed(seed + 1)
         extra = prepare() if prepare is not None else {}
         results.append(path(env, *args, **kwargs, **extra))
-        # both leave torch's and the env's generators in the same state
-        after.append((torch.rand(4), env.uniform(0, 1, 4)))
-    assert torch.equal(after[0][0], after[1][0]) and torch.equal(after[0][1], after[1][1])
+        # both leave torch's generator, the env's and its start-state streams in the same state
+        after.append((torch.rand(4), env.uniform(0, 1, 4), env.episodes.clone()))
+    assert all(torch.equal(a, b) for a, b in zip(*after))
     return results
 
 
@@ -260,7 +239,8 @@ def test_plain_module_policy_and_trust_policy():
     env = make_fast_env("mountaincar")
 
     class Policy(nn.Module):
-        def forward(self, observation, state, params, episode_step):
+        # TorchRL wraps a plain module with every observation-spec entry as an argument
+        def forward(self, observation, state, params, episode_step, nonfinite):
             return torch.tanh(observation.sum(-1, keepdim=True) + episode_step.unsqueeze(-1))
 
     got, ref = both_paths(env, 7, Policy(), break_when_any_done=False)

@@ -4,7 +4,7 @@ Each task registers itself in its own file (``@register_env(...)`` above its cla
 the task modules here is what makes them known to :func:`make_env`."""
 from .base import DiffEnv
 from .cartpole import CartPoleEnv
-from .fast_rollout import compile_physics, eager_physics
+from .rollout import compile_physics, eager_physics
 from .gym_classic import CartPoleV1Env, MountainCarContinuousV0Env, PendulumV1Env
 from .mountaincar import MountainCarEnv
 from .multi_agent import MultiAgentDiffEnv, is_multi_agent

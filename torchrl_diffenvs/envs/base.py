@@ -12,6 +12,7 @@ TensorDict layout (``N = num_envs``)::
     "action"                 [N, act_dim]
     ("next", "reward")       [N, 1]
     ("next", "terminated" | "truncated" | "done")   [N, 1] bool
+    "nonfinite"              [N, 1] bool    the step left this env's state or reward NaN/inf
 
 Keeping the state apart from the observation matters: an ObservationNorm (or any transform) on
 "observation" can never feed its output back into the dynamics. A multi-agent task
@@ -21,6 +22,7 @@ lays them out).
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Mapping
 
@@ -29,7 +31,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from .fast_rollout import fast_rollout, fast_rollout_unsupported
+from .rollout import fast_rollout, fast_rollout_unsupported
+from .rollout.step import physics_step
+from .streams import EnvGenerator, StartDraw
 
 __all__ = ["DiffEnv"]
 
@@ -43,7 +47,7 @@ class DiffEnv(EnvBase):
 
     * ``name`` (str), ``action_dim`` (int) and ``default_params`` (dict of floats or lists);
     * ``initial_state(params, n) -> dict[str, Tensor]``: samples ``n`` start states with
-      :meth:`uniform` (so seeding works);
+      :meth:`uniform` / :meth:`normal` (so seeding works: see "Start states" below);
     * ``transition(state, action, params) -> (next_state, reward, terminated)``: one step, pure
       tensor code; ``reward`` is ``[N]``, ``terminated`` a ``[N]`` bool tensor or ``None``;
     * ``observation(state, params) -> Tensor [N, obs_dim]``.
@@ -57,9 +61,21 @@ class DiffEnv(EnvBase):
     Gymnasium-compatible tasks) the action is clipped as Gymnasium does, which zeroes the
     gradient outside the bounds.
 
-    Non-finite actions: every operation is elementwise over the batch, so a NaN/inf action of env
-    ``i`` can only make env ``i``'s state, observation and reward non-finite; the other envs of
-    the batch are never touched. That env keeps non-finite values until it is reset.
+    Start states: when the env resets, every number :meth:`uniform` and :meth:`normal` return
+    inside ``initial_state`` comes from env ``i``'s own random stream, a hash of (seed, ``i``,
+    ``i``'s episode count, draw number): env ``i``'s start states are the same whatever the batch
+    size and however often the other envs reset (:mod:`~torchrl_diffenvs.envs.streams`).
+    :attr:`episodes` holds the counts (saved and restored with ``env.rng``'s state);
+    :meth:`set_seed` sets them back to zero.
+
+    Non-finite envs: every operation is elementwise over the batch, so a NaN/inf action or
+    parameter of env ``i`` can only make env ``i``'s values non-finite. After each step the base
+    class flags such an env in ``"nonfinite"`` (``[N, 1]`` bool), marks it ``terminated`` (an
+    auto-reset restarts it; a NaN state never stays) and replaces the non-finite elements of its
+    ``"observation"`` and ``"reward"`` by ``0`` so that batch means stay finite; its ``"state"``
+    keeps the NaN/inf values (see :func:`~torchrl_diffenvs.envs.rollout.step.physics_step`). The
+    other envs' values and gradients are unchanged; the flagged env's own gradients may be NaN,
+    so learners mask flagged envs out of their losses.
 
     Args:
         num_envs: number of environments simulated in one batch (``>= 1``).
@@ -81,6 +97,9 @@ class DiffEnv(EnvBase):
 
     batch_locked = True
     _supports_set_state = True
+    #: state entries that are readings of the last step (as a MuJoCo task's contact force), not
+    #: inputs of the next: ``reset(td, set_state=True)`` starts a missing one at 0
+    reading_state_keys: tuple[str, ...] = ()
     _USE_DEFAULT = object()
 
     # ------------------------------------------------------------------ physics (subclasses)
@@ -176,7 +195,10 @@ class DiffEnv(EnvBase):
             episode_step=Unbounded(shape=(n,), dtype=torch.int64, device=self.device),
         )
         observation, action, reward = self._policy_specs()
-        self.observation_spec = Composite(**observation, **carried, shape=(n,), device=self.device)
+        # "nonfinite": the step left the env's state or reward NaN/inf (see physics_step)
+        nonfinite = Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device)
+        self.observation_spec = Composite(**observation, **carried, nonfinite=nonfinite, shape=(n,),
+                                          device=self.device)
         # The env is stateless: everything needed to step it travels in the TensorDict.
         self.state_spec = Composite(carried, shape=(n,), device=self.device).clone()
         self.action_spec = action
@@ -210,16 +232,82 @@ class DiffEnv(EnvBase):
 
     # ------------------------------------------------------------------ helpers for tasks
     def uniform(self, low: float, high: float, *shape: int) -> torch.Tensor:
-        """``U[low, high]`` samples of shape ``shape`` from this env's seeded generator."""
-        sample = torch.rand(shape, generator=self.rng, device=self.device, dtype=self.float_dtype)
+        """``U[low, high)`` samples of shape ``shape`` (``[n, ...]``) for ``initial_state``.
+
+        During a reset (:meth:`start_states`) row ``i`` comes from env ``i``'s own random stream;
+        called anywhere else (e.g. ``initial_state`` called directly), from the seeded
+        generator :attr:`rng`.
+        """
+        draw = self.__dict__.get("_start_draw")
+        if draw is None:
+            sample = torch.rand(shape, generator=self.rng, device=self.device, dtype=self.float_dtype)
+        else:
+            sample = draw.uniform(shape, self.float_dtype)
         return sample * (high - low) + low
+
+    def normal(self, *shape: int) -> torch.Tensor:
+        """Standard normal samples of shape ``shape`` (``[n, ...]``), from the same streams as :meth:`uniform`."""
+        draw = self.__dict__.get("_start_draw")
+        if draw is None:
+            return torch.randn(shape, generator=self.rng, device=self.device, dtype=self.float_dtype)
+        return draw.normal(shape, self.float_dtype)
+
+    @contextlib.contextmanager
+    def redraws(self):
+        """Wraps a rejection-sampling loop in ``initial_state``: its draws come from numbers of
+        their own, so the draws after the loop are the same whatever number of rounds the batch
+        needed (an env's own rounds use its own stream)::
+
+            goal = self.uniform(-0.2, 0.2, n, 2)
+            with self.redraws():
+                while (reject := goal.norm(dim=-1) >= 0.2).any():
+                    goal = torch.where(reject.unsqueeze(-1), self.uniform(-0.2, 0.2, n, 2), goal)
+        """
+        draw = self.__dict__.get("_start_draw")
+        if draw is None:
+            yield
+            return
+        main = draw.calls
+        draw.calls = (main + 1) << 20  # a range of stream positions no main draw reaches
+        try:
+            yield
+        finally:
+            draw.calls = main
+
+    @property
+    def episodes(self) -> torch.Tensor:
+        """``[N]`` int64: how many start states each env has drawn since the last :meth:`set_seed`
+        (env ``i``'s next start state is the one of episode ``episodes[i]`` of its stream)."""
+        return self.rng.episodes
+
+    @episodes.setter
+    def episodes(self, value: torch.Tensor) -> None:
+        value = torch.as_tensor(value, dtype=torch.int64, device=self.device)
+        if value.shape != (self.num_envs,) or bool((value < 0).any()):
+            raise ValueError(f"{self.name}: episodes must be {self.num_envs} non-negative integers, got {value}")
+        self.rng.episodes = value.clone()
+
+    def start_states(self, params, episodes: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """``initial_state`` for every env, env ``i`` at episode ``episodes[i]`` of its own stream
+        (default: :attr:`episodes`, the next ones). Pure: advances no counter (``_reset`` does)."""
+        episodes = self.episodes if episodes is None else episodes
+        # hash as many words up front as the last call used (one numpy hash instead of one per draw)
+        draw = StartDraw(self.rng.key, self._env_index, episodes, self.__dict__.get("_start_words", 0))
+        self.__dict__["_start_draw"] = draw
+        try:
+            return self.initial_state(params, self.num_envs)
+        finally:
+            self.__dict__["_start_draw"] = None
+            self.__dict__["_start_words"] = draw.used
 
     def _set_seed(self, seed: int | None) -> None:
         # EnvBase.set_seed(seed=None) is valid TorchRL API: like the constructor's seed=None,
         # draw a seed from torch's global RNG (int(None) used to raise a TypeError here).
         if seed is None:
             seed = int(torch.randint(0, 2**62, (), dtype=torch.int64).item())
-        self.rng = torch.Generator(device=self.device).manual_seed(int(seed))
+        # env.rng also holds the episode counts of the start states' per-env streams (see EnvGenerator)
+        self.rng = EnvGenerator(self.device, self.num_envs, int(seed))
+        self.__dict__["_env_index"] = torch.arange(self.num_envs, dtype=torch.int64, device=self.device)
 
     # ------------------------------------------------------------------ TorchRL plumbing
     def _check_action(self, action: torch.Tensor | None) -> None:
@@ -271,19 +359,24 @@ class DiffEnv(EnvBase):
             return torch.zeros_like(terminated)
         return (episode_step >= self.max_episode_steps) & ~terminated
 
-    def _output(self, state, params, episode_step, reward=None, terminated=None) -> TensorDict:
+    def _output(self, state, params, episode_step, reward=None, terminated=None, nonfinite=None,
+                observation=None) -> TensorDict:
         n = self.num_envs
         if terminated is None:
             terminated = torch.zeros(n, dtype=torch.bool, device=self.device)
+        if nonfinite is None:
+            nonfinite = torch.zeros(n, dtype=torch.bool, device=self.device)
         truncated = self._truncated(episode_step, terminated)
         out = {
-            **self._policy_entries(self.observation(state, params), reward),
+            **self._policy_entries(self.observation(state, params) if observation is None else observation,
+                                   reward),
             "state": TensorDict(dict(state), batch_size=[n]),
             "params": params,
             "episode_step": episode_step,
             "terminated": terminated.unsqueeze(-1),
             "truncated": truncated.unsqueeze(-1),
             "done": (terminated | truncated).unsqueeze(-1),
+            "nonfinite": nonfinite.unsqueeze(-1),
         }
         return TensorDict(out, batch_size=[n], device=self.device)
 
@@ -299,8 +392,9 @@ class DiffEnv(EnvBase):
                 f"{self.name}: env.step needs the 'state', 'params' and 'episode_step' entries (as "
                 f"returned by env.reset() or a previous step); got keys {sorted(tensordict.keys())}"
             )
-        next_state, reward, terminated = self.transition(state, action, params)
-        out = self._output(next_state, params, episode_step + 1, reward, terminated)
+        nxt = physics_step(self, state, params, episode_step, action)
+        out = self._output(nxt["state"], params, nxt["episode_step"], nxt["reward"], nxt["terminated"],
+                           nxt["nonfinite"], nxt["observation"])
         self._remember_for_render(out)
         return out
 
@@ -308,7 +402,9 @@ class DiffEnv(EnvBase):
         """Fresh start states; ``reset(td, set_state=True)`` starts from ``td["state"]`` instead.
 
         Params come from ``td["params"]`` when given, else from ``env.params``. During auto-resets
-        TorchRL passes only the ``"_reset"`` mask, so reset envs take ``env.params``.
+        TorchRL passes only the ``"_reset"`` mask, so reset envs take ``env.params``. Start states
+        are drawn for every env (TorchRL keeps those of the envs in ``"_reset"``); only the reset
+        envs' episode counts advance, so the others' streams are untouched.
         """
         given = tensordict if tensordict is not None else TensorDict(batch_size=self.batch_size)
         params = given.get("params", None)
@@ -317,9 +413,16 @@ class DiffEnv(EnvBase):
             if "state" not in given.keys():
                 raise KeyError(f"{self.name}: reset(set_state=True) needs a 'state' entry in the TensorDict")
             state = given.get("state").copy()
+            for key in self.reading_state_keys:  # readings of the last step, not inputs: 0 when not given
+                if key not in state.keys():
+                    spec = self.state_spec["state", key]
+                    state.set(key, torch.zeros(spec.shape, dtype=spec.dtype, device=self.device))
             self._check_state(state)
         else:
-            state = self.initial_state(params, self.num_envs)
+            state = self.start_states(params)
+            reset = given.get("_reset", None)
+            advance = 1 if reset is None else reset.reshape(self.num_envs).to(torch.int64)
+            self.rng.episodes = self.episodes + advance
         episode_step = torch.zeros(self.num_envs, dtype=torch.int64, device=self.device)
         out = self._output(state, params, episode_step)
         self._remember_for_render(out, reset_mask=given.get("_reset", None))
@@ -337,7 +440,7 @@ class DiffEnv(EnvBase):
     def rollout(self, max_steps: int, policy=None, callback=None, **kwargs) -> TensorDictBase:
         """``EnvBase.rollout`` (same arguments, same result), through a lean loop when possible.
 
-        The lean loop (:mod:`torchrl_diffenvs.envs.fast_rollout`) steps the pure physics on plain
+        The lean loop (:mod:`torchrl_diffenvs.envs.rollout`) steps the pure physics on plain
         tensors and builds the output TensorDict once; it is taken unless a ``callback`` or an
         argument it does not reproduce is given (see ``fast_rollout_unsupported``).
         ``TransformedEnv`` never calls this method: it steps the base env itself.

@@ -62,14 +62,15 @@ def redraw_near(env: DiffEnv, points: torch.Tensor, anchors, clearance: float, e
     anchors (``exclude_self`` then skips each point's distance to itself: ``M == K``).
     """
     n, k = points.shape[:2]
-    for _ in range(max_redraws):
-        distance = (points.unsqueeze(-2) - anchors(points).unsqueeze(-3)).norm(dim=-1)  # [n, K, M]
-        if exclude_self:
-            distance = distance + torch.eye(k, dtype=distance.dtype, device=distance.device) * clearance
-        too_close = (distance < clearance).any(-1)
-        if not too_close.any():
-            break
-        points = torch.where(too_close.unsqueeze(-1), env.uniform(-1.0, 1.0, n, k, 2), points)
+    with env.redraws():  # per-env redraws: the later draws do not depend on the batch's rounds
+        for _ in range(max_redraws):
+            distance = (points.unsqueeze(-2) - anchors(points).unsqueeze(-3)).norm(dim=-1)  # [n, K, M]
+            if exclude_self:
+                distance = distance + torch.eye(k, dtype=distance.dtype, device=distance.device) * clearance
+            too_close = (distance < clearance).any(-1)
+            if not too_close.any():
+                break
+            points = torch.where(too_close.unsqueeze(-1), env.uniform(-1.0, 1.0, n, k, 2), points)
     return points
 
 

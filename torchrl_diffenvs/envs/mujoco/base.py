@@ -95,6 +95,8 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         dtype = kwargs.get("dtype", torch.float32)
         device = torch.device(kwargs.get("device") or "cpu")
         self.tree = RigidBodyTree.from_model(model, dtype=dtype, device=device)
+        if self.tree.contact_body.numel():
+            self.reading_state_keys = ("contact_force",)  # see reports_contact_force
         kinematics_at_qpos0(self.tree)  # kept on the tree: computed here, not inside a compiled step
         defaults = dict(default_params(model))
         if self.tree.contact_body.numel():
@@ -105,10 +107,6 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         super().__init__(num_envs, **kwargs)
 
     # ------------------------------------------------------------------ helpers for tasks
-    def normal(self, *shape: int) -> torch.Tensor:
-        """Standard normal samples from this env's seeded generator."""
-        return torch.randn(shape, generator=self.rng, device=self.device, dtype=self.float_dtype)
-
     @property
     def reports_contact_force(self) -> bool:
         """True for models with ground contact: their state carries ``"contact_force"`` ``[N]``,
@@ -126,18 +124,6 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         if result is None:
             return {"contact_force": torch.zeros(n, dtype=self.float_dtype, device=self.device)}
         return {"contact_force": result.contact_force.detach()}
-
-    def _reset(self, tensordict=None, **kwargs):
-        # reset(td, set_state=True) from MuJoCo's qpos/qvel alone: the contact force is a reading, not
-        # a state anyone sets, so a missing one starts at 0
-        if kwargs.get("set_state") and tensordict is not None and self.reports_contact_force:
-            state = tensordict.get("state", None)
-            if state is not None and "contact_force" not in state.keys():
-                tensordict = tensordict.copy()
-                state = state.copy()
-                state.set("contact_force", torch.zeros(state.batch_size, dtype=self.float_dtype, device=self.device))
-                tensordict.set("state", state)
-        return super()._reset(tensordict, **kwargs)
 
     def init_qpos(self, n: int) -> torch.Tensor:
         """MuJoCo's ``qpos0`` (Gymnasium's ``init_qpos``) for ``n`` envs."""

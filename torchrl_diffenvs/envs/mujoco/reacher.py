@@ -33,11 +33,12 @@ class ReacherV5Env(MuJoCoModelEnv):
     def initial_state(self, params, n):
         qpos = self.init_qpos(n) + self.uniform(-0.1, 0.1, n, self.model.nq)
         goal = self.uniform(-0.2, 0.2, n, 2)
-        while True:  # Gymnasium's rejection sampling of a goal inside the disc of radius 0.2
-            reject = goal.norm(dim=-1) >= 0.2
-            if not reject.any():
-                break
-            goal = torch.where(reject.unsqueeze(-1), self.uniform(-0.2, 0.2, n, 2), goal)
+        with self.redraws():  # per-env redraws: the later draws do not depend on the batch's rounds
+            while True:  # Gymnasium's rejection sampling of a goal inside the disc of radius 0.2
+                reject = goal.norm(dim=-1) >= 0.2
+                if not reject.any():
+                    break
+                goal = torch.where(reject.unsqueeze(-1), self.uniform(-0.2, 0.2, n, 2), goal)
         qpos = torch.cat([qpos[:, :-2], goal], dim=-1)
         qvel = torch.cat([self.uniform(-0.005, 0.005, n, self.model.nv - 2), qpos.new_zeros(n, 2)], dim=-1)
         return {"qpos": qpos, "qvel": qvel, "fingertip_to_target": self._fingertip_to_target(qpos)}

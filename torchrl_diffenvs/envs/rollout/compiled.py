@@ -1,0 +1,200 @@
+"""Opt-in ``torch.compile`` of rollouts: :func:`compile_physics` runs ``K``-step chunks of the
+lean loop (policy, :func:`~.step.physics_step`, :func:`~.step.merge_reset`) as one compiled function."""
+from __future__ import annotations
+
+import itertools
+import types
+import weakref
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDict
+from torchrl.envs import EnvBase
+
+from .step import ENV_KEYS, FLAG_KEYS, merge_reset, physics_step
+
+__all__ = ["chunk_inputs", "chunk_steps", "compile_physics", "compile_report", "eager_physics"]
+
+
+def chunk_steps(env: EnvBase, policy, chunk: int, root: dict, extras: dict, actions: list | None,
+                fresh: dict | None) -> tuple[list[tuple], torch.Tensor | None]:
+    """``K`` steps of the lean loop on plain tensors: what ``torch.compile`` traces.
+
+    Each step: the action (from ``policy``, a TensorDict module called on the step's entries, or
+    the given ``actions[j]``), :func:`~.step.physics_step`, and, when ``fresh`` start states are
+    given, :func:`~.step.merge_reset` of the envs that are done before the chunk's last step
+    (the merge at the last step is the caller's). ``fresh`` holds ``K - 1`` start states per env
+    (``[K - 1, N, ...]``, those of its next ``K - 1`` episodes) and env ``i``'s ``r``-th reset in
+    the chunk takes the ``r``-th: the start states of the eager loop.
+
+    Returns ``[(policy outputs, "next" entries, (merged root, extras) or None), ...]`` and the number of
+    resets of each env inside the chunk (``None`` without ``fresh``).
+    """
+    steps = []
+    episode_step = root["episode_step"]
+    false = torch.zeros(episode_step.shape, dtype=torch.bool, device=episode_step.device)
+    flags = {key: false.unsqueeze(-1) for key in FLAG_KEYS}  # the TorchRL layout: [N, 1]
+    resets = envs = None
+    if fresh is not None:
+        resets = torch.zeros_like(episode_step)
+        envs = torch.arange(episode_step.shape[0], device=episode_step.device)
+    for j in range(chunk):
+        if policy is None:
+            out = {"action": actions[j]}
+        else:
+            entries = {key: value for key, value in root.items() if key not in FLAG_KEYS}
+            td = policy(TensorDict({**entries, **flags, **extras}, batch_size=false.shape, device=false.device))
+            out = {key: td.get(key) for key in td.keys() if key not in ENV_KEYS}
+        nxt = physics_step(env, root["state"], root["params"], root["episode_step"], out["action"])
+        merged = None
+        if fresh is not None and j < chunk - 1:
+            start = {"observation": fresh["observation"][resets, envs],
+                     "state": {key: value[resets, envs] for key, value in fresh["state"].items()}}
+            merged, extras = merge_reset(nxt["done"], nxt, start, out, root["params"], fresh.get("params"))
+            resets = resets + nxt["done"].to(resets.dtype)
+            root = merged
+        else:
+            root = {"observation": nxt["observation"], "state": nxt["state"], "params": root["params"],
+                    "episode_step": nxt["episode_step"]}
+            extras = out
+        steps.append((out, nxt, None if merged is None else (merged, extras)))
+    return steps, resets
+
+
+def chunk_inputs(root: dict) -> dict:
+    """The root entries a compiled chunk takes: no done flags (all ``False`` at a chunk's start),
+    every tensor contiguous, and with grad on, the floating-point state and observation as
+    tensors that require grad.
+
+    Compiled code is specialised on strides and ``requires_grad``: a window continues from
+    slices of the previous window's output (strided) and from detached tensors, while its later
+    chunks get contiguous, differentiable ones; without this every window would alternate
+    between two compiled functions. A detached input becomes a fresh leaf with the same values
+    (its gradient is computed and dropped: an ``[N, d]`` tensor per chunk).
+    """
+    grad = torch.is_grad_enabled()
+
+    def prepared(value, differentiable: bool):
+        value = value.contiguous()
+        if grad and differentiable and value.is_floating_point() and not value.requires_grad:
+            value = value.detach().requires_grad_(True)
+        return value
+
+    return {"observation": prepared(root["observation"], True),
+            "state": {key: prepared(value, True) for key, value in root["state"].items()},
+            "params": {key: prepared(value, False) for key, value in root["params"].items()},
+            "episode_step": root["episode_step"].contiguous()}
+
+
+class CompiledPhysics:
+    """The ``torch.compile``'d chunk functions of one env and what its rollouts learned."""
+
+    def __init__(self, env: EnvBase, steps_per_chunk: int, compile_kwargs: dict):
+        self.steps_per_chunk = steps_per_chunk
+        self.compile_kwargs = {"dynamic": False, **compile_kwargs}
+        self.env_ref = weakref.ref(env)  # the env holds this object: no reference cycle
+        # policy -> {with_resets: compiled chunk}; without a policy: self.functions
+        self.policy_functions: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+        self.functions: dict = {}
+        self.fallback_reason: str | None = None  # why compiled chunks were given up (then eager)
+        self.first_call_seconds: dict[str, float] = {}  # first call (tracing + compiling + running)
+        self.expect_resets = True  # the last chunk saw an env done before its last step
+
+    def note_first_call(self, what: str, seconds: float) -> None:
+        """Records the duration of the first call of each compiled function (mostly compiling)."""
+        what = f"{what}, {'with' if torch.is_grad_enabled() else 'without'} grad"
+        self.first_call_seconds.setdefault(what, seconds)
+
+    def chunk_function(self, policy, with_resets: bool) -> Callable:
+        """The compiled :func:`chunk_steps` for ``policy`` (one per policy object, or ``None``)."""
+        functions = self.functions if policy is None else self.policy_functions.setdefault(policy, {})
+        fn = functions.get(with_resets)
+        if fn is None:
+            env_ref, steps = self.env_ref, self.steps_per_chunk
+            policy_ref = (lambda: None) if policy is None else weakref.ref(policy)
+
+            def chunk(root, extras, actions, fresh):
+                return chunk_steps(env_ref(), policy_ref(), steps, root, extras, actions, fresh)
+
+            fn = functions[with_resets] = torch.compile(_own_code(chunk), **self.compile_kwargs)
+        return fn
+
+
+_CHUNK_FUNCTIONS = itertools.count()
+
+
+def _own_code(function: Callable) -> Callable:
+    """``function`` with a code object of its own.
+
+    ``torch.compile`` keeps compiled code, and its limit of 8 recompilations, per code object;
+    every env's chunk function is the same closure code, so a process with many envs (a test
+    suite, a benchmark, a sweep of runs) would reach the limit and silently run the rest eagerly.
+    """
+    code = function.__code__.replace(co_name=f"{function.__name__}_{next(_CHUNK_FUNCTIONS)}")
+    return types.FunctionType(code, function.__globals__, code.co_name, function.__defaults__, function.__closure__)
+
+
+def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) -> EnvBase:
+    """Opt-in: ``env.rollout`` runs through ``torch.compile`` in chunks of ``K`` steps; returns ``env``.
+
+    * With a policy (a TensorDict module such as :func:`~torchrl_diffenvs.modules.make_actor`'s,
+      as BPTT, SHAC and evaluation call it): one compiled function per ``K``-step chunk covers
+      the policy forward, the physics, the reward, the done flags and the auto-resets of envs
+      whose episode ends inside the chunk; its backward is compiled too (AOTAutograd), so
+      ``DiffWindowCollector`` windows and their gradients run compiled.
+    * Without a policy (random actions, or ``actions=``): the same chunk function steps the
+      given actions (drawn eagerly, as the eager path draws them), resets included.
+    * Resets inside a chunk use start states drawn ahead (each env's next ``K - 1`` episodes of
+      its own stream, so they are the eager path's). Drawing them costs about a physics step per
+      step, so they are drawn only when an env may reach its time limit inside the chunk or the
+      previous chunk had a reset; a chunk in which an env is done unexpectedly is cut after that
+      step (the eager loop resets the env and goes on).
+    * Steps beyond whole chunks (``max_steps`` not a multiple of ``K``) run eagerly: choose
+      ``K`` dividing the window length.
+
+    The result is that of the eager path up to floating-point rounding (fused kernels may round
+    differently), gradients included, with one exception: random numbers drawn inside compiled
+    code (a stochastic policy's noise) come from inductor's own generator, seeded from torch's
+    global one, so sampled actions differ from the eager path's draws (same distribution), and
+    a cut chunk has drawn noise for steps it did not keep. Compare the two paths with given
+    actions or a deterministic policy.
+
+    Compiling happens at first use and takes seconds to a minute per function on a CPU (one per
+    policy object, grad mode and exploration mode, and again for the backward pass); it pays off
+    for repeated rollouts, mostly at small and medium batch sizes. :func:`compile_report` says
+    how long the first calls took. If ``torch.compile`` fails (no C++ compiler for inductor, an
+    operation it cannot trace), the rollout logs the reason and runs eagerly from there on.
+    ``compile_kwargs`` go to ``torch.compile`` (default ``dynamic=False``). Undo with
+    :func:`eager_physics`. ``EnvBase.rollout`` and ``env.step`` are not affected.
+    """
+    from .loop import fast_rollout_unsupported  # the loop imports this module
+
+    if isinstance(steps_per_chunk, bool) or not isinstance(steps_per_chunk, int) or steps_per_chunk < 1:
+        raise ValueError(f"compile_physics: steps_per_chunk must be a positive integer, got {steps_per_chunk!r}")
+    why_not = fast_rollout_unsupported(env, None, {})
+    if why_not is not None:  # the compiled chunks replace the lean loop: without it nothing would compile
+        raise ValueError(f"compile_physics: {type(env).__name__}'s rollouts cannot take the lean path that the "
+                         f"compiled chunks replace ({why_not}); multi-agent envs roll out through EnvBase.rollout")
+    env.__dict__["_compiled_physics"] = CompiledPhysics(env, steps_per_chunk, compile_kwargs)
+    return env
+
+
+def compile_report(env: EnvBase) -> dict | None:
+    """What :func:`compile_physics` did on ``env`` so far; ``None`` if it is not compiled.
+
+    ``{"steps_per_chunk": K, "first_call_seconds": {function: seconds}, "fallback_reason": str
+    or None}``: the first call of each compiled function (tracing and compiling included; the
+    backward's compilation happens in the first ``backward()`` instead), and why compiled
+    chunks were given up, if they were.
+    """
+    compiled = env.__dict__.get("_compiled_physics")
+    if compiled is None:
+        return None
+    return {"steps_per_chunk": compiled.steps_per_chunk, "first_call_seconds": dict(compiled.first_call_seconds),
+            "fallback_reason": compiled.fallback_reason}
+
+
+def eager_physics(env: EnvBase) -> EnvBase:
+    """Undoes :func:`compile_physics`; returns ``env``."""
+    env.__dict__.pop("_compiled_physics", None)
+    return env

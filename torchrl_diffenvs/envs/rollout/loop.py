@@ -1,0 +1,390 @@
+"""The lean rollout loop: ``EnvBase.rollout`` on plain tensors, eager or in compiled chunks.
+
+Each step is the policy (or a random or given action), :func:`~.step.physics_step` and, where
+an env is done, :func:`~.step.merge_reset` with fresh start states; a compiled chunk
+(:mod:`~.compiled`) runs the same functions for ``K`` steps. The per-step entries are kept in
+lists and stacked once at the end (:mod:`~.output`).
+"""
+from __future__ import annotations
+
+import logging
+import operator
+import time
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+
+from ..._compat import (
+    COMPILE_ERRORS,
+    ENVBASE_STEP_METHODS,
+    has_dynamic_specs,
+    make_compatible_policy,
+    rollout_machinery_in_use,
+)
+from .actions import RandomActions
+from .compiled import chunk_inputs
+from .output import as_tensordict, build_output, entries_of, set_truncated_last_step
+from .step import ENV_KEYS, merge_reset, physics_step
+
+__all__ = ["FAST_ROLLOUT_KWARGS", "fast_rollout", "fast_rollout_unsupported"]
+
+_logger = logging.getLogger(__name__)
+
+_DONE_KEYS = ("terminated", "truncated", "done")
+
+# Keyword arguments of EnvBase.rollout that the lean path implements, with the values it accepts
+# (``None`` = any value). Anything else sends the call to EnvBase.rollout.
+FAST_ROLLOUT_KWARGS: dict[str, tuple | None] = {
+    "auto_reset": None,
+    "break_when_any_done": None,
+    "break_when_all_done": (None, False),
+    "return_contiguous": None,
+    "tensordict": None,
+    "set_truncated": None,
+    "trust_policy": None,
+    "set_state": None,
+    "actions": None,
+    "auto_cast_to_device": (False,),
+    "storing_device": (None,),
+    "out": (None,),
+}
+
+# Methods whose TorchRL / DiffEnv versions the lean loop reimplements: a subclass that overrides
+# one of them gets EnvBase.rollout, which calls the override.
+_REIMPLEMENTED_METHODS = (
+    "_step", "_reset", "step", "reset", "maybe_reset", "step_and_maybe_reset", "rand_action", "any_done", "_output",
+    *ENVBASE_STEP_METHODS,
+)
+
+
+def fast_rollout_unsupported(env: EnvBase, callback: Callable | None, kwargs: Mapping[str, Any]) -> str | None:
+    """Why ``env.rollout(..., callback=callback, **kwargs)`` must take ``EnvBase.rollout``.
+
+    Returns ``None`` when the lean path reproduces the call, else a short reason (useful when
+    debugging a slow rollout: ``fast_rollout_unsupported(env, None, kwargs)``).
+    """
+    if not getattr(env, "use_fast_rollout", True):
+        return "env.use_fast_rollout is False"
+    if callback is not None:
+        return "a callback is given"
+    for key, value in kwargs.items():
+        if key not in FAST_ROLLOUT_KWARGS:
+            return f"unknown keyword argument {key!r}"
+        allowed = FAST_ROLLOUT_KWARGS[key]
+        if allowed is not None and not any(value is a or (a is not None and value == a) for a in allowed):
+            return f"{key}={value!r}"
+    # (a task with its own truncation rule overrides DiffEnv._truncated, which the loop calls)
+    overridden = type(env).overridden_methods(_REIMPLEMENTED_METHODS)
+    if overridden:
+        return f"{type(env).__name__} overrides {overridden[0]}"
+    machinery = rollout_machinery_in_use(env)
+    if machinery is not None:
+        return machinery
+    if env.run_type_checks:
+        return "run_type_checks"
+    if env.action_keys != ["action"] or env.reward_keys != ["reward"] or sorted(env.done_keys) != sorted(_DONE_KEYS):
+        return "non-default action/reward/done keys"
+    td = kwargs.get("tensordict")
+    if td is not None and (not isinstance(td, TensorDict) or "next" in td.keys() or "_step" in td.keys()):
+        return "the input tensordict is not a plain TensorDict without 'next'/'_step' entries"
+    return None
+
+
+def fast_rollout(
+    env: EnvBase,
+    max_steps: int,
+    policy: Callable[[TensorDictBase], TensorDictBase] | None = None,
+    *,
+    auto_reset: bool = True,
+    break_when_any_done: bool | None = None,
+    break_when_all_done: bool | None = None,
+    return_contiguous: bool | None = False,
+    tensordict: TensorDictBase | None = None,
+    set_truncated: bool = False,
+    trust_policy: bool = False,
+    set_state: bool | None = None,
+    actions: Iterable[torch.Tensor] | None = None,
+    auto_cast_to_device: bool = False,
+    storing_device=None,
+    out=None,
+) -> TensorDictBase:
+    """``EnvBase.rollout(env, ...)`` through the lean loop (same arguments, same result).
+
+    Same keys, shapes, dtypes, values and gradients as ``EnvBase.rollout`` for the same env seed
+    and the same actions; random actions (no policy) are drawn from torch's global generator as
+    TorchRL draws them. Call it through ``env.rollout``, which checks
+    :func:`fast_rollout_unsupported` first; calling it directly with an unsupported argument
+    raises ``ValueError``.
+    """
+    reason = fast_rollout_unsupported(
+        env, None,
+        dict(break_when_all_done=break_when_all_done, auto_cast_to_device=auto_cast_to_device,
+             storing_device=storing_device, out=out, tensordict=tensordict),
+    )
+    if reason is not None:
+        raise ValueError(f"fast_rollout cannot reproduce EnvBase.rollout here ({reason}); call env.rollout")
+    if break_when_any_done is None:  # EnvBase's defaults
+        break_when_any_done = not break_when_all_done
+    if return_contiguous is None:
+        return_contiguous = not has_dynamic_specs(env)
+    try:
+        max_steps = operator.index(max_steps)
+    except TypeError:
+        raise TypeError(f"{env.name}: rollout max_steps must be an integer, got {max_steps!r}") from None
+
+    action_source = None
+    if actions is not None:
+        if policy is not None:
+            raise ValueError("Cannot pass both `policy` and `actions` to rollout().")
+        action_source = iter(actions)
+        if hasattr(actions, "__len__"):
+            max_steps = min(max_steps, len(actions))
+    elif policy is not None:
+        policy = make_compatible_policy(policy, env, trust_policy)
+
+    # The first TensorDict comes from TorchRL itself: same reset, same warnings, same in-place
+    # update of a user-given ``tensordict``.
+    if auto_reset:
+        td0 = env.reset(tensordict, set_state=set_state)
+    elif tensordict is None:
+        raise RuntimeError("tensordict must be provided when auto_reset is False")
+    else:
+        td0 = env.maybe_reset(tensordict)
+    if max_steps < 1:  # EnvBase.rollout fails later, stacking an empty list
+        raise ValueError(f"{env.name}: rollout needs max_steps >= 1 (and actions, if given), got {max_steps}")
+    loop = _Loop(env, policy, action_source, max_steps)
+    return loop.run(td0, max_steps, break_when_any_done, return_contiguous, set_truncated)
+
+
+class _Loop:
+    """One rollout: per-step entries in lists, stacked along the time dim at the end."""
+
+    def __init__(self, env: EnvBase, policy, action_source, max_steps: int):
+        self.env = env
+        self.policy = policy
+        if action_source is None and policy is None:
+            action_source = RandomActions(env, max_steps)
+        self.action_source = action_source
+        self.pending: list[torch.Tensor] = []  # actions drawn for a chunk but not stepped yet
+        self.n = env.num_envs
+        self.bs = env.batch_size
+        self.device = env.device
+        self.all_false = torch.zeros(self.n, dtype=torch.bool, device=self.device)
+        self.compiled = env.__dict__.get("_compiled_physics")
+        self.chunk = 1 if self.compiled is None else self.compiled.steps_per_chunk
+
+    # ------------------------------------------------------------------ main loop
+    def run(self, td0: TensorDictBase, max_steps: int, break_when_any_done: bool, return_contiguous: bool,
+            set_truncated: bool) -> TensorDictBase:
+        root = entries_of(td0, self.n)
+        # root entries that are not the env's (a user's extra entries) travel along, as step_mdp does
+        extras = {key: value for key, value in root.items() if key not in ENV_KEYS}
+        root = {key: root[key] for key in ENV_KEYS}
+        # Physical parameters equal to env.params, without gradient: a reset merges them with
+        # env.params, which leaves them as they are (and the same tensors from step to step).
+        env_params = self.env.params
+        self.params_are_env_params = root["params"].keys() == set(env_params.keys()) and all(
+            not value.requires_grad and not env_params[key].requires_grad and torch.equal(value, env_params[key])
+            for key, value in root["params"].items()
+        )
+        roots: list[dict] = []
+        nexts: list[dict] = []
+        t, finished = 0, False
+        chunked = self.chunks_unsupported(extras) is None
+        while not finished:
+            if chunked and max_steps - t >= self.chunk:
+                actions = None if self.policy is not None else [self.next_action() for _ in range(self.chunk)]
+                result = self.run_chunk(td0, root, extras, actions, t, max_steps, break_when_any_done, roots, nexts)
+                if result is not None:
+                    t, finished, root, extras = result
+                    continue
+                chunked = False  # compiling failed (logged): eager from here on
+                self.pending = actions or []
+            if self.policy is not None:
+                # step 0 runs on the input TensorDict itself, as in EnvBase
+                views: dict = {}
+                td = td0 if t == 0 else as_tensordict({**root, **extras}, self.bs, self.device, views)
+                root_t = self.call_policy(td, views)  # what the policy leaves at the root is what TorchRL stores
+                action = root_t["action"]
+            else:
+                action = self.next_action()
+                if t == 0:  # EnvBase writes step 0's action into the input tensordict
+                    td0.set("action", self.first_action(action))
+                root_t = {**root, **extras, "action": action}
+            if not isinstance(self.action_source, RandomActions) or self.policy is not None:  # (ours are valid)
+                self.env._check_action(action)
+            nxt = physics_step(self.env, root_t["state"], root_t["params"], root_t["episode_step"], action,
+                               self.all_false)
+            nxt["params"] = root_t["params"]
+            roots.append(root_t)
+            nexts.append(nxt)
+            t += 1
+            any_done = bool(nxt["done"].any())
+            if t == max_steps or (break_when_any_done and any_done):
+                break
+            # step_mdp: the next root is the "next" entries plus whatever else was at the root
+            root = {key: nxt[key] for key in ENV_KEYS}
+            extras = {key: value for key, value in root_t.items() if key not in ENV_KEYS}
+            if any_done:  # only without break_when_any_done
+                root, extras = self.reset_done(nxt, extras)
+
+        if isinstance(self.action_source, RandomActions):
+            self.action_source.close(unused=len(self.pending))
+        out_td = build_output(roots, nexts, return_contiguous, self.bs, self.device)
+        # EnvBase leaves step 0's "next" in the input tensordict; rendering wants the last output
+        td0.set("next", as_tensordict(nexts[0], self.bs, self.device))
+        remember = getattr(self.env, "_remember_for_render", None)
+        if remember is not None:
+            remember(as_tensordict(nexts[-1], self.bs, self.device))
+        if set_truncated:
+            set_truncated_last_step(out_td)
+        out_td.refine_names(..., "time")
+        return out_td
+
+    def call_policy(self, td: TensorDictBase, views: dict) -> dict:
+        """Runs the policy on a step TensorDict; returns the root entries it leaves."""
+        td.update(self.policy(td))
+        entries = entries_of(td, self.n, views)
+        if "action" not in entries:
+            raise KeyError(f"{self.env.name}: the policy wrote no 'action' entry (keys: {sorted(entries)})")
+        return entries
+
+    def next_action(self) -> torch.Tensor:
+        """The next random or given action (without a policy)."""
+        return self.pending.pop(0) if self.pending else next(self.action_source)
+
+    def first_action(self, action: torch.Tensor) -> torch.Tensor:
+        """What EnvBase leaves as the input tensordict's ``"action"`` without a policy."""
+        return action.clone() if isinstance(self.action_source, RandomActions) else action
+
+    # ------------------------------------------------------------------ resets
+    def starts(self, episodes: torch.Tensor | None = None) -> dict:
+        """Start states of every env (env ``i`` at ``episodes[i]``, default its next episode)."""
+        env = self.env
+        # DiffEnv._reset passes a clone of env.params; initial_state is pure, so env.params will do
+        state = env.start_states(env.params, episodes)
+        return {"observation": env.observation(state, env.params), "state": state}
+
+    def reset_params(self) -> dict | None:
+        """The parameters a reset env takes: ``None`` when they are the ones it has (env.params)."""
+        return None if self.params_are_env_params else dict(self.env.params.items())
+
+    def reset_done(self, nxt: dict, extras: dict) -> tuple[dict, dict]:
+        """``maybe_reset``: the done envs restart from their next start states (:func:`~.step.merge_reset`)."""
+        done = nxt["done"]
+        # without a policy the action is replaced before anyone sees it: no need to zero it
+        keep = {"action": extras["action"]} if self.policy is None and "action" in extras else {}
+        zeroable = {key: value for key, value in extras.items() if key not in keep}
+        root, extras = merge_reset(done, nxt, self.starts(), zeroable, nxt["params"], self.reset_params())
+        self.env.rng.episodes = self.env.episodes + done.to(torch.int64)
+        return root, {**extras, **keep}
+
+    # ------------------------------------------------------------------ compiled chunks
+    def chunks_unsupported(self, extras: dict) -> str | None:
+        """Why the steps cannot run in compiled chunks (``compile_physics``), or ``None``."""
+        compiled = self.compiled
+        if compiled is None:
+            return "no compile_physics"
+        if compiled.fallback_reason is not None:
+            return compiled.fallback_reason
+        if self.policy is None:
+            # the eager loop carries other root entries along (zeroed at resets): not in chunks
+            return None if set(extras) <= {"action"} else "the input tensordict has entries besides the env's"
+        out_keys = getattr(self.policy, "out_keys", None)
+        if not isinstance(self.policy, TensorDictModuleBase) or out_keys is None:
+            return "the policy is not a TensorDict module"
+        if any(not isinstance(key, str) or key in ENV_KEYS for key in out_keys):
+            return f"the policy writes nested keys or the env's own entries ({out_keys})"
+        if any(not isinstance(value, torch.Tensor) for value in extras.values()):
+            return "the input tensordict holds nested entries besides the env's"
+        return None
+
+    def fresh_starts(self) -> dict:
+        """The start states of each env's next ``K - 1`` episodes, ``[K - 1, N, ...]``."""
+        starts = [self.starts(self.env.episodes + r) for r in range(self.chunk - 1)]
+        fresh = {"observation": torch.stack([s["observation"] for s in starts]),
+                 "state": {key: torch.stack([s["state"][key] for s in starts]) for key in starts[0]["state"]}}
+        params = self.reset_params()
+        if params is not None:
+            fresh["params"] = params
+        return fresh
+
+    def limit_within_chunk(self, root: dict) -> bool:
+        """Whether an env may reach its time limit before the chunk's last step."""
+        limit = self.env.max_episode_steps
+        return limit is not None and int(root["episode_step"].max()) + self.chunk - 1 >= limit
+
+    def run_chunk(self, td0: TensorDictBase, root: dict, extras: dict, actions: list | None, t: int, max_steps: int,
+                  break_when_any_done: bool, roots: list, nexts: list) -> tuple | None:
+        """Runs ``K`` steps in one compiled call and books them as the eager loop would.
+
+        Returns ``(t, finished, root, extras)`` after the chunk, or ``None`` when compiling
+        failed: the reason is logged and kept (``compile_report(env)``), nothing was consumed and
+        the rollout goes on eagerly.
+        """
+        env, compiled = self.env, self.compiled
+        # The previous step's outputs (the only extras, usually) are overwritten by the policy and
+        # not read by it: leave them out, so that every chunk has the first chunk's inputs (one compile).
+        policy_keys = set() if self.policy is None else set(self.policy.out_keys) - set(self.policy.in_keys)
+        extras_in = {} if set(extras) <= policy_keys or self.policy is None else {
+            key: value.contiguous() for key, value in extras.items()}
+        if actions is not None:
+            for action in actions:
+                env._check_action(action)
+        actions_in = None if actions is None else [action.contiguous() for action in actions]
+        with_resets = self.chunk > 1 and not break_when_any_done and (
+            compiled.expect_resets or self.limit_within_chunk(root))
+        fresh = self.fresh_starts() if with_resets else None
+        function = compiled.chunk_function(self.policy, with_resets)
+        started = time.perf_counter()
+        try:
+            steps, resets = function(chunk_inputs(root), extras_in, actions_in, fresh)
+        except COMPILE_ERRORS as err:
+            message = " ".join(line.strip() for line in str(err).splitlines()[:3] if line.strip())
+            compiled.fallback_reason = f"torch.compile failed ({type(err).__name__}: {message})"
+            _logger.warning("%s: compiled rollout chunks disabled, running eagerly: %s", env.name,
+                            compiled.fallback_reason)
+            return None
+        what = "physics" if self.policy is None else "policy + physics"
+        compiled.note_first_call(f"{what}, {len(steps)} steps", time.perf_counter() - started)
+        if resets is not None:
+            env.rng.episodes = env.episodes + resets
+        if actions is not None:  # the actions as given (the same tensors as the eager loop stores)
+            steps = [({"action": action}, nxt, merged) for action, (_, nxt, merged) in zip(actions, steps)]
+        env._check_action(steps[0][0]["action"])
+        if t == 0 and actions is not None:  # EnvBase writes step 0's action into the input tensordict
+            td0.set("action", self.first_action(actions[0]))
+        elif t == 0:  # EnvBase runs step 0's policy on the input tensordict itself
+            for key, value in steps[0][0].items():
+                td0.set(key, value)
+        finished, reset_inside = False, False
+        for j, (out, nxt, merged) in enumerate(steps):
+            nxt["params"] = root["params"]
+            roots.append({**root, **extras, **out})
+            nexts.append(nxt)
+            t += 1
+            any_done = bool(nxt["done"].any())
+            if t == max_steps or (break_when_any_done and any_done):
+                finished = True
+                if actions is not None:
+                    self.pending = actions[j + 1:]  # drawn, not stepped
+                break
+            if any_done and merged is not None:  # reset inside the chunk
+                root, extras = merged
+                reset_inside = True
+                continue
+            root = {key: nxt[key] for key in ENV_KEYS}
+            extras = {**extras, **out}
+            if any_done:  # at the chunk's last step, or not expected: the chunk ends here
+                root, extras = self.reset_done(nxt, extras)
+                if j < len(steps) - 1:
+                    reset_inside = True
+                    if actions is not None:
+                        self.pending = actions[j + 1:]
+                    break
+        compiled.expect_resets = reset_inside
+        return t, finished, root, extras

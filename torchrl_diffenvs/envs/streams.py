@@ -1,0 +1,155 @@
+"""Per-env random streams for start states: env ``i``'s ``e``-th start state depends on
+``(seed, i, e)`` only.
+
+A counter-based generator: every random number is a hash (splitmix64) of ``(seed, env index,
+episode count, draw number, element index)``. So env ``i`` gets the same start states whatever
+the batch size, and whatever the other envs do (one env resetting more often never shifts
+another env's later start states). The hashing runs vectorised in numpy on the CPU, where
+unsigned 64-bit arithmetic wraps as the hash needs (a handful of array operations per draw,
+about as cheap as ``torch.rand`` for small batches); the samples then go to the env's device.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+__all__ = ["EnvGenerator", "StartDraw", "seed_key"]
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_S30, _S27, _S31 = np.uint64(30), np.uint64(27), np.uint64(31)
+
+
+def _mix(x: np.ndarray) -> np.ndarray:
+    """splitmix64's finaliser: a bijection of 64-bit words with full avalanche (wrapping arithmetic)."""
+    x = (x ^ (x >> _S30)) * _M1
+    x = (x ^ (x >> _S27)) * _M2
+    return x ^ (x >> _S31)
+
+
+_MASK64 = (1 << 64) - 1
+
+
+def _mix_int(x: int) -> int:
+    """:func:`_mix` of one Python int (no numpy scalar overflow warnings)."""
+    x &= _MASK64
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _MASK64
+    return x ^ (x >> 31)
+
+
+def seed_key(seed: int) -> np.uint64:
+    """The 64-bit key of a seed (any Python int; taken modulo ``2**64``)."""
+    return np.uint64(_mix_int(int(seed) + 0x9E3779B97F4A7C15))
+
+
+class StartDraw:
+    """The random numbers of one ``initial_state`` call for envs ``index`` at episode ``episode``.
+
+    Env ``i``'s stream is a sequence of 64-bit words, word ``p`` a hash of (its key, ``p``);
+    each :meth:`uniform` / :meth:`normal` call takes the next words (``calls`` is the position),
+    the same for every env, so the numbers of a task's ``initial_state`` are, element by
+    element, independent of the batch and of how often the other envs reset.
+
+    ``block``: how many words to hash at once up front (the words the task's previous
+    ``initial_state`` used: one hash of the whole block instead of one per call); a call beyond
+    it is hashed on its own, with the same result.
+    """
+
+    def __init__(self, key: np.uint64, index: torch.Tensor, episode: torch.Tensor, block: int = 0):
+        self.device = index.device
+        index = index.detach().cpu().numpy().astype(np.uint64)
+        episode = episode.detach().cpu().numpy().astype(np.uint64)
+        # (array arithmetic wraps modulo 2**64 silently, as the hash needs)
+        self.env_keys = _mix(_mix(key ^ (index * _GOLDEN)) + episode * _M1)  # [n]
+        self.calls = 0  # the next word's position
+        self.used = 0  # the last position + 1 of the main words (not those of redraws)
+        self.block = None
+        self.block = self._words(0, block) if block > 0 else None
+
+    def _words(self, start: int, count: int) -> np.ndarray:
+        """``[n, count]``: the words at positions ``start ... start + count - 1`` of every env."""
+        if self.block is not None and start + count <= self.block.shape[1]:
+            return self.block[:, start:start + count]
+        position = np.arange(start + 1, start + count + 1, dtype=np.uint64) * _GOLDEN
+        return _mix(self.env_keys[:, None] ^ position[None, :])
+
+    def _bits(self, shape: tuple[int, ...]) -> np.ndarray:
+        """One 64-bit word per element of ``shape`` (``[n, ...]``), from the next draw number."""
+        n = self.env_keys.shape[0]
+        if not shape or shape[0] != n:
+            raise ValueError(
+                f"start-state samplers draw one row per env being reset: the first dim of the shape must be "
+                f"n={n}, got shape {tuple(shape)}"
+            )
+        event = math.prod(shape[1:])
+        bits = self._words(self.calls, event)
+        self.calls += event
+        if self.calls < 1 << 20:  # a main draw (redraws take positions from 2**20 on)
+            self.used = max(self.used, self.calls)
+        return bits.reshape(shape)
+
+    def uniform(self, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+        """``U[0, 1)`` of ``shape``: every value a multiple of ``2**-24`` (float32) or ``2**-53`` (float64)."""
+        bits = self._bits(shape)
+        if dtype == torch.float64:
+            values = (bits >> np.uint64(11)).astype(np.float64) * 2.0**-53
+        else:
+            values = (bits >> np.uint64(40)).astype(np.float32) * np.float32(2.0**-24)
+        return torch.from_numpy(values).to(device=self.device, dtype=dtype)
+
+    def normal(self, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+        """Standard normal samples (Box-Muller on two uniform draws)."""
+        u1, u2 = self.uniform(shape, dtype), self.uniform(shape, dtype)
+        return torch.sqrt(-2.0 * torch.log1p(-u1)) * torch.cos((2 * math.pi) * u2)
+
+
+class EnvGenerator(torch.Generator):
+    """``env.rng``: a ``torch.Generator`` that also holds the env's start-state streams.
+
+    ``key`` (the seed's 64-bit key, :func:`seed_key`) and ``episodes`` (``[N]`` int64, on the
+    env's device: how many start states each env has drawn) say where every env's stream is.
+    :meth:`get_state` appends them to the generator's own state, so everything that saves and
+    restores ``env.rng`` (checkpoints, ``DiffWindowCollector.state_dict``) resumes the start
+    states exactly too; :meth:`set_state` also takes a plain generator state (the streams are
+    then left as they are).
+    """
+
+    def __new__(cls, device, num_envs: int, seed: int):  # torch.Generator takes its arguments in __new__
+        return super().__new__(cls, device)
+
+    def __init__(self, device, num_envs: int, seed: int):
+        self.manual_seed(seed)
+        self.key = seed_key(seed)
+        self.episodes = torch.zeros(num_envs, dtype=torch.int64, device=device)
+
+    def __reduce__(self):  # pickling and deepcopy (torch.Generator's would rebuild a plain Generator)
+        return _rebuild_env_generator, (str(self.device), self.episodes.numel(), self.get_state())
+
+    def __deepcopy__(self, memo):
+        return _rebuild_env_generator(str(self.device), self.episodes.numel(), self.get_state())
+
+    def get_state(self) -> torch.Tensor:
+        counts = self.episodes.detach().cpu()
+        tail = torch.tensor([int(self.key) - (1 << 64 if int(self.key) >= 1 << 63 else 0), counts.numel()],
+                            dtype=torch.int64)
+        return torch.cat([super().get_state(), counts.view(torch.uint8), tail.view(torch.uint8)])
+
+    def set_state(self, new_state: torch.Tensor) -> EnvGenerator:
+        new_state = new_state.detach().cpu()
+        n = self.episodes.numel()
+        own = new_state.numel() - 8 * (n + 2)
+        if own <= 0 or int(new_state[-8:].clone().view(torch.int64)) != n:  # a plain generator state
+            super().set_state(new_state)
+            return self
+        super().set_state(new_state[:own].clone())
+        self.episodes = new_state[own:-16].clone().view(torch.int64).to(self.episodes.device)
+        self.key = np.uint64(int(new_state[-16:-8].clone().view(torch.int64)) & _MASK64)
+        return self
+
+
+def _rebuild_env_generator(device: str, num_envs: int, state: torch.Tensor) -> EnvGenerator:
+    return EnvGenerator(torch.device(device), num_envs, 0).set_state(state)
