@@ -359,6 +359,9 @@ class DiffEnv(EnvBase):
             return torch.zeros_like(terminated)
         return (episode_step >= self.max_episode_steps) & ~terminated
 
+    # the rollout's step compares episode steps directly while a task keeps this rule
+    _truncated.time_limit_rule = True
+
     def _output(self, state, params, episode_step, reward=None, terminated=None, nonfinite=None,
                 observation=None) -> TensorDict:
         n = self.num_envs

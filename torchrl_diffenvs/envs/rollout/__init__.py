@@ -23,7 +23,8 @@ generator as TorchRL draws them. Compiled chunks draw a stochastic policy's nois
 inductor's generator, so the global random stream is not TorchRL's there.
 """
 from .compiled import compile_physics, compile_report, eager_physics
-from .loop import FAST_ROLLOUT_KWARGS, fast_rollout, fast_rollout_unsupported
+from .loop import fast_rollout
+from .support import FAST_ROLLOUT_KWARGS, fast_rollout_unsupported
 from .step import merge_reset, physics_step
 
 __all__ = [

@@ -12,6 +12,7 @@ from tensordict import TensorDict
 from torchrl.envs import EnvBase
 
 from .step import ENV_KEYS, FLAG_KEYS, merge_reset, physics_step
+from .support import fast_rollout_unsupported
 
 __all__ = ["chunk_inputs", "chunk_steps", "compile_physics", "compile_report", "eager_physics"]
 
@@ -167,8 +168,6 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
     ``compile_kwargs`` go to ``torch.compile`` (default ``dynamic=False``). Undo with
     :func:`eager_physics`. ``EnvBase.rollout`` and ``env.step`` are not affected.
     """
-    from .loop import fast_rollout_unsupported  # the loop imports this module
-
     if isinstance(steps_per_chunk, bool) or not isinstance(steps_per_chunk, int) or steps_per_chunk < 1:
         raise ValueError(f"compile_physics: steps_per_chunk must be a positive integer, got {steps_per_chunk!r}")
     why_not = fast_rollout_unsupported(env, None, {})

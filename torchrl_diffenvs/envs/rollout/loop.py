@@ -10,89 +10,27 @@ from __future__ import annotations
 import logging
 import operator
 import time
-from collections.abc import Callable, Iterable, Mapping
-from typing import Any
+from collections.abc import Callable, Iterable
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from ..._compat import (
     COMPILE_ERRORS,
-    ENVBASE_STEP_METHODS,
     has_dynamic_specs,
     make_compatible_policy,
-    rollout_machinery_in_use,
 )
 from .actions import RandomActions
 from .compiled import chunk_inputs
 from .output import as_tensordict, build_output, entries_of, set_truncated_last_step
 from .step import ENV_KEYS, merge_reset, physics_step
+from .support import FAST_ROLLOUT_KWARGS, fast_rollout_unsupported  # noqa: F401  (re-exported)
 
-__all__ = ["FAST_ROLLOUT_KWARGS", "fast_rollout", "fast_rollout_unsupported"]
+__all__ = ["fast_rollout"]
 
 _logger = logging.getLogger(__name__)
-
-_DONE_KEYS = ("terminated", "truncated", "done")
-
-# Keyword arguments of EnvBase.rollout that the lean path implements, with the values it accepts
-# (``None`` = any value). Anything else sends the call to EnvBase.rollout.
-FAST_ROLLOUT_KWARGS: dict[str, tuple | None] = {
-    "auto_reset": None,
-    "break_when_any_done": None,
-    "break_when_all_done": (None, False),
-    "return_contiguous": None,
-    "tensordict": None,
-    "set_truncated": None,
-    "trust_policy": None,
-    "set_state": None,
-    "actions": None,
-    "auto_cast_to_device": (False,),
-    "storing_device": (None,),
-    "out": (None,),
-}
-
-# Methods whose TorchRL / DiffEnv versions the lean loop reimplements: a subclass that overrides
-# one of them gets EnvBase.rollout, which calls the override.
-_REIMPLEMENTED_METHODS = (
-    "_step", "_reset", "step", "reset", "maybe_reset", "step_and_maybe_reset", "rand_action", "any_done", "_output",
-    *ENVBASE_STEP_METHODS,
-)
-
-
-def fast_rollout_unsupported(env: EnvBase, callback: Callable | None, kwargs: Mapping[str, Any]) -> str | None:
-    """Why ``env.rollout(..., callback=callback, **kwargs)`` must take ``EnvBase.rollout``.
-
-    Returns ``None`` when the lean path reproduces the call, else a short reason (useful when
-    debugging a slow rollout: ``fast_rollout_unsupported(env, None, kwargs)``).
-    """
-    if not getattr(env, "use_fast_rollout", True):
-        return "env.use_fast_rollout is False"
-    if callback is not None:
-        return "a callback is given"
-    for key, value in kwargs.items():
-        if key not in FAST_ROLLOUT_KWARGS:
-            return f"unknown keyword argument {key!r}"
-        allowed = FAST_ROLLOUT_KWARGS[key]
-        if allowed is not None and not any(value is a or (a is not None and value == a) for a in allowed):
-            return f"{key}={value!r}"
-    # (a task with its own truncation rule overrides DiffEnv._truncated, which the loop calls)
-    overridden = type(env).overridden_methods(_REIMPLEMENTED_METHODS)
-    if overridden:
-        return f"{type(env).__name__} overrides {overridden[0]}"
-    machinery = rollout_machinery_in_use(env)
-    if machinery is not None:
-        return machinery
-    if env.run_type_checks:
-        return "run_type_checks"
-    if env.action_keys != ["action"] or env.reward_keys != ["reward"] or sorted(env.done_keys) != sorted(_DONE_KEYS):
-        return "non-default action/reward/done keys"
-    td = kwargs.get("tensordict")
-    if td is not None and (not isinstance(td, TensorDict) or "next" in td.keys() or "_step" in td.keys()):
-        return "the input tensordict is not a plain TensorDict without 'next'/'_step' entries"
-    return None
-
 
 def fast_rollout(
     env: EnvBase,
