@@ -88,7 +88,9 @@ def _windows(loss_name):
 def test_loss_and_gradient_equal_those_of_the_finite_envs_alone(loss_name):
     (window, out, grads, collector), (ref_window, ref_out, ref_grads, _) = _windows(loss_name)
     reward = window["next", "reward"].squeeze(-1)
-    assert torch.isnan(reward[BAD, 1:]).all() and torch.isfinite(reward[KEEP]).all()  # the poisoned env is NaN
+    flagged = window["next", "nonfinite"].squeeze(-1)
+    # the poisoned env is flagged by the env, which zeroes its NaN rewards; the others are not
+    assert flagged[BAD, 1:].all() and not flagged[KEEP].any() and (reward[BAD, 1:] == 0).all()
     torch.testing.assert_close(reward[KEEP], ref_window["next", "reward"].squeeze(-1))  # same rollout otherwise
     assert collector.nonfinite.nonzero().flatten().tolist() == [BAD]
     assert window["isolated"][BAD].all() and not window["isolated"][KEEP].any()
@@ -101,8 +103,8 @@ def test_loss_and_gradient_equal_those_of_the_finite_envs_alone(loss_name):
     for grad, ref in zip(grads, ref_grads):
         assert torch.isfinite(grad).all()
         torch.testing.assert_close(grad, ref)
-    # the window keeps what the env produced (the policy read 0 in place of the NaN observations)
-    assert torch.isnan(window["observation"][BAD, 1:]).all()
+    # a flagged env is terminated and restarts: the policy reads its fresh, finite start observations
+    assert torch.isfinite(window["observation"][BAD]).all()
 
 
 def test_the_envs_own_nonfinite_flag_leaves_it_out_of_the_loss():

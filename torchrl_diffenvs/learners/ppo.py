@@ -205,10 +205,13 @@ class PPOLearner(Learner):
         finished, _ = self.tracker.update(data)
         finished = [value for value in finished if math.isfinite(value)]
         data, nonfinite = self.finite_envs(data)
-        # 2. epochs of minibatch steps, advantages recomputed with the current critic
+        # 2. epochs of minibatch steps, advantages recomputed with the current critic; none when
+        # every env is non-finite (the env zeroes their rewards: there is nothing true to learn from)
         sums: dict[str, float] = defaultdict(float)
         updates = 0
-        for _ in range(self.config.epochs):
+        if nonfinite == self.num_envs:
+            self.guard.skip(context=self.nonfinite.describe)
+        for _ in range(self.config.epochs if nonfinite < self.num_envs else 0):
             with torch.no_grad():
                 self.loss.value_estimator(
                     data, params=self.loss.critic_network_params, target_params=self.loss.target_critic_network_params
@@ -239,8 +242,8 @@ class PPOLearner(Learner):
     def finite_envs(self, data):
         """``(data of the finite envs, how many were left out)``: the envs of a batch ``[N, T]``
         whose rewards and network inputs (now and next) are all finite, and that nothing flags as
-        non-finite. With no finite env left, the batch is kept whole (its NaN losses skip the
-        steps and count towards the guard's limit).
+        non-finite. With no finite env left, the batch is kept whole and the iteration makes no
+        update (a skip that counts towards the guard's limit).
 
         With several ranks, every rank keeps the same number of envs (their minibatch steps and
         exchanges must match): a rank with fewer non-finite envs than another also leaves out its

@@ -168,12 +168,15 @@ class SHACLearner(Learner):
         data = window.detach()
         del window, out  # the graph is spent
         flat = data.select(*self.loss.critic_network.in_keys, self.loss.tensor_keys.value_target)
-        if keep.any():  # with no finite env left the NaN losses skip every critic step, as they must
-            flat = flat[keep]
-        flat = flat.reshape(-1)
-        # 4. critic passes over shuffled minibatches
+        if keep.any():
+            flat = flat[keep].reshape(-1)
+        # 4. critic passes over shuffled minibatches; none when every env is non-finite (the env
+        # zeroes their rewards: there is nothing true to fit), each planned step counted as skipped
         critic_losses = []
-        for critic_pass in range(c.critic_passes):
+        if not keep.any():
+            for _ in range(c.critic_passes * c.critic_minibatches):
+                self.critic_guard.skip(context=self.nonfinite.describe)
+        for critic_pass in range(c.critic_passes if keep.any() else 0):
             if critic_pass == 0 or c.critic_shuffle == "every_pass":
                 split = torch.randperm(flat.shape[0]).chunk(c.critic_minibatches)
             for batch in split:
@@ -193,7 +196,7 @@ class SHACLearner(Learner):
         metrics.update({
             "reward": metrics.pop("reward_mean"),
             "value": metrics.pop("value_mean"),
-            "loss_critic": sum(critic_losses) / len(critic_losses),
+            "loss_critic": sum(critic_losses) / len(critic_losses) if critic_losses else float("nan"),
             "grad_norm_actor": actor_info["grad_norm"],
             "skipped_actor": self.actor_guard.skipped,
             "skipped_critic": self.critic_guard.skipped,
