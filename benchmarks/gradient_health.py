@@ -141,7 +141,7 @@ def learners_table(settings) -> list[list[str]]:
             print(" | ".join(row), flush=True)
             headers = ["task", "learner", "env steps per seed", "pre-clip actor grad norm (median)", "max",
                        "skipped updates (all seeds)", "non-finite norms"]
-            C.write_data(settings, "gradient_health_learners", {"learners": C.data_table(
+            C.write_data(settings, "gradient_health_learners", source="gradient_health", tables={"learners": C.data_table(
                 f"Shipped settings: the actor's pre-clip gradient norm over the first {settings.env_steps:,} env steps "
                 f"({settings.seeds} seeds, every iteration)", headers, rows)})
     return rows

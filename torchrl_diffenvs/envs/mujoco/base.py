@@ -57,10 +57,11 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             contact's velocity damping treated implicitly) or ``"rk4"``; ``None`` (default): the
             task's ``default_integrator``. The choice changes how well the step's Jacobian is
             conditioned while a foot sticks (the regularised friction is a stiff damper: RK4's
-            stability bound is exceeded there, implicit Euler has none), not the task: the
-            contact tasks default to ``"euler"`` (closed-loop actor gradients 1000x smaller on
-            Walker2d, 3-4x cheaper steps, the same fidelity to MuJoCo); the docs list each
-            option's numbers.
+            stability bound is exceeded there, implicit Euler has none), not the task: HalfCheetah,
+            Hopper and Walker2d default to ``"euler"`` (closed-loop actor gradients 1000x smaller on
+            Walker2d, 3-4x cheaper steps, the same fidelity to MuJoCo), the Ant to its file's RK4
+            (with Euler a few envs diverged under resonant full-range actions); the docs list
+            each option's numbers.
         substeps: ``k >= 1`` physics steps of ``timestep / k`` for each of MuJoCo's steps (the
             env step ``dt`` is unchanged).
     """
