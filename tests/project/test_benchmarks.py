@@ -83,7 +83,11 @@ def test_time_to_solve_quick(tmp_path):
     ppo = next(r for r in payload["summary"] if r["loss"] == "ppo")
     assert set(ppo["levels"]) == {1.0, 0.95, 0.9}
     assert ppo["levels"][1.0]["reached"] == "1/1" and ppo["levels"][1.0]["time_s"] <= ppo["wall_s"]["max"]
-    assert ppo["levels"][0.9]["return"] <= ppo["levels"][1.0]["return"]
+    # each level is that fraction of the way from the random policy's return to PPO's final one
+    # (a 32-step run may end below the random policy: the levels then fall the other way)
+    random_return, final = ppo["random_return"], ppo["final_return"]["median"]
+    for fraction in (1.0, 0.95, 0.9):
+        assert ppo["levels"][fraction]["return"] == pytest.approx(random_return + fraction * (final - random_return))
 
 
 def test_time_to_solve_variants_and_fixed_levels(tmp_path):
