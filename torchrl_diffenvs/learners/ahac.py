@@ -35,12 +35,12 @@ from ..objectives import AHACLoss, AdaptiveHorizon, GradientGuard, TwinCritic
 from ..objectives._windows import window_contact_force
 from .base import (
     LR_SCHEDULES,
+    ActorCriticCheckpoint,
     ActorNetworkConfig,
     Learner,
     LearnerConfig,
     NetworkConfig,
     checked,
-    load_lr_scheduler,
     lr_scheduler,
 )
 
@@ -97,7 +97,7 @@ def twin_critic_from_config(section: Mapping, env, normalizer: ObservationNormal
     return TwinCritic(critic_from_config(section, env, normalizer), critic_from_config(section, env, normalizer))
 
 
-class TwinCriticLearner(Learner):
+class TwinCriticLearner(ActorCriticCheckpoint, Learner):
     """SHAC's window loop with twin critics and no target critic: what AHAC and SAPO share.
 
     Subclasses give the loss and the optimiser and may override :meth:`_after_actor_step`
@@ -244,38 +244,22 @@ class TwinCriticLearner(Learner):
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
-        return {
-            "iteration": self.iteration,
-            "last_window_steps": self._last_window_steps,
-            "loss": self.loss.state_dict(),  # actor, both critics (normaliser included)
-            "optimizers": [self.actor_optim.state_dict(), self.critic_optim.state_dict()],
-            "schedules": [s.state_dict() for s in self.schedules],
-            "guards": [self.actor_guard.state_dict(), self.critic_guard.state_dict()],
-            "collector": self.collector.state_dict(),
-        }
+        return {**super().state_dict(), "last_window_steps": self._last_window_steps}
 
     def load_state_dict(self, state: dict) -> None:
-        self.iteration = int(state["iteration"])
+        super().load_state_dict(state)  # actor, both critics (normaliser included), optimisers, ...
         self._last_window_steps = int(state["last_window_steps"])
-        self.loss.load_state_dict(state["loss"])
-        for optim, saved in zip((self.actor_optim, self.critic_optim), state["optimizers"], strict=True):
-            optim.load_state_dict(saved)
-        for schedule, saved in zip(self.schedules, state["schedules"], strict=True):
-            load_lr_scheduler(schedule, saved)
-        for guard, saved in zip((self.actor_guard, self.critic_guard), state["guards"], strict=True):
-            guard.load_state_dict(saved)
-        self.collector.load_state_dict(state["collector"])
 
 
 class AHACLearner(TwinCriticLearner):
     """Adaptive-horizon actor-critic.
 
-    Needs an env that writes ``"contact_force"`` (``[N, 1]``, the largest contact normal force
-    at the step's final state) at every step: the MuJoCo contact tasks do; for another env add a
-    transform that writes it. The first window has ``min_horizon`` steps.
+    Needs an env that reports the largest contact normal force of each step: the MuJoCo contact
+    tasks keep it in ``("state", "contact_force")``; for another env add a transform that writes
+    ``"contact_force"`` (``[N, 1]``, newtons). The first window has ``min_horizon`` steps.
 
     Args:
-        env: a batched differentiable single-agent env writing ``"contact_force"``.
+        env: a batched differentiable single-agent env that reports contact forces.
         actor: the policy to train, writing ``"action"``.
         critic: a :class:`~torchrl_diffenvs.objectives.TwinCritic`.
         config: :class:`AHACConfig`.

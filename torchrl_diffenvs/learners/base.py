@@ -18,8 +18,8 @@ from ..distributed import SINGLE_PROCESS, World
 from ..modules import ACTIVATIONS, DISTRIBUTIONS, NETWORK_INITS, actor_from_config
 
 __all__ = [  # checked: re-exported for the learner files
-    "ActorNetworkConfig", "LR_SCHEDULES", "Learner", "LearnerConfig", "NetworkConfig", "checked", "load_lr_scheduler",
-    "lr_scheduler",
+    "ActorCriticCheckpoint", "ActorNetworkConfig", "LR_SCHEDULES", "Learner", "LearnerConfig", "NetworkConfig", "checked",
+    "load_lr_scheduler", "lr_scheduler",
 ]
 
 LR_SCHEDULES = ("linear", "exponential", "constant")
@@ -301,3 +301,31 @@ class Learner(ABC):
 
     def close(self) -> None:
         """Releases collectors (override when there is anything to release)."""
+
+
+class ActorCriticCheckpoint:
+    """Mixin: the checkpoint state of a window learner with an actor and a critic optimiser
+    (SHAC, AHAC, SAPO): ``iteration``, ``loss`` (every network, normaliser included), the two
+    optimisers, the schedules, the two gradient guards and the window collector. Subclasses add
+    their own entries around ``super()``."""
+
+    def state_dict(self) -> dict:
+        return {
+            "iteration": self.iteration,
+            "loss": self.loss.state_dict(),
+            "optimizers": [self.actor_optim.state_dict(), self.critic_optim.state_dict()],
+            "schedules": [s.state_dict() for s in self.schedules],
+            "guards": [self.actor_guard.state_dict(), self.critic_guard.state_dict()],
+            "collector": self.collector.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.iteration = int(state["iteration"])
+        self.loss.load_state_dict(state["loss"])
+        for optim, saved in zip((self.actor_optim, self.critic_optim), state["optimizers"], strict=True):
+            optim.load_state_dict(saved)
+        for schedule, saved in zip(self.schedules, state["schedules"], strict=True):
+            load_lr_scheduler(schedule, saved)
+        for guard, saved in zip((self.actor_guard, self.critic_guard), state["guards"], strict=True):
+            guard.load_state_dict(saved)
+        self.collector.load_state_dict(state["collector"])

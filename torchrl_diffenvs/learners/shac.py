@@ -42,12 +42,12 @@ from ..objectives import GradientGuard, NonFiniteEnvMonitor, SHACLoss
 from ..objectives._windows import window_contact_force
 from .base import (
     LR_SCHEDULES,
+    ActorCriticCheckpoint,
     ActorNetworkConfig,
     Learner,
     LearnerConfig,
     NetworkConfig,
     checked,
-    load_lr_scheduler,
     lr_scheduler,
 )
 
@@ -82,7 +82,7 @@ class SHACConfig(LearnerConfig):
     centralised_critic: bool = checked(False, checks.boolean)
 
 
-class SHACLearner(Learner):
+class SHACLearner(ActorCriticCheckpoint, Learner):
     """Short-horizon actor-critic.
 
     On a multi-agent env one parameter-shared actor acts for every agent; the critic gives one
@@ -212,24 +212,3 @@ class SHACLearner(Learner):
             schedule.step()
         self.iteration += 1
         return metrics
-
-    def state_dict(self) -> dict:
-        return {
-            "iteration": self.iteration,
-            "loss": self.loss.state_dict(),  # actor, critic and target critic (normaliser included)
-            "optimizers": [self.actor_optim.state_dict(), self.critic_optim.state_dict()],
-            "schedules": [s.state_dict() for s in self.schedules],
-            "guards": [self.actor_guard.state_dict(), self.critic_guard.state_dict()],
-            "collector": self.collector.state_dict(),
-        }
-
-    def load_state_dict(self, state: dict) -> None:
-        self.iteration = int(state["iteration"])
-        self.loss.load_state_dict(state["loss"])
-        for optim, saved in zip((self.actor_optim, self.critic_optim), state["optimizers"], strict=True):
-            optim.load_state_dict(saved)
-        for schedule, saved in zip(self.schedules, state["schedules"], strict=True):
-            load_lr_scheduler(schedule, saved)
-        for guard, saved in zip((self.actor_guard, self.critic_guard), state["guards"], strict=True):
-            guard.load_state_dict(saved)
-        self.collector.load_state_dict(state["collector"])
