@@ -24,7 +24,7 @@ def _model(tmp_path, worldbody: str, extra: str = ""):
      "motors on ball and free joints are not supported"),
     (f'<body><joint type="universal"/>{BODY}</body>', "", "supported: hinge, slide, ball, free"),
     (f'<body><joint frictionloss="1"/>{BODY}</body>', "", "frictionloss"),
-    (f'<body><joint/>{BODY}</body>', "<tendon/>", "<tendon>: element not supported"),
+    (f"<body><joint/>{BODY}</body>", "<tendon><spatial/></tendon>", "tendon type not supported"),
 ])
 def test_unsupported_model_parts_raise_naming_them_and_the_file(tmp_path, worldbody, extra, message):
     path = _model(tmp_path, worldbody, extra)

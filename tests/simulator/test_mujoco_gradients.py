@@ -1,14 +1,15 @@
 """Gradients of the MuJoCo-model tasks: gradcheck of one step (contact active), 15-step rollouts
 against central finite differences through contact, finite gradients at deep penetration, at rest
 and at touch-down (float64)."""
+import numpy as np
 import pytest
 import torch
 
 from torchrl_diffenvs.envs import make_env
 
 MUJOCO_TASKS = ["InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", "Swimmer-v5", "HalfCheetah-v5",
-                "Hopper-v5", "Walker2d-v5", "Ant-v5"]
-CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"]
+                "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "HumanoidStandup-v5", "Pusher-v5"]
+CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5"]
 
 
 def height_coordinate(env) -> int:
@@ -27,13 +28,7 @@ def standing_state(env, n, depth=0.0, mid_range=False):
 
     state = env.initial_state(env.params, n)
     if mid_range:
-        model = env.model
-        qpos = state["qpos"].clone()
-        for j in range(model.njnt):
-            if model.limited[j]:
-                a = int(model.joint_qposadr[j])
-                qpos[:, a] = float(model.joint_range[j].mean()) + 0.01 * qpos[:, a]
-        state["qpos"] = qpos
+        state = limits_mid_range(env, state)
     kin = forward_kinematics(env.tree, state["qpos"])
     tree = env.tree
     centre = kin.body_pos[:, tree.contact_body] + (kin.body_rot[:, tree.contact_body] @ tree.contact_local.unsqueeze(-1)).squeeze(-1)
@@ -43,6 +38,18 @@ def standing_state(env, n, depth=0.0, mid_range=False):
     qpos[:, z] = qpos[:, z] - lowest - depth  # rootz (the free joint's z) moves the whole robot
     state["qpos"] = qpos
     return state
+
+
+def limits_mid_range(env, state):
+    """``state`` with every limited joint moved to the middle of its range (the Pusher's arm
+    starts with two joints exactly at a range end, where the limit force has a kink)."""
+    model = env.model
+    qpos = state["qpos"].clone()
+    for j in range(model.njnt):
+        if model.limited[j] and np.isfinite(model.joint_range[j]).all() and model.joint_range[j, 1] - model.joint_range[j, 0] < 5:
+            a = int(model.joint_qposadr[j])
+            qpos[:, a] = float(model.joint_range[j].mean()) + 0.01 * qpos[:, a]
+    return {**state, "qpos": qpos}
 
 
 def step_fn(env, state_keys, param_key=None):
@@ -66,12 +73,12 @@ def step_fn(env, state_keys, param_key=None):
 
 @pytest.mark.parametrize("name", MUJOCO_TASKS)
 def test_gradcheck_one_step(name):
-    n = 1 if name == "Ant-v5" else 2  # the Ant's 8 legs' contacts make its gradcheck the slowest: one env
+    n = 1 if name in ("Ant-v5", "Humanoid-v5", "HumanoidStandup-v5") else 2  # many contacts: the slowest, one env
     env = make_env(name, num_envs=n, dtype=torch.float64, seed=0)
     # contact active; joints mid-range: a limit's active set (which rows push, jointly solved) has
     # kinks in the state (as MuJoCo's), see test_coupled_joint_limits_gradcheck for the limits
     state = standing_state(env, n, depth=0.01, mid_range=True) if name in CONTACT_TASKS else \
-        env.initial_state(env.params, n)
+        limits_mid_range(env, env.initial_state(env.params, n)) if name == "Pusher-v5" else env.initial_state(env.params, n)
     fn, extras = step_fn(env, list(state.keys()), param_key="body_mass")
     extras.update({k: v for k, v in state.items() if k not in ("qpos", "qvel")})
     action = (0.3 * torch.randn(n, env.action_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))
@@ -148,10 +155,12 @@ def test_gradients_finite_at_touchdown_rest_and_deep_penetration(name, depth):
 @pytest.mark.parametrize("name", CONTACT_TASKS)
 def test_long_random_rollouts_stay_finite(name):
     """Random actions in float32 never produce NaN: a full HalfCheetah episode (1000 steps), 300 steps
-    of Hopper and Walker2d (they fall and reset), 150 of the Ant (20 force evaluations per step)."""
+    of Hopper and Walker2d (they fall and reset), 150 of the Ant (20 force evaluations per step) and
+    of the Humanoid (falls and resets)."""
     env = make_env(name, num_envs=16, seed=0, max_episode_steps=1000)
     with torch.no_grad():
-        td = env.rollout({"HalfCheetah-v5": 1000, "Ant-v5": 150}.get(name, 300), break_when_any_done=False)
+        td = env.rollout({"HalfCheetah-v5": 1000, "Ant-v5": 150, "Humanoid-v5": 150}.get(name, 300),
+                         break_when_any_done=False)
     assert torch.isfinite(td["next", "observation"]).all()
     assert torch.isfinite(td["next", "reward"]).all()
 

@@ -18,7 +18,7 @@ from torchrl_diffenvs.articulated.mjcf import quat_to_mat  # noqa: E402
 from torchrl_diffenvs.envs import make_env  # noqa: E402
 
 ASSETS = ["inverted_pendulum.xml", "inverted_double_pendulum.xml", "reacher.xml", "half_cheetah.xml", "hopper.xml",
-          "walker2d_v5.xml", "swimmer.xml", "ant.xml"]
+          "walker2d_v5.xml", "swimmer.xml", "ant.xml", "humanoid.xml", "humanoidstandup.xml", "pusher_v5.xml"]
 
 
 def mj_model(filename):

@@ -1,5 +1,5 @@
-"""Smooth penalty contact between geoms and ground planes, and the velocity damping of its
-forces that the implicit Euler integrator uses."""
+"""Smooth penalty contact between geoms and ground planes and between the geoms of two bodies,
+and the velocity damping of its forces that the implicit Euler integrator uses."""
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -12,7 +12,7 @@ from .kinematics import Kinematics, _tree_sum, body_velocities, generalised_forc
 from .spatial import Params, _cross, _skew
 from .tree import RigidBodyTree
 
-__all__ = ['contact_force', 'body_contact_forces']
+__all__ = ['contact_force', 'body_contact_forces', 'pair_contact_force', 'pair_geometry', 'has_contacts']
 
 
 class _ContactForces(NamedTuple):
@@ -24,6 +24,100 @@ class _ContactForces(NamedTuple):
     damping: torch.Tensor  # [N, 1]
     mu: torch.Tensor  # [N, P]
     slip: torch.Tensor  # [N, P]
+
+
+class _PairForces(NamedTuple):
+    point: torch.Tensor  # [N, K, 3] midway between the two surfaces, relative to kin.origin
+    force: torch.Tensor  # [N, K, 3] on body B (A gets its opposite), world frame
+    normal: torch.Tensor  # [N, K, 3] from A to B
+    normal_force: torch.Tensor  # [N, K]
+    normal_rate: torch.Tensor  # [N, K] the normal velocity damping while pushing
+    tangent_rate: torch.Tensor  # [N, K] the friction's velocity damping
+    jacobian: torch.Tensor  # [N, K, nv, 3] d(B's point velocity - A's) / d(qvel)
+
+
+def has_contacts(tree: RigidBodyTree) -> bool:
+    """Whether the model has any contact (geom-plane points or geom pairs)."""
+    return bool(tree.contact_body.numel() or tree.pair_body.numel())
+
+
+def _closest_points(p1, q1, p2, q2):
+    """The closest points ``(c1, c2)`` of segments ``p1 q1`` and ``p2 q2`` (``[..., 3]``; a segment
+    may be a point), Ericson's clamped solution (Real-Time Collision Detection, 5.1.9)."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e, f = (d1 * d1).sum(-1), (d2 * d2).sum(-1), (d2 * r).sum(-1)
+    b, c = (d1 * d2).sum(-1), (d1 * r).sum(-1)
+    eps = 1e-12
+    point1, point2 = a <= eps, e <= eps
+    safe_a, safe_e = torch.where(point1, torch.ones_like(a), a), torch.where(point2, torch.ones_like(e), e)
+    denom = a * e - b * b
+    parallel = denom <= eps * a * e + 1e-30
+    s = torch.where(parallel, torch.zeros_like(a), torch.clamp((b * f - c * e) / torch.where(parallel, torch.ones_like(denom), denom), 0, 1))
+    t = (b * s + f) / safe_e
+    s = torch.where(t < 0, torch.clamp(-c / safe_a, 0, 1), torch.where(t > 1, torch.clamp((b - c) / safe_a, 0, 1), s))
+    t = torch.clamp(t, 0, 1)
+    # a point against a segment, or two points
+    s = torch.where(point2, torch.clamp(-c / safe_a, 0, 1), s)
+    t = torch.where(point2, torch.zeros_like(t), t)
+    t = torch.where(point1, torch.clamp(f / safe_e, 0, 1), t)
+    s = torch.where(point1, torch.zeros_like(s), s)
+    return p1 + s.unsqueeze(-1) * d1, p2 + t.unsqueeze(-1) * d2
+
+
+def pair_geometry(tree: RigidBodyTree, kin: Kinematics):
+    """``(dist [N, K], normal [N, K, 3], point [N, K, 3])`` of every geom pair: the signed distance
+    between the two surfaces (negative: penetrating), the unit normal from A to B, and the point
+    midway between the surfaces (relative to ``kin.origin``), MuJoCo's contact frame."""
+    rot = kin.body_rot[:, tree.pair_body]  # [N, K, 2, 3, 3]
+    pos = kin.body_pos[:, tree.pair_body] - kin.origin[:, None, None]  # [N, K, 2, 3] about kin.origin
+    ends = pos.unsqueeze(-2) + (rot.unsqueeze(-3) @ tree.pair_segment.unsqueeze(-1)).squeeze(-1)  # [N, K, 2, 2, 3]
+    ca, cb = _closest_points(ends[..., 0, 0, :], ends[..., 0, 1, :], ends[..., 1, 0, :], ends[..., 1, 1, :])
+    gap = cb - ca
+    length = torch.sqrt((gap * gap).sum(-1) + 1e-12)  # smooth where the two core segments cross
+    normal = gap / length.unsqueeze(-1)
+    radius_a, radius_b = tree.pair_radius[:, 0], tree.pair_radius[:, 1]
+    dist = length - radius_a - radius_b
+    return dist, normal, ca + (radius_a + 0.5 * dist).unsqueeze(-1) * normal
+
+
+def _pair_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params) -> _PairForces:
+    """The smooth contact model (see :func:`contact_force`) between the geoms of two bodies: the
+    same normal force and regularised friction on the signed distance of two sphere-swept segments."""
+    dist, normal, point = pair_geometry(tree, kin)
+    # J [N, K, nv, 3]: each dof's velocity of the point, signed +1 for B's dofs and -1 for A's
+    lever = point.unsqueeze(2)  # [N, K, 1, 3]
+    motion = kin.motion.unsqueeze(1)  # [N, 1, nv, 6]
+    jacobian = (_cross(motion[..., :3], lever) + motion[..., 3:]) * tree.pair_dof_sign[..., None]
+    vel = (jacobian * qvel[:, None, :, None]).sum(2)  # B's point velocity relative to A's
+    normal_vel = (vel * normal).sum(-1)
+    tangent_vel = vel - normal_vel.unsqueeze(-1) * normal
+    width = params["contact_width"].unsqueeze(-1)
+    depth = F.softplus(-dist / width) * width
+    touching = torch.sigmoid(-dist / width)
+    stiffness, damping = params["contact_stiffness"].unsqueeze(-1), params["contact_damping"].unsqueeze(-1)
+    normal_force = torch.clamp(stiffness * depth - damping * touching * normal_vel, min=0.0)
+    mu = params["contact_friction"][:, tree.pair_slot]
+    eps = params["friction_velocity"].unsqueeze(-1)
+    slip = torch.sqrt((tangent_vel * tangent_vel).sum(-1) + eps * eps)
+    force = normal_force.unsqueeze(-1) * (normal - (mu / slip).unsqueeze(-1) * tangent_vel)
+    pushing = (normal_force > 0).to(qvel.dtype)
+    return _PairForces(point, force, normal, normal_force, damping * touching * pushing, mu * normal_force / slip,
+                       jacobian)
+
+
+def pair_contact_force(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params, with_damping=False,
+                       contacts: _PairForces | None = None):
+    """``[N, nv]`` generalised force of the contacts between bodies' geoms: ``J^T f`` with ``J`` the
+    Jacobian of B's point velocity relative to A's. ``with_damping=True`` also returns its velocity
+    damping ``J^T (a n n^T + b (I - n n^T)) J`` ``[N, nv, nv]`` (see :func:`contact_force`)."""
+    c = _pair_forces(tree, kin, qvel, params) if contacts is None else contacts
+    generalised = (c.jacobian * c.force.unsqueeze(2)).sum((1, 3))
+    if not with_damping:
+        return generalised
+    u = (c.jacobian * c.normal.unsqueeze(2)).sum(-1)  # [N, K, nv]: J^T n
+    jtj = torch.einsum("nkdi,nkei,nk->nde", c.jacobian, c.jacobian, c.tangent_rate)
+    damping_matrix = jtj + torch.einsum("nkd,nke,nk->nde", u, u, c.normal_rate - c.tangent_rate)
+    return generalised, damping_matrix
 
 
 def _contact_points_and_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params) -> _ContactForces:
@@ -51,15 +145,21 @@ def _contact_points_and_forces(tree: RigidBodyTree, kin: Kinematics, qvel, param
 
 
 def body_contact_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params, about: torch.Tensor) -> torch.Tensor:
-    """``[N, nbody, 6]``: the ground's contact wrench on every body (torque, force; world frame),
+    """``[N, nbody, 6]``: the contact wrench on every body (torque, force; world frame) from the
+    ground and from other bodies,
     the torque taken about the point ``about [N, 3]`` (MuJoCo's ``cfrc_ext`` takes it about the
     subtree centre of mass of the body's root)."""
     out = qvel.new_zeros(qvel.shape[0], tree.nbody, 6)
-    if tree.contact_body.numel() == 0:
-        return out
-    c = _contact_points_and_forces(tree, kin, qvel, params)
-    wrench = torch.cat([_cross(c.point - about.unsqueeze(1), c.force), c.force], dim=-1)
-    return out.index_add(1, tree.contact_body, wrench)
+    if tree.contact_body.numel():
+        c = _contact_points_and_forces(tree, kin, qvel, params)
+        wrench = torch.cat([_cross(c.point - about.unsqueeze(1), c.force), c.force], dim=-1)
+        out = out.index_add(1, tree.contact_body, wrench)
+    if tree.pair_body.numel():
+        c = _pair_forces(tree, kin, qvel, params)
+        lever = c.point + (kin.origin - about).unsqueeze(1)
+        wrench = torch.cat([_cross(lever, c.force), c.force], dim=-1)  # on B; A gets -wrench
+        out = out.index_add(1, tree.pair_body[:, 1], wrench).index_add(1, tree.pair_body[:, 0], -wrench)
+    return out
 
 
 def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params, with_damping=False,

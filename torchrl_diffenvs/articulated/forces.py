@@ -63,10 +63,16 @@ def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params
 
 def passive_force(tree: RigidBodyTree, kin: Kinematics, qpos, qvel, params: Params) -> torch.Tensor:
     """``[N, nv]`` MuJoCo's ``qfrc_passive``: joint dampers ``-damping qvel``, springs
-    ``-stiffness (qpos - springref)`` and, in a medium, :func:`fluid_force`."""
+    ``-stiffness (qpos - springref)``, fixed tendons' springs and dampers (on the tendon length
+    ``L = coef . q``: ``coef * (-k (L - springlength) - b dL/dt)``) and, in a medium, :func:`fluid_force`."""
     # springs act on hinge and slide coordinates (ball and free joints have none, see the loader)
     stretch = (qpos - tree.qpos_spring)[:, tree.dof_qpos] * tree.dof_has_spring
     passive = -params["damping"] * qvel - params["stiffness"] * stretch
+    if tree.tendon_coef.shape[0]:
+        coordinates = qpos[:, tree.dof_qpos] * tree.dof_has_spring  # fixed tendons span hinges and slides
+        length, speed = coordinates @ tree.tendon_coef.T, qvel @ tree.tendon_coef.T
+        tension = -params["tendon_stiffness"] * (length - tree.tendon_springlength) - params["tendon_damping"] * speed
+        passive = passive + tension @ tree.tendon_coef
     if tree.has_fluid:
         passive = passive + fluid_force(tree, kin, qvel, params)
     return passive

@@ -80,6 +80,10 @@ def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
         for first in {"ball": (da,), "free": (da, da + 3)}.get(kind, ()):
             mean = weight[:, first:first + 3].mean(-1, keepdim=True)
             weight = torch.cat([weight[:, :first], mean.expand(-1, 3), weight[:, first + 3:]], dim=-1)
+    if tree.simple_dofs:  # MuJoCo: a slide-only body hanging from the world weighs its mass, armature aside
+        dofs, bodies = zip(*tree.simple_dofs)
+        weight = weight.index_copy(1, torch.tensor(dofs, device=weight.device),
+                                   1.0 / params["body_mass"][:, list(bodies)].clamp_min(1e-15))
     return weight
 
 

@@ -14,9 +14,13 @@ tensors. It follows MuJoCo's compiler where it matters for the dynamics:
   ``mass`` or ``density``), hinge and slide joints (armature, damping, stiffness, springref, ref,
   range/limited with solreflimit/solimplimit and margin), free and ball joints (``<freejoint>``
   too; armature and damping; quaternion coordinates as MuJoCo's), geoms (``fromto`` too) with their contact
-  attributes, and ``<motor>`` actuators (gear, ctrlrange/ctrllimited, forcerange/forcelimited).
+  attributes, and ``<motor>`` actuators (gear, ctrlrange/ctrllimited, forcerange/forcelimited);
+* ``<tendon>``: fixed tendons (a linear combination of hinge and slide coordinates) with their
+  ``stiffness``, ``springlength`` and ``damping``.
 
-Anything else that would change the dynamics (limits or springs on ball joints, tendons, equality constraints,
+MuJoCo's constraint-solver settings (``<option iterations solver tolerance>``) are read and ignored:
+contact here is a smooth force, not a solved constraint. Anything else that would change the dynamics
+(limits or springs on ball joints, tendon limits, spatial tendons, equality constraints,
 other actuators, wind and the ellipsoid fluid model, joint friction loss, ...) raises :class:`MJCFError` naming the
 element, the attribute and the file. Purely visual things (materials, textures, lights, cameras,
 sites, colours, sensors) are ignored.
@@ -55,10 +59,13 @@ _READ = {
     } | _ORIENT,
     "motor": {"joint", "gear", "ctrlrange", "ctrllimited", "forcerange", "forcelimited"},
     "freejoint": set(),
+    "fixed": {"stiffness", "damping", "springlength", "limited", "range"},
+    "tendon_joint": {"joint", "coef"},
 }
 _IGNORED_ATTRS = {
     "compiler": {"meshdir", "texturedir", "assetdir"},
-    "option": {"magnetic"},  # only read by magnetometer sensors
+    # only read by magnetometer sensors; the settings of MuJoCo's constraint solver (no solver here)
+    "option": {"magnetic", "iterations", "solver", "tolerance", "ls_iterations"},
     "body": {"name"},
     "geom": {"gap"},  # checked separately: only 0 is supported
 }
@@ -135,7 +142,7 @@ class _Reader:
     # ---------------------------------------------------------- top level
     def read(self) -> ArticulatedModel:
         handlers = {"compiler": self.compiler, "option": self.option, "default": None,
-                    "worldbody": None, "actuator": None}
+                    "worldbody": None, "actuator": None, "tendon": None}
         self.timestep, self.integrator, self.gravity = 0.002, "euler", np.array([0.0, 0.0, -9.81])
         self.density = self.viscosity = 0.0
         for child in self.root:
@@ -163,6 +170,11 @@ class _Reader:
             scale = self.total_mass / sum(self.bodies["mass"][1:])
             self.bodies["mass"] = [m * scale for m in self.bodies["mass"]]
             self.bodies["inertia"] = [i * scale for i in self.bodies["inertia"]]
+        self.tendons = []
+        for tendons in self.root.findall("tendon"):
+            for element in tendons:
+                if isinstance(element.tag, str):
+                    self.tendon(element)
         self.motors = []
         for actuators in self.root.findall("actuator"):
             for element in actuators:
@@ -421,10 +433,49 @@ class _Reader:
         fgiven = _floats(a.get("friction", "1"), None, where)
         friction[: fgiven.size] = fgiven
         self.geoms.append(dict(
-            name=a.get("name", f"geom{len(self.geoms)}"), type=kind, body=body, pos=pos, rot=rot, size=size,
+            name=a.get("name"), type=kind, body=body, pos=pos, rot=rot, size=size,
             mass=float(a["mass"]) if "mass" in a else None, density=float(a.get("density", 1000.0)),
             friction=friction, contype=int(a.get("contype", 1)), conaffinity=int(a.get("conaffinity", 1)),
+            condim=int(a.get("condim", 3)),
         ))
+
+    def tendon(self, element):
+        """A fixed tendon: length ``sum coef_j qpos_j`` over hinge and slide joints, with a spring
+        ``-stiffness (length - springlength)`` and a damper ``-damping d(length)/dt`` on it."""
+        if element.tag != "fixed":
+            raise self.fail(element, "tendon type not supported; supported: <fixed>")
+        a = self.attrs(element, "tendon", "main")
+        self.check_attrs(element)
+        for attr in a:
+            if attr not in _READ["fixed"] | _VISUAL | {"width"}:
+                raise self.fail(element, f"attribute {attr!r} (from its default class) is not supported")
+        where = f"{self.path}: <fixed {a.get('name', '')}>"
+        rng = _floats(a.get("range", "0 0"), 2, where)
+        limited = a.get("limited", "auto")
+        if (rng[0] < rng[1]) if limited == "auto" else limited == "true":
+            raise self.fail(element, "tendon limits are not supported (a fixed tendon's spring and damper are)")
+        names = [j["name"] for j in self.joints]
+        coef = {}
+        for child in element:
+            if not isinstance(child.tag, str):
+                continue
+            if child.tag != "joint":
+                raise self.fail(child, "a fixed tendon holds <joint joint=... coef=...> elements only")
+            self.check_attrs(child, "tendon_joint")
+            if child.get("joint") not in names:
+                raise self.fail(child, f"unknown joint {child.get('joint')!r}; joints: {names}")
+            j = names.index(child.get("joint"))
+            if self.joints[j]["type"] not in ("hinge", "slide"):
+                raise self.fail(child, "a fixed tendon's joints must be hinges or slides")
+            coef[j] = coef.get(j, 0.0) + float(child.get("coef", "1"))
+        if not coef:
+            raise self.fail(element, "a fixed tendon needs at least one <joint>")
+        spring = _floats(a.get("springlength", "-1"), None, where)
+        if spring.size != 1:
+            raise self.fail(element, "springlength with a deadband (two values) is not supported")
+        self.tendons.append(dict(name=a.get("name", f"tendon{len(self.tendons)}"), coef=coef,
+                                 stiffness=float(a.get("stiffness", 0.0)), damping=float(a.get("damping", 0.0)),
+                                 springlength=float(spring[0])))
 
     def motor(self, element):
         if element.tag != "motor":
@@ -461,6 +512,11 @@ class _Reader:
     # ---------------------------------------------------------- assembly
     def model(self) -> ArticulatedModel:
         b, j, g, m = self.bodies, self.joints, self.geoms, self.motors
+        # MuJoCo numbers geoms body by body (a body's own geoms before its children's)
+        g = sorted(g, key=lambda geom: geom["body"])
+        for i, geom in enumerate(g):
+            if geom["name"] is None:
+                geom["name"] = f"geom{i}"
 
         def col(items, key, dtype=np.float64, shape=()):
             return np.array([it[key] for it in items], dtype=dtype).reshape(len(items), *shape)
@@ -490,13 +546,30 @@ class _Reader:
             geom_pos=col(g, "pos", shape=(3,)), geom_rot=col(g, "rot", shape=(3, 3)),
             geom_size=col(g, "size", shape=(3,)), geom_friction=col(g, "friction", shape=(3,)),
             geom_contype=col(g, "contype", np.int64), geom_conaffinity=col(g, "conaffinity", np.int64),
+            geom_condim=col(g, "condim", np.int64),
             actuator_names=[x["name"] for x in m], actuator_joint=col(m, "joint", np.int64),
             actuator_gear=col(m, "gear"), ctrl_limited=col(m, "ctrl_limited", bool),
             ctrl_range=col(m, "ctrl_range", shape=(2,)), force_limited=col(m, "force_limited", bool),
             force_range=col(m, "force_range", shape=(2,)),
             site_names=[x[0] for x in self.sites], site_body=np.array([x[1] for x in self.sites], dtype=np.int64),
             site_pos=np.array([x[2] for x in self.sites]).reshape(-1, 3),
+            **self.tendon_arrays(j, ndof),
         )
+
+    def tendon_arrays(self, joints, ndof) -> dict:
+        """The fixed tendons as dense per-dof coefficients; a negative springlength is MuJoCo's
+        "the length at qpos0"."""
+        dofadr = np.cumsum([0] + ndof)[:-1]
+        coef = np.zeros((len(self.tendons), sum(ndof)))
+        rest = np.zeros(len(self.tendons))
+        for i, t in enumerate(self.tendons):
+            for j, c in t["coef"].items():
+                coef[i, dofadr[j]] = c
+            length0 = sum(c * float(joints[j]["ref"][0]) for j, c in t["coef"].items())
+            rest[i] = length0 if t["springlength"] < 0 else t["springlength"]
+        return dict(tendon_names=[t["name"] for t in self.tendons], tendon_coef=coef,
+                    tendon_stiffness=np.array([t["stiffness"] for t in self.tendons]),
+                    tendon_damping=np.array([t["damping"] for t in self.tendons]), tendon_springlength=rest)
 
 
 def load_mjcf(path: str | Path) -> ArticulatedModel:

@@ -73,6 +73,7 @@ class ArticulatedModel:
     geom_friction: np.ndarray  # [ngeom, 3]
     geom_contype: np.ndarray
     geom_conaffinity: np.ndarray
+    geom_condim: np.ndarray  # 1: frictionless contact; 3, 4, 6: with (sliding) friction
     # motors [nu]
     actuator_names: list[str]
     actuator_joint: np.ndarray
@@ -85,6 +86,12 @@ class ArticulatedModel:
     site_names: list[str] = field(default_factory=list)
     site_body: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     site_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    # fixed tendons [ntendon]: length = tendon_coef @ (hinge and slide coordinates, by dof)
+    tendon_names: list[str] = field(default_factory=list)
+    tendon_coef: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # [ntendon, nv]
+    tendon_stiffness: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tendon_damping: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tendon_springlength: np.ndarray = field(default_factory=lambda: np.zeros(0))  # the spring's rest length
 
     @property
     def nbody(self) -> int:

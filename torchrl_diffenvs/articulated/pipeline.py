@@ -6,7 +6,7 @@ from typing import NamedTuple
 
 import torch
 
-from .contact import _contact_points_and_forces, contact_force
+from .contact import _contact_points_and_forces, _pair_forces, contact_force, pair_contact_force
 from .forces import actuator_force, passive_force
 from .inertia import dof_invweight0, mass_matrix_and_bias
 from .kinematics import forward_kinematics
@@ -26,7 +26,7 @@ class SmoothForces(NamedTuple):
 
 
 def _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=False) -> SmoothForces:
-    """Motors + passive forces + ground contact - bias: every force but the joint limits.
+    """Motors + passive forces + contact - bias: every force but the joint limits.
 
     ``with_damping``: also ``D [N, nv, nv]``, the velocity damping of these forces that the
     implicit Euler integrator uses (joint damping plus the contact's, see :func:`contact_force`).
@@ -34,10 +34,14 @@ def _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=False)
     force = actuator_force(tree, ctrl, tree.nv) + passive_force(tree, kin, qpos, qvel, params) - bias
     damping = torch.diag_embed(params["damping"]) if with_damping else None
     largest = None
-    if tree.contact_body.numel():
-        contacts = _contact_points_and_forces(tree, kin, qvel, params)
-        largest = contacts.normal_force.detach().amax(-1)
-        contact = contact_force(tree, kin, qvel, params, with_damping=with_damping, contacts=contacts)
+    for touching, forces, generalised in ((tree.contact_body.numel(), _contact_points_and_forces, contact_force),
+                                          (tree.pair_body.numel(), _pair_forces, pair_contact_force)):
+        if not touching:
+            continue
+        contacts = forces(tree, kin, qvel, params)
+        peak = contacts.normal_force.detach().amax(-1)
+        largest = peak if largest is None else torch.maximum(largest, peak)
+        contact = generalised(tree, kin, qvel, params, with_damping=with_damping, contacts=contacts)
         if with_damping:
             contact, contact_damping = contact
             damping = damping + contact_damping

@@ -63,8 +63,20 @@ class RigidBodyTree:
     contact_slot: torch.Tensor  # [npoint] long: which contact pair (friction entry) it belongs to
     contact_plane_point: torch.Tensor  # [npoint, 3]
     contact_plane_normal: torch.Tensor  # [npoint, 3]
-    contact_pairs: list[tuple[str, str]]  # (geom, plane) of each slot
-    contact_pair_friction: np.ndarray  # [npair] MuJoCo's max of the two geoms' sliding friction
+    contact_pairs: list[tuple[str, str]]  # (geom, plane), then (geom, geom), of each slot
+    contact_pair_friction: np.ndarray  # [nslot] MuJoCo's max of the two geoms' sliding friction (0: condim 1)
+    # contact between two bodies' geoms: sphere-swept segments (a sphere's is a point), [npair]
+    pair_body: torch.Tensor  # [npair, 2] long: bodies A and B
+    pair_segment: torch.Tensor  # [npair, 2, 2, 3]: (A, B) x (start, end), each in its body's frame
+    pair_radius: torch.Tensor  # [npair, 2]
+    pair_slot: torch.Tensor  # [npair] long: its friction entry
+    pair_dof_sign: torch.Tensor  # [npair, nv]: +1 dof moves B only, -1 A only, 0 both or neither
+    # dofs of MuJoCo's "simple" bodies (children of the world with orthogonal slides only and no
+    # children): (dof, body) pairs, whose dof_invweight0 MuJoCo takes as 1 / mass (no armature)
+    simple_dofs: list[tuple[int, int]]
+    # fixed tendons
+    tendon_coef: torch.Tensor  # [ntendon, nv]
+    tendon_springlength: torch.Tensor  # [ntendon]
     # fluid: each body's principal axes of inertia (its inertial frame) in the body frame
     body_inertial_frame: torch.Tensor  # [nbody, 3, 3]
 
@@ -141,6 +153,11 @@ class RigidBodyTree:
         limit_dof = [int(model.joint_dofadr[j]) for j, _ in rows]
         # contact points against each plane of the world body
         points, pairs, pair_friction = [], [], []
+
+        def friction(g1, g2):  # MuJoCo: the larger condim and the larger sliding friction of the two
+            return 0.0 if max(model.geom_condim[g1], model.geom_condim[g2]) == 1 else \
+                max(model.geom_friction[g1, 0], model.geom_friction[g2, 0])
+
         planes = [g for g in range(len(model.geom_names)) if model.geom_type[g] == "plane"]
         for p in planes:
             if model.geom_body[p] != 0:
@@ -157,9 +174,23 @@ class RigidBodyTree:
                 normal = model.geom_rot[p][:, 2]
                 slot = len(pairs)
                 pairs.append((model.geom_names[g], model.geom_names[p]))
-                pair_friction.append(max(model.geom_friction[g, 0], model.geom_friction[p, 0]))
+                pair_friction.append(friction(g, p))
                 for offset, radius in local:
                     points.append((model.geom_body[g], offset, radius, slot, model.geom_pos[p], normal))
+        geom_pairs = []  # (A, B, A's segment, B's segment, radii, slot)
+        for g1, g2 in _colliding_geom_pairs(model):
+            geom_pairs.append((model.geom_body[g1], model.geom_body[g2], _segment(model, g1), _segment(model, g2),
+                               (model.geom_size[g1, 0], model.geom_size[g2, 0]), len(pairs)))
+            pairs.append((model.geom_names[g1], model.geom_names[g2]))
+            pair_friction.append(friction(g1, g2))
+        tendon_coef = np.asarray(model.tendon_coef).reshape(len(model.tendon_names), nv)
+        simple_dofs = []
+        for b in range(1, nb):
+            joints = body_joints[b]
+            axes = model.joint_axis[joints] if joints else np.zeros((0, 3))
+            if (model.body_parent[b] == 0 and joints and all(model.joint_type[j] == "slide" for j in joints)
+                    and b not in model.body_parent and np.allclose(axes @ axes.T, np.eye(len(joints)))):
+                simple_dofs += [(int(model.joint_dofadr[j]), b) for j in joints]
         tree = cls(
             model=model, body_parent=[int(p) for p in model.body_parent], body_pos=t(model.body_pos),
             body_rot=t(model.body_rot), body_com=t(model.body_com), body_joints=body_joints,
@@ -188,9 +219,66 @@ class RigidBodyTree:
             contact_plane_point=t([p[4] for p in points]).reshape(-1, 3),
             contact_plane_normal=t([p[5] for p in points]).reshape(-1, 3),
             contact_pairs=pairs, contact_pair_friction=np.array(pair_friction),
+            pair_body=idx([[p[0], p[1]] for p in geom_pairs]).reshape(-1, 2),
+            pair_segment=t([[p[2], p[3]] for p in geom_pairs]).reshape(-1, 2, 2, 3),
+            pair_radius=t([p[4] for p in geom_pairs]).reshape(-1, 2),
+            pair_slot=idx([p[5] for p in geom_pairs]),
+            pair_dof_sign=t(np.array([moves[p[1]] - moves[p[0]] for p in geom_pairs]).reshape(-1, nv)),
+            tendon_coef=t(tendon_coef), tendon_springlength=t(model.tendon_springlength), simple_dofs=simple_dofs,
             body_inertial_frame=t(np.linalg.eigh(model.body_inertia)[1]),
         )
         return tree
+
+
+def _weld(model: ArticulatedModel, body: int) -> int:
+    """The body a body moves with (MuJoCo's ``body_weldid``): itself if it has joints, else its
+    parent's weld (the world is its own)."""
+    while body != 0 and not np.any(model.joint_body == body):
+        body = int(model.body_parent[body])
+    return body
+
+
+def _colliding_geom_pairs(model: ArticulatedModel) -> list[tuple[int, int]]:
+    """The geom pairs (neither a plane) that MuJoCo's collision filter lets touch: compatible
+    ``contype``/``conaffinity`` bits, on bodies that do not move together, and (MuJoCo's
+    ``filterparent``) not on a body and its parent, unless that parent is the world."""
+    out = []
+    ngeom = len(model.geom_names)
+    for g1 in range(ngeom):
+        for g2 in range(g1 + 1, ngeom):
+            if "plane" in (model.geom_type[g1], model.geom_type[g2]):
+                continue
+            if not ((model.geom_contype[g1] & model.geom_conaffinity[g2])
+                    or (model.geom_contype[g2] & model.geom_conaffinity[g1])):
+                continue
+            w1, w2 = _weld(model, int(model.geom_body[g1])), _weld(model, int(model.geom_body[g2]))
+            if w1 == w2:
+                continue
+            p1, p2 = _weld(model, int(model.body_parent[w1])) if w1 else -1, _weld(model, int(model.body_parent[w2])) if w2 else -1
+            if (p1 == w2 and w2 != 0) or (p2 == w1 and w1 != 0):
+                continue
+            if 0 in (w1, w2):
+                raise ValueError(f"{model.path}: geoms {model.geom_names[g1]!r} and {model.geom_names[g2]!r}: contact "
+                                 "with a static geom other than a plane is not modelled (set contype/conaffinity "
+                                 "to exclude it)")
+            out.append((g1, g2))
+    return out
+
+
+def _segment(model: ArticulatedModel, g: int) -> np.ndarray:
+    """``[2, 3]`` the geom's core segment in its body frame: the geom is the set of points within
+    its radius of it. A sphere's is its centre (twice), a capsule's its axis; a cylinder is
+    taken as the capsule on its axis (exact on its side, its flat ends rounded off)."""
+    kind, size, pos, rot = model.geom_type[g], model.geom_size[g], model.geom_pos[g], model.geom_rot[g]
+    if kind == "sphere":
+        return np.stack([pos, pos])
+    if kind in ("capsule", "cylinder"):
+        half = rot[:, 2] * size[1]
+        return np.stack([pos - half, pos + half])
+    raise ValueError(
+        f"{model.path}: geom {model.geom_names[g]!r} of type {kind} can touch another body's geom, but "
+        "contact between bodies is only modelled for spheres, capsules and cylinders (set contype/conaffinity "
+        "to exclude it)")
 
 
 def _contact_points(model: ArticulatedModel, g: int) -> list[tuple[np.ndarray, float]]:
@@ -204,9 +292,13 @@ def _contact_points(model: ArticulatedModel, g: int) -> list[tuple[np.ndarray, f
     if kind == "box":
         corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * size
         return [(pos + rot @ c, 0.0) for c in corners]
+    if kind == "cylinder":  # the rims of its two flat ends, 8 points each
+        angles = np.arange(8) * (2 * np.pi / 8)
+        rim = [np.array([size[0] * np.cos(a), size[0] * np.sin(a), sz * size[1]]) for sz in (-1, 1) for a in angles]
+        return [(pos + rot @ c, 0.0) for c in rim]
     raise ValueError(
         f"{model.path}: geom {model.geom_names[g]!r} of type {kind} can touch the ground plane, but ground "
-        "contact is only modelled for spheres, capsules and boxes (set contype/conaffinity to exclude it)"
+        "contact is only modelled for spheres, capsules, cylinders and boxes (set contype/conaffinity to exclude it)"
     )
 
 
@@ -221,4 +313,6 @@ def default_params(model: ArticulatedModel) -> dict[str, torch.Tensor]:
     }
     if model.density > 0 or model.viscosity > 0:
         params.update(fluid_density=t(model.density), fluid_viscosity=t(model.viscosity))
+    if len(model.tendon_names):
+        params.update(tendon_stiffness=t(model.tendon_stiffness), tendon_damping=t(model.tendon_damping))
     return params

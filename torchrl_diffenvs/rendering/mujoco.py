@@ -202,7 +202,8 @@ class MuJoCoView:
 # The view of every built-in MuJoCo-model task, named in its registration
 # (``@register_env(drawer="torchrl_diffenvs.rendering.mujoco:HOPPER")``). Reward colour ranges:
 # HalfCheetah [-1, 5] (about its forward speed), Hopper [0, 4], Walker2d [0, 5], Reacher [-0.5, 0],
-# Swimmer [-0.1, 0.4] (seen from above).
+# Swimmer [-0.1, 0.4] (seen from above), Humanoid [0, 8], HumanoidStandup [30, 150] (its height / 3 ms),
+# Pusher [-1.5, 0] (from above).
 INVERTED_PENDULUM = MuJoCoView("xz", (-1.1, 1.1, -0.35, 0.85), ("pole",))
 INVERTED_DOUBLE_PENDULUM = MuJoCoView("xz", (-1.1, 1.1, -0.3, 1.4), ("pole2",), reward_range=(0.0, 10.0))
 REACHER = MuJoCoView("xy", (-0.35, 0.35, -0.35, 0.35), ("fingertip",), goal=("target",), reward_range=(-0.5, 0.0))
@@ -211,3 +212,6 @@ HOPPER = MuJoCoView("xz", (-1.5, 1.5, -0.2, 1.8), ("torso",), follow="torso", re
 WALKER2D = MuJoCoView("xz", (-1.5, 1.5, -0.2, 1.8), ("torso",), follow="torso", reward_range=(0.0, 5.0))
 ANT = MuJoCoView("xz", (-2.0, 2.0, -0.3, 1.6), ("torso",), follow="torso", reward_range=(-1.0, 3.0))
 SWIMMER_V5 = MuJoCoView("xy", (-2.5, 2.5, -2.0, 2.0), ("torso",), follow="torso", reward_range=(-0.1, 0.4))
+HUMANOID = MuJoCoView("xz", (-1.5, 1.5, -0.2, 2.0), ("torso",), follow="torso", reward_range=(0.0, 8.0))
+HUMANOID_STANDUP = MuJoCoView("xz", (-1.5, 1.5, -0.2, 1.8), ("torso",), follow="torso", reward_range=(30.0, 150.0))
+PUSHER = MuJoCoView("xy", (-0.8, 1.0, -1.2, 0.6), ("object",), goal=("goal",), reward_range=(-1.5, 0.0))

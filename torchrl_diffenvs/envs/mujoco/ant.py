@@ -1,6 +1,7 @@
 """Gymnasium's ``Ant-v5`` (ant.xml): a four-legged robot on a free joint, with smooth ground contact."""
 import torch
 
+from ...articulated.com import root_subtree_com
 from ...articulated.dynamics import body_contact_forces, forward_kinematics
 from ..registry import register_env
 from .base import MuJoCoModelEnv
@@ -69,9 +70,7 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     def contact_wrenches(self, qpos, qvel, params):
         """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` from the smooth contact: about the centre of mass."""
         kin = forward_kinematics(self.tree, qpos)  # once per env step, at the state mj_step leaves behind
-        mass = params["body_mass"]
-        com = kin.body_pos + (kin.body_rot @ self.tree.body_com.unsqueeze(-1)).squeeze(-1)
-        centre = (mass.unsqueeze(-1) * com).sum(1) / mass.sum(1, keepdim=True)  # every body's root is the torso
+        centre = root_subtree_com(self.tree, kin, params)[:, 1]  # every body's root is the torso
         return body_contact_forces(self.tree, kin, qvel, params, about=centre)
 
     def initial_state(self, params, n):

@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from ...articulated import RigidBodyTree, load_mjcf, step
+from ...articulated.contact import has_contacts
 from ...articulated.dynamics import StepResult, default_params, dof_invweight0
 from ...articulated.inertia import kinematics_at_qpos0
 from ...articulated.mjcf import ArticulatedModel, gymnasium_asset
@@ -96,11 +97,11 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         dtype = kwargs.get("dtype", torch.float32)
         device = torch.device(kwargs.get("device") or "cpu")
         self.tree = RigidBodyTree.from_model(model, dtype=dtype, device=device)
-        if self.tree.contact_body.numel():
+        if has_contacts(self.tree):
             self.reading_state_keys = ("contact_force",)  # see reports_contact_force
         kinematics_at_qpos0(self.tree)  # kept on the tree: computed here, not inside a compiled step
         defaults = dict(default_params(model))
-        if self.tree.contact_body.numel():
+        if has_contacts(self.tree):
             defaults.update(self.contact_params)
             defaults["contact_friction"] = torch.as_tensor(self.tree.contact_pair_friction)
         defaults.update(self.task_params)
@@ -115,7 +116,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         steps (0 after a reset): the signal AHAC adapts its horizon to, and what the learners log
         as ``contact_force_max``. Like the Ant's ``cfrc_ext``, it is read where ``mj_step`` leaves
         it, not an input of the next step."""
-        return bool(self.tree.contact_body.numel())
+        return bool(has_contacts(self.tree))
 
     def contact_state(self, result: StepResult | None, n: int) -> dict:
         """``{"contact_force": [N]}`` of a step's result (``None``: after a reset) for a model with
