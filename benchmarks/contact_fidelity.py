@@ -22,16 +22,22 @@ import _common as C  # noqa: E402
 from torchrl_diffenvs import make_env  # noqa: E402
 from torchrl_diffenvs.checks import Settings, checked, each, one_of, parse_cli  # noqa: E402
 
-CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"]
+CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "HumanoidStandup-v5",
+                 "Pusher-v5"]
 # where each task keeps its torso's forward position, height and orientation in qpos, and its first joint angle:
-# the planar runners a hinge angle; the Ant a free joint's quaternion
+# the planar runners a hinge angle; the Ant and the humanoids a free joint's quaternion; the Pusher
+# (no gravity, no torso) its object's x slide and its arm's joints
 PLANAR = {"x": 0, "z": 1, "angle": 2, "joints": 3}
-LAYOUT = {"Ant-v5": {"x": 0, "z": 2, "quaternion": 3, "joints": 7}}
+FREE = {"x": 0, "z": 2, "quaternion": 3, "joints": 7}
+LAYOUT = {"Ant-v5": FREE, "Humanoid-v5": FREE, "HumanoidStandup-v5": FREE, "Pusher-v5": {"x": 8, "joints": 0, "joints_end": 7}}
+NO_HEALTH = ("HalfCheetah-v5", "HumanoidStandup-v5", "Pusher-v5")  # no terminate_when_unhealthy option
 
 
 def _tilt_gap(task, theirs, ours):
     """Per step, the torso orientation gap (rad): a hinge angle difference, or a quaternion's rotation angle."""
     layout = LAYOUT.get(task, PLANAR)
+    if "angle" not in layout and "quaternion" not in layout:
+        return np.zeros(len(theirs))
     if "angle" in layout:
         return np.abs(theirs[:, layout["angle"]] - ours[:, layout["angle"]])
     q = layout["quaternion"]
@@ -43,31 +49,37 @@ def _tilt_gap(task, theirs, ours):
 def _gym(task):
     import gymnasium as gym
 
-    kwargs = {} if task == "HalfCheetah-v5" else {"terminate_when_unhealthy": False}
-    env = gym.make(task, reset_noise_scale=0.0, **kwargs)
+    kwargs = {} if task in NO_HEALTH else {"terminate_when_unhealthy": False}
+    if task != "Pusher-v5":  # (its start noise is not an option)
+        kwargs["reset_noise_scale"] = 0.0
+    env = gym.make(task, **kwargs)
     env.reset(seed=0)
     return env
 
 
 def _ours(task, **options):
     env = make_env(task, num_envs=1, dtype=torch.float64, seed=0, max_episode_steps=None, **options,
-                   params={"reset_noise_scale": 0.0, **({} if task == "HalfCheetah-v5" else {"terminate_when_unhealthy": 0.0})})
+                   params={**({} if task == "Pusher-v5" else {"reset_noise_scale": 0.0}),
+                           **({} if task in NO_HEALTH else {"terminate_when_unhealthy": 0.0})})
     return env, env.reset()
 
 
 def fidelity(task, seconds_rest=2.0, seconds_open_loop=1.0, **options):
     """Rest height and open-loop gaps of ``task`` built with ``options`` (e.g. ``integrator``, ``substeps``)."""
     genv, (env, td) = _gym(task), _ours(task, **options)
+    _same_start(task, genv, env, td)
     for _ in range(int(round(seconds_rest / env.dt))):
         genv.step(np.zeros(env.action_dim))
         td["action"] = torch.zeros(1, env.action_dim, dtype=torch.float64)
         td = env.step(td)["next"].clone()
     layout = LAYOUT.get(task, PLANAR)
-    rest = (genv.unwrapped.data.qpos[layout["z"]], td["state", "qpos"][0, layout["z"]].item())
+    rest = (genv.unwrapped.data.qpos[layout["z"]], td["state", "qpos"][0, layout["z"]].item()) if "z" in layout \
+        else (float("nan"), float("nan"))
     genv, (env, td) = _gym(task), _ours(task, **options)
+    td = _same_start(task, genv, env, td)
     rng, theirs, ours = np.random.default_rng(0), [], []
     for _ in range(int(round(seconds_open_loop / env.dt))):
-        action = rng.uniform(-1, 1, env.action_dim)
+        action = rng.uniform(env.action_low, env.action_high, env.action_dim)
         genv.step(action)
         td["action"] = torch.tensor(action[None])
         td = env.step(td)["next"].clone()
@@ -77,10 +89,20 @@ def fidelity(task, seconds_rest=2.0, seconds_open_loop=1.0, **options):
     return {
         "rest_z_mujoco": rest[0], "rest_z_ours": rest[1],
         "x_gap": abs(theirs[-1, layout["x"]] - ours[-1, layout["x"]]),
-        "z_gap_max": np.abs(theirs[:, layout["z"]] - ours[:, layout["z"]]).max(),
+        "z_gap_max": np.abs(theirs[:, layout["z"]] - ours[:, layout["z"]]).max() if "z" in layout else 0.0,
         "angle_gap_max": _tilt_gap(task, theirs, ours).max(),
-        "joint_rms_gap": float(np.sqrt(((theirs[:, layout["joints"]:] - ours[:, layout["joints"]:]) ** 2).mean())),
+        "joint_rms_gap": float(np.sqrt(((theirs - ours)[:, layout["joints"]:layout.get("joints_end")] ** 2).mean())),
     }
+
+
+def _same_start(task, genv, env, td):
+    """The Pusher's start is random in both (its object's place): ours starts from gymnasium's."""
+    if task != "Pusher-v5":
+        return td
+    qpos = torch.tensor(genv.unwrapped.data.qpos[None].copy())
+    td["state", "qpos"], td["state", "qvel"] = qpos, torch.tensor(genv.unwrapped.data.qvel[None].copy())
+    td["state", "body_points"] = env.body_points(qpos)
+    return env.reset(td, set_state=True)
 
 
 @dataclass(frozen=True)
@@ -100,6 +122,10 @@ def main(argv=None):
     for task in settings.tasks:
         result = fidelity(task)
         print(task, {k: round(float(v), 4) for k, v in result.items()}, flush=True)
+        if task == "Pusher-v5":  # no gravity: nothing comes to rest
+            rows.append([task, "(no gravity)", f"object x {result['x_gap']:.3g} m, "
+                         f"joints {result['joint_rms_gap']:.3g} rad rms"])
+            continue
         rows.append([task, f"{result['rest_z_mujoco']:.3f} m / {result['rest_z_ours']:.3f} m",
                      f"root x {result['x_gap']:.3g} m, height up to {result['z_gap_max']:.3g} m, "
                      f"angle up to {result['angle_gap_max']:.3g} rad, joints {result['joint_rms_gap']:.3g} rad rms"])

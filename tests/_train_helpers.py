@@ -40,7 +40,8 @@ TINY["ahac"] = ["loss.min_horizon=4", "loss.max_horizon=5", "loss.horizon_lr=1e-
                 "loss.critic.hidden=[16]", "loss.critic_passes=2", "loss.critic_minibatches=2"]
 STEPS_PER_ITER = {"bptt": 16, "shac": 16, "ppo": 16, "sac": 8, "mappo": 16, "ippo": 16, "sapo": 16,
                   "ahac": 16}  # num_envs x horizon / rollout_len
-CONTACT_ENVS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5")  # they report contact forces (AHAC's signal)
+CONTACT_ENVS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "HumanoidStandup-v5",
+                "Pusher-v5")  # they report contact forces (AHAC's signal)
 
 
 def make_cfg(*overrides: str):

@@ -252,7 +252,7 @@ def test_merge_overrides_keeps_the_saved_run_and_lets_today_win():
 
 # ---------------------------------------------------------------------- every env x loss trains
 @pytest.mark.parametrize("loss", LOSSES)
-@pytest.mark.parametrize("env", classic_envs() + ["HalfCheetah-v5", "Hopper-v5"])
+@pytest.mark.parametrize("env", classic_envs() + ["HalfCheetah-v5", "Hopper-v5", "Humanoid-v5", "Pusher-v5"])
 def test_every_env_and_loss_trains_a_few_iterations(env, loss, tmp_path):
     if loss == "ahac" and env not in CONTACT_ENVS:
         with pytest.raises(ConfigError, match=f"loss=ahac: env '{env}' reports no contact force"):
