@@ -11,7 +11,7 @@ gym = pytest.importorskip("gymnasium")
 
 from torchrl_diffenvs.articulated import RigidBodyTree, forward_kinematics, gymnasium_asset, load_mjcf, step  # noqa: E402
 from torchrl_diffenvs.articulated.com import body_com, com_inertia, com_velocity, mass_center  # noqa: E402
-from torchrl_diffenvs.articulated.contact import body_contact_forces, pair_contact_force, pair_geometry  # noqa: E402
+from torchrl_diffenvs.articulated.contact import body_contact_forces, pair_contact_force, pair_geometry, pair_jacobian  # noqa: E402
 from torchrl_diffenvs.articulated.dynamics import default_params  # noqa: E402
 from torchrl_diffenvs.articulated.forces import passive_force  # noqa: E402
 from torchrl_diffenvs.articulated.mjcf import MJCFError  # noqa: E402
@@ -117,28 +117,44 @@ def test_pair_contacts_push_the_two_bodies_apart_equally_and_oppositely():
     from torchrl_diffenvs.articulated.kinematics import integrate_position
     v = torch.tensor(rng.normal(size=(1, mm.nv)))
     c = _pair_forces(tree, kin, qvel, params)
+    jacobian = pair_jacobian(tree, kin, c.point)
     world = c.point[0, k] + kin.origin[0]
     local = [kin.body_rot[0, i].T @ (world - kin.body_pos[0, i]) for i in (a, b)]
     h = 1e-6
     moved = [forward_kinematics(tree, integrate_position(tree, qpos, v, s * h)) for s in (1, -1)]
     at = lambda m, i, x: m.body_pos[0, i] + m.body_rot[0, i] @ x  # noqa: E731
     fd = [(at(moved[0], i, x) - at(moved[1], i, x)) / (2 * h) for i, x in zip((a, b), local)]
-    torch.testing.assert_close((c.jacobian[0, k] * v[0, :, None]).sum(0), fd[1] - fd[0], atol=1e-7, rtol=1e-6)
+    torch.testing.assert_close((jacobian[0, k] * v[0, :, None]).sum(0), fd[1] - fd[0], atol=1e-7, rtol=1e-6)
     generalised = pair_contact_force(tree, kin, qvel, params)
-    power = (c.force[0] * (c.jacobian[0] * v[0, :, None]).sum(1)).sum()
+    power = (c.force[0] * (jacobian[0] * v[0, :, None]).sum(1)).sum()
     assert (generalised[0] @ v[0]).item() == pytest.approx(power.item(), rel=1e-10)
 
 
-def test_pair_contact_gradcheck():
-    """float64 gradcheck of the body-body contact force (with friction set, so every term is
-    exercised) in the positions, velocities and the contact parameters."""
-    model, mm, data, tree, params = _setup("humanoid.xml")
-    params["contact_friction"] = torch.full_like(params["contact_friction"], 0.7)
-    rng = np.random.default_rng(1)
+def _frictional_humanoid(tmp_path):
+    """The humanoid with condim 3 on every geom: its limbs' contacts have friction."""
+    text = gymnasium_asset("humanoid.xml").read_text().replace('condim="1" contype="1"', 'condim="3" contype="1"')
+    path = tmp_path / "humanoid_condim3.xml"
+    path.write_text(text)
+    return path
+
+
+def _touching(tree, mm, rng):
     while True:
         qpos = torch.tensor((mm.qpos0 + rng.normal(size=mm.nq))[None])
         if (pair_geometry(tree, forward_kinematics(tree, qpos))[0].abs() < 0.002).any():
-            break  # a pair within the contact width: the smooth force's curved part
+            return qpos  # a pair within the contact width: the smooth force's curved part
+
+
+@pytest.mark.parametrize("frictional", [False, True])
+def test_pair_contact_gradcheck(frictional, tmp_path):
+    """float64 gradcheck of the body-body contact force and its damping matrix in the positions,
+    velocities and contact parameters: the humanoid's frictionless limbs (condim 1) and the same
+    model with condim 3 (friction 0.7), so every term is exercised."""
+    model, mm, data, tree, params = _setup("humanoid.xml", xml=_frictional_humanoid(tmp_path) if frictional else None)
+    assert bool(tree.pair_frictional.all()) == frictional and not bool(tree.pair_frictional.any()) != frictional
+    params["contact_friction"] = torch.full_like(params["contact_friction"], 0.7)
+    rng = np.random.default_rng(1)
+    qpos = _touching(tree, mm, rng)
     qvel = torch.tensor(rng.normal(size=(1, mm.nv)))
 
     def force(q, v, stiffness, friction):
@@ -150,6 +166,25 @@ def test_pair_contact_gradcheck():
               params["contact_friction"].clone().requires_grad_())
     # forces of ~1e4 N: an absolute tolerance above central differences' round-off at eps = 1e-6
     assert torch.autograd.gradcheck(force, inputs, eps=1e-6, atol=1e-3, rtol=1e-4)
+
+
+def test_frictionless_pairs_take_the_short_path_to_the_same_forces(tmp_path):
+    """condim 1 (no point Jacobian) and condim 3 with zero friction (the full Jacobian): the same
+    generalised force and damping matrix; friction on a condim-1 pair is ignored, as in MuJoCo."""
+    plain = _setup("humanoid.xml")
+    full = _setup("humanoid.xml", xml=_frictional_humanoid(tmp_path))
+    rng = np.random.default_rng(4)
+    qpos, qvel = _touching(plain[3], plain[1], rng), torch.tensor(rng.normal(size=(1, plain[1].nv)))
+    outs = []
+    for _, _, _, tree, params in (plain, full):
+        params["contact_friction"] = torch.zeros_like(params["contact_friction"])
+        outs.append(pair_contact_force(tree, forward_kinematics(tree, qpos), qvel, params, with_damping=True))
+    for ours, theirs in zip(*outs):
+        torch.testing.assert_close(ours, theirs, rtol=1e-10, atol=1e-9)
+    assert outs[0][0].abs().max() > 1.0
+    plain[4]["contact_friction"] = torch.full_like(plain[4]["contact_friction"], 0.7)
+    again = pair_contact_force(plain[3], forward_kinematics(plain[3], qpos), qvel, plain[4])
+    torch.testing.assert_close(again, outs[0][0])
 
 
 def _tendon_xml(tmp_path, attributes):

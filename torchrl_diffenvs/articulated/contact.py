@@ -12,7 +12,8 @@ from .kinematics import Kinematics, _tree_sum, body_velocities, generalised_forc
 from .spatial import Params, _cross, _skew
 from .tree import RigidBodyTree
 
-__all__ = ['contact_force', 'body_contact_forces', 'pair_contact_force', 'pair_geometry', 'has_contacts']
+__all__ = ['contact_force', 'body_contact_forces', 'pair_contact_force', 'pair_geometry', 'pair_jacobian',
+           'has_contacts']
 
 
 class _ContactForces(NamedTuple):
@@ -33,7 +34,7 @@ class _PairForces(NamedTuple):
     normal_force: torch.Tensor  # [N, K]
     normal_rate: torch.Tensor  # [N, K] the normal velocity damping while pushing
     tangent_rate: torch.Tensor  # [N, K] the friction's velocity damping
-    jacobian: torch.Tensor  # [N, K, nv, 3] d(B's point velocity - A's) / d(qvel)
+    jacobian: torch.Tensor | None  # [N, K, nv, 3] d(B's point velocity - A's) / d(qvel), None: frictionless pairs
 
 
 def has_contacts(tree: RigidBodyTree) -> bool:
@@ -80,15 +81,30 @@ def pair_geometry(tree: RigidBodyTree, kin: Kinematics):
     return dist, normal, ca + (radius_a + 0.5 * dist).unsqueeze(-1) * normal
 
 
+def pair_jacobian(tree: RigidBodyTree, kin: Kinematics, point: torch.Tensor) -> torch.Tensor:
+    """``[N, K, nv, 3]`` d(B's material point velocity - A's at ``point``)/d(qvel): each dof's
+    velocity of the point (``point`` relative to ``kin.origin``), +1 for B's dofs, -1 for A's."""
+    motion = kin.motion.unsqueeze(1)  # [N, 1, nv, 6]
+    return (_cross(motion[..., :3], point.unsqueeze(2)) + motion[..., 3:]) * tree.pair_dof_sign[..., None]
+
+
 def _pair_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params) -> _PairForces:
     """The smooth contact model (see :func:`contact_force`) between the geoms of two bodies: the
-    same normal force and regularised friction on the signed distance of two sphere-swept segments."""
+    same normal force and regularised friction on the signed distance of two sphere-swept segments.
+
+    Models whose body-body contacts are all frictionless (``condim=1``, as the humanoid's and the
+    Pusher's) skip the ``[N, K, nv, 3]`` point Jacobian: the relative velocity comes from the
+    bodies' velocities and the damping from ``J^T n`` alone.
+    """
     dist, normal, point = pair_geometry(tree, kin)
-    # J [N, K, nv, 3]: each dof's velocity of the point, signed +1 for B's dofs and -1 for A's
-    lever = point.unsqueeze(2)  # [N, K, 1, 3]
-    motion = kin.motion.unsqueeze(1)  # [N, 1, nv, 6]
-    jacobian = (_cross(motion[..., :3], lever) + motion[..., 3:]) * tree.pair_dof_sign[..., None]
-    vel = (jacobian * qvel[:, None, :, None]).sum(2)  # B's point velocity relative to A's
+    jacobian = None
+    if tree.pair_frictional.any():
+        jacobian = pair_jacobian(tree, kin, point)
+        vel = (jacobian * qvel[:, None, :, None]).sum(2)  # B's point velocity relative to A's
+    else:
+        body_vel = body_velocities(tree, kin, qvel)[:, tree.pair_body]  # [N, K, 2, 6]
+        at_point = body_vel[..., 3:] + _cross(body_vel[..., :3], point.unsqueeze(2))
+        vel = at_point[:, :, 1] - at_point[:, :, 0]
     normal_vel = (vel * normal).sum(-1)
     tangent_vel = vel - normal_vel.unsqueeze(-1) * normal
     width = params["contact_width"].unsqueeze(-1)
@@ -96,7 +112,8 @@ def _pair_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params) -> 
     touching = torch.sigmoid(-dist / width)
     stiffness, damping = params["contact_stiffness"].unsqueeze(-1), params["contact_damping"].unsqueeze(-1)
     normal_force = torch.clamp(stiffness * depth - damping * touching * normal_vel, min=0.0)
-    mu = params["contact_friction"][:, tree.pair_slot]
+    # MuJoCo's condim=1 contacts are frictionless whatever their friction coefficient
+    mu = params["contact_friction"][:, tree.pair_slot] * tree.pair_frictional
     eps = params["friction_velocity"].unsqueeze(-1)
     slip = torch.sqrt((tangent_vel * tangent_vel).sum(-1) + eps * eps)
     force = normal_force.unsqueeze(-1) * (normal - (mu / slip).unsqueeze(-1) * tangent_vel)
@@ -111,12 +128,15 @@ def pair_contact_force(tree: RigidBodyTree, kin: Kinematics, qvel, params: Param
     Jacobian of B's point velocity relative to A's. ``with_damping=True`` also returns its velocity
     damping ``J^T (a n n^T + b (I - n n^T)) J`` ``[N, nv, nv]`` (see :func:`contact_force`)."""
     c = _pair_forces(tree, kin, qvel, params) if contacts is None else contacts
-    generalised = (c.jacobian * c.force.unsqueeze(2)).sum((1, 3))
+    wrench = torch.cat([_cross(c.point, c.force), c.force], dim=-1)  # on B, about kin.origin; A: -wrench
+    generalised = generalised_force(tree.pair_dof_sign, kin, wrench)
     if not with_damping:
         return generalised
-    u = (c.jacobian * c.normal.unsqueeze(2)).sum(-1)  # [N, K, nv]: J^T n
-    jtj = torch.einsum("nkdi,nkei,nk->nde", c.jacobian, c.jacobian, c.tangent_rate)
-    damping_matrix = jtj + torch.einsum("nkd,nke,nk->nde", u, u, c.normal_rate - c.tangent_rate)
+    unit = torch.cat([_cross(c.point, c.normal), c.normal], dim=-1)
+    u = (unit @ kin.motion.transpose(1, 2)) * tree.pair_dof_sign  # [N, K, nv]: J^T n
+    damping_matrix = torch.einsum("nkd,nke,nk->nde", u, u, c.normal_rate - c.tangent_rate)
+    if c.jacobian is not None:
+        damping_matrix = damping_matrix + torch.einsum("nkdi,nkei,nk->nde", c.jacobian, c.jacobian, c.tangent_rate)
     return generalised, damping_matrix
 
 
@@ -137,7 +157,7 @@ def _contact_points_and_forces(tree: RigidBodyTree, kin: Kinematics, qvel, param
     touching = torch.sigmoid(-dist / width)
     stiffness, damping = params["contact_stiffness"].unsqueeze(-1), params["contact_damping"].unsqueeze(-1)
     normal_force = torch.clamp(stiffness * depth - damping * touching * normal_vel, min=0.0)
-    mu = params["contact_friction"][:, tree.contact_slot]
+    mu = params["contact_friction"][:, tree.contact_slot] * tree.contact_frictional  # condim 1: frictionless
     eps = params["friction_velocity"].unsqueeze(-1)
     slip = torch.sqrt((tangent_vel * tangent_vel).sum(-1) + eps * eps)
     force = normal_force.unsqueeze(-1) * (normal - (mu / slip).unsqueeze(-1) * tangent_vel)

@@ -65,12 +65,14 @@ class RigidBodyTree:
     contact_plane_normal: torch.Tensor  # [npoint, 3]
     contact_pairs: list[tuple[str, str]]  # (geom, plane), then (geom, geom), of each slot
     contact_pair_friction: np.ndarray  # [nslot] MuJoCo's max of the two geoms' sliding friction (0: condim 1)
+    contact_frictional: torch.Tensor  # [npoint]: 0 where the geom-plane pair's larger condim is 1 (frictionless)
     # contact between two bodies' geoms: sphere-swept segments (a sphere's is a point), [npair]
     pair_body: torch.Tensor  # [npair, 2] long: bodies A and B
     pair_segment: torch.Tensor  # [npair, 2, 2, 3]: (A, B) x (start, end), each in its body's frame
     pair_radius: torch.Tensor  # [npair, 2]
     pair_slot: torch.Tensor  # [npair] long: its friction entry
     pair_dof_sign: torch.Tensor  # [npair, nv]: +1 dof moves B only, -1 A only, 0 both or neither
+    pair_frictional: torch.Tensor  # [npair]: 1 where the pair's larger condim is above 1 (MuJoCo: 1 is frictionless)
     # dofs of MuJoCo's "simple" bodies (children of the world with orthogonal slides only and no
     # children): (dof, body) pairs, whose dof_invweight0 MuJoCo takes as 1 / mass (no armature)
     simple_dofs: list[tuple[int, int]]
@@ -157,6 +159,7 @@ class RigidBodyTree:
         def friction(g1, g2):  # MuJoCo: the larger condim and the larger sliding friction of the two
             return 0.0 if max(model.geom_condim[g1], model.geom_condim[g2]) == 1 else \
                 max(model.geom_friction[g1, 0], model.geom_friction[g2, 0])
+        frictional = []  # per slot
 
         planes = [g for g in range(len(model.geom_names)) if model.geom_type[g] == "plane"]
         for p in planes:
@@ -175,12 +178,14 @@ class RigidBodyTree:
                 slot = len(pairs)
                 pairs.append((model.geom_names[g], model.geom_names[p]))
                 pair_friction.append(friction(g, p))
+                frictional.append(max(model.geom_condim[g], model.geom_condim[p]) > 1)
                 for offset, radius in local:
                     points.append((model.geom_body[g], offset, radius, slot, model.geom_pos[p], normal))
         geom_pairs = []  # (A, B, A's segment, B's segment, radii, slot)
         for g1, g2 in _colliding_geom_pairs(model):
             geom_pairs.append((model.geom_body[g1], model.geom_body[g2], _segment(model, g1), _segment(model, g2),
-                               (model.geom_size[g1, 0], model.geom_size[g2, 0]), len(pairs)))
+                               (model.geom_size[g1, 0], model.geom_size[g2, 0]), len(pairs),
+                               max(model.geom_condim[g1], model.geom_condim[g2]) > 1))
             pairs.append((model.geom_names[g1], model.geom_names[g2]))
             pair_friction.append(friction(g1, g2))
         tendon_coef = np.asarray(model.tendon_coef).reshape(len(model.tendon_names), nv)
@@ -219,10 +224,11 @@ class RigidBodyTree:
             contact_plane_point=t([p[4] for p in points]).reshape(-1, 3),
             contact_plane_normal=t([p[5] for p in points]).reshape(-1, 3),
             contact_pairs=pairs, contact_pair_friction=np.array(pair_friction),
+            contact_frictional=t([float(frictional[p[3]]) for p in points]),
             pair_body=idx([[p[0], p[1]] for p in geom_pairs]).reshape(-1, 2),
             pair_segment=t([[p[2], p[3]] for p in geom_pairs]).reshape(-1, 2, 2, 3),
             pair_radius=t([p[4] for p in geom_pairs]).reshape(-1, 2),
-            pair_slot=idx([p[5] for p in geom_pairs]),
+            pair_slot=idx([p[5] for p in geom_pairs]), pair_frictional=t([float(p[6]) for p in geom_pairs]),
             pair_dof_sign=t(np.array([moves[p[1]] - moves[p[0]] for p in geom_pairs]).reshape(-1, nv)),
             tendon_coef=t(tendon_coef), tendon_springlength=t(model.tendon_springlength), simple_dofs=simple_dofs,
             body_inertial_frame=t(np.linalg.eigh(model.body_inertia)[1]),
