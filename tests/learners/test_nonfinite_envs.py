@@ -6,6 +6,7 @@ test poisoned itself. The NaN is written into ``env.params`` after construction 
 parameter that became NaN); the env's own ``("next", "nonfinite")`` flag is simulated by
 writing it into a window.
 """
+import math
 import warnings
 
 import pytest
@@ -45,6 +46,8 @@ SMALL = {
     "shac": {"horizon": H, "obs_norm": True},
     "ppo": {"rollout_len": H, "minibatch_size": 16, "epochs": 2, "obs_norm": True},
     "sac": {"rollout_len": 2, "init_random_frames": 0, "batch_size": 8, "buffer_size": 256},
+    "sapo": {"horizon": H, "obs_norm": True, "critic_passes": 2},
+    "ahac": {"min_horizon": 4, "max_horizon": 6, "critic_passes": 2},
 }
 
 
@@ -119,7 +122,7 @@ def test_the_envs_own_nonfinite_flag_leaves_it_out_of_the_loss():
 
 
 # ---------------------------------------------------------------------- the learners
-@pytest.mark.parametrize("loss", ["bptt", "shac", "ppo", "sac"])
+@pytest.mark.parametrize("loss", ["bptt", "shac", "ppo", "sac", "sapo"])
 def test_one_nan_env_out_of_16_no_longer_stops_learning(loss):
     learner = learner_for(loss, poisoned_pendulum())
     params = list(learner.actor.parameters())
@@ -173,7 +176,7 @@ def test_sac_replay_buffer_holds_finite_transitions_only():
     assert torch.isfinite(learner.loss.log_alpha).all()
 
 
-@pytest.mark.parametrize("loss", ["bptt", "shac", "ppo", "sac"])
+@pytest.mark.parametrize("loss", ["bptt", "shac", "ppo", "sac", "sapo"])
 def test_repeated_nonfinite_updates_raise_naming_the_cause_and_the_envs(loss):
     learner = learner_for(loss, poisoned_pendulum(bad=range(N)))
     with warnings.catch_warnings():
@@ -300,3 +303,22 @@ def test_a_nan_env_on_one_rank_keeps_the_ranks_in_step(loss, tmp_path):
     for a, b in zip(ranks[0]["actor"], ranks[1]["actor"]):
         assert torch.isfinite(a).all()
         torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_ahac_leaves_a_nan_env_out_of_its_loss_critics_and_horizon():
+    """AHAC on HalfCheetah with one env's masses NaN: the actor and critics learn from the others,
+    the env is counted, and the adaptive horizon (fed by the contact forces) stays finite."""
+    env = make_env("HalfCheetah-v5", num_envs=N, seed=0, max_episode_steps=50)
+    env.params["body_mass"][BAD] = float("nan")
+    learner = learner_for("ahac", env)
+    params = list(learner.actor.parameters())
+    before = [p.detach().clone() for p in params]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NonFiniteEnvWarning)
+        history = [learner.train_iteration() for _ in range(3)]
+    for metrics in history:
+        assert metrics["nonfinite_envs"] == 1
+        assert all(v == 0 for k, v in metrics.items() if k.startswith("skipped")), metrics
+        assert all(math.isfinite(metrics[k]) for k in ("loss_actor", "loss_critic", "horizon_next", "horizon_dual"))
+    assert all(torch.isfinite(p).all() for p in params)
+    assert any(not torch.equal(a, b) for a, b in zip(before, params))

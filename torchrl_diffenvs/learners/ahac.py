@@ -31,7 +31,7 @@ from ..collectors import DiffWindowCollector
 from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
 from ..modules import ObservationNormalizer, actor_from_config, critic_from_config
-from ..objectives import AHACLoss, AdaptiveHorizon, GradientGuard, TwinCritic
+from ..objectives import AHACLoss, AdaptiveHorizon, GradientGuard, NonFiniteEnvMonitor, TwinCritic
 from ..objectives._windows import window_contact_force
 from .base import (
     LR_SCHEDULES,
@@ -139,6 +139,7 @@ class TwinCriticLearner(ActorCriticCheckpoint, Learner):
         kwargs = dict(optimizer_kwargs or {})
         self.actor_optim = optimizer(self.actor_params, lr=c.actor_lr, betas=c.betas, foreach=True, **kwargs)
         self.critic_optim = optimizer(self.critic_params, lr=c.critic_lr, betas=c.betas, foreach=True, **kwargs)
+        self.nonfinite = NonFiniteEnvMonitor(type(self).__name__)
         self.actor_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=c.skip_above)
         self.critic_guard = GradientGuard(max_norm=critic_max_grad_norm, skip_above=c.skip_above)
         self.schedules = [
@@ -190,7 +191,8 @@ class TwinCriticLearner(ActorCriticCheckpoint, Learner):
                 self.critic_optim.zero_grad(set_to_none=True)
                 critic_loss.backward()
                 self.world.average_gradients(self.critic_params)
-                self.critic_guard.step(self.critic_optim, self.critic_params, loss=critic_loss)
+                self.critic_guard.step(self.critic_optim, self.critic_params, loss=critic_loss,
+                                       context=self.nonfinite.describe)
                 losses.append(critic_loss.item())
             pass_loss, passes = sum(losses) / len(losses), critic_pass + 1
             # the reference's early stop: the mean change over the previous 5 pass losses
@@ -205,20 +207,30 @@ class TwinCriticLearner(ActorCriticCheckpoint, Learner):
         window = self.collector.rollout()
         self._last_window_steps = window.shape[1]
         self._check_window(window)
-        # actor step on the bootstrapped return (the loss also writes the critic targets)
+        # actor step on the bootstrapped return over the finite envs (the loss also writes the critic targets)
         out = self.loss(window)
+        keep = self.loss.finite_envs(window)
+        nonfinite = self.nonfinite.update(~keep, self.iteration)
         self.actor_optim.zero_grad(set_to_none=True)
         if out["loss_actor"].requires_grad:
             out["loss_actor"].backward()
         self.world.average_gradients(self.actor_params)
-        actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"])
+        actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"],
+                                           context=self.nonfinite.describe)
         metrics = {key: out[key].item() for key in ("loss_actor", "reward_mean", "value_mean")}
+        metrics["nonfinite_envs"] = nonfinite
         metrics.update(self._after_actor_step(window, out))
         data = window.detach()
         del window, out  # the graph is spent
         self._critic_targets(data)
-        flat = data.select(*self.loss.critic_network.in_keys, self.loss.tensor_keys.value_target).reshape(-1)
-        loss_critic, passes = self._fit_critic(flat, tuple(data.batch_size))
+        # the critics fit the finite envs' targets; none when every env is non-finite (each planned step skipped)
+        loss_critic, passes = float("nan"), 0
+        if keep.any():
+            flat = data[keep].select(*self.loss.critic_network.in_keys, self.loss.tensor_keys.value_target)
+            loss_critic, passes = self._fit_critic(flat.reshape(-1), tuple(flat.batch_size))
+        else:
+            for _ in range(self._critic_pass_count()[0] * self.config.critic_minibatches):
+                self.critic_guard.skip(context=self.nonfinite.describe)
         if self.normalizer is not None:
             self.normalizer.update(self.world.gather(data.get(self.keys.observation)))
         metrics.update({
@@ -234,7 +246,7 @@ class TwinCriticLearner(ActorCriticCheckpoint, Learner):
         force = window_contact_force(data)
         if force is not None:
             metrics["contact_force_max"] = force.max().item()
-        metrics.update(self._after_window(data))
+        metrics.update(self._after_window(data[keep] if keep.any() else data))
         if self.collector.finished_returns:
             metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
         for schedule in self.schedules:

@@ -173,20 +173,23 @@ class SAPOLoss(AHACLoss):
         soft = self._soft_reward(tensordict, reward, alpha)
 
         values = self._critic(tensordict.get("next"), target=False)  # [N, H, 2], graph through the observation
+        next_min = values.detach().min(dim=-1, keepdim=True).values
+        tensordict.set(keys.value_target, self._soft_targets(tensordict, soft, next_min))
+        # the loss of the finite envs only (as SHACLoss): a non-finite env's NaN would poison the sums
+        keep = self.finite_envs(tensordict)
+        soft, done, terminated, values = soft[keep], done[keep], terminated[keep], values[keep]
         k = steps_since_start(done).to(reward.dtype)
         closes = done.clone()
         closes[:, -1] = True
-        bootstrap_value = values.mean(dim=-1).reshape(reward.shape)
+        bootstrap_value = values.mean(dim=-1).reshape(soft.shape)
         bootstrap = torch.where(closes & ~terminated, self.gamma ** (k + 1) * bootstrap_value, 0.0)
-        loss_actor = -((self.gamma**k) * soft + bootstrap).sum() / reward.numel()
-
-        next_min = values.detach().min(dim=-1, keepdim=True).values
-        tensordict.set(keys.value_target, self._soft_targets(tensordict, soft, next_min))
+        loss_actor = -((self.gamma**k) * soft + bootstrap).sum() / soft.numel()  # NaN (0 / 0) if no env is left
         out = {
             "loss_actor": loss_actor,
-            "reward_mean": reward.detach().mean(),
+            "reward_mean": reward[keep].detach().mean(),
             "value_mean": bootstrap_value.detach().mean(),
-            "entropy": -self._log_prob(tensordict).detach().mean(),
+            "entropy": -self._log_prob(tensordict)[keep].detach().mean(),
             "alpha": alpha,
+            "nonfinite_envs": (~keep).sum(),
         }
         return TensorDict(out, batch_size=[])
