@@ -198,6 +198,14 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
       step (the eager loop resets the env and goes on).
     * Steps beyond whole chunks (``max_steps`` not a multiple of ``K``) run eagerly: choose
       ``K`` dividing the window length.
+    * The articulated tasks (the MuJoCo models: an env step is ``frame_skip`` physics steps of
+      a few forward-dynamics passes each) compile one physics step instead
+      (:func:`~torchrl_diffenvs.articulated.integrators.step`, ``dynamic=False``): the chunk's
+      policy, reward and resets run eagerly and call the same compiled step ``K x frame_skip``
+      times. A whole chunk of HalfCheetah-v5 was a graph of 40 physics steps that did not finish
+      compiling in 15 minutes on one CPU thread; one step compiles in about a minute, its
+      backward too (benchmarks/compile_physics.py). The joint-limit solve runs eagerly inside
+      it (a graph break, see :func:`~torchrl_diffenvs.articulated.limits.limit_force`).
 
     The result is that of the eager path up to floating-point rounding (fused kernels may round
     differently), gradients included, with one exception: random numbers drawn inside compiled
@@ -227,15 +235,18 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
 def compile_report(env: EnvBase) -> dict | None:
     """What :func:`compile_physics` did on ``env`` so far; ``None`` if it is not compiled.
 
-    ``{"steps_per_chunk": K, "first_call_seconds": {function: seconds}, "fallback_reason": str
-    or None}``: the first call of each compiled function (tracing and compiling included; the
-    backward's compilation happens in the first ``backward()`` instead), and why compiled
-    chunks were given up, if they were.
+    ``{"steps_per_chunk": K, "granularity": "chunk" or "physics step", "first_call_seconds":
+    {function: seconds}, "fallback_reason": str or None}``: the first call of each compiled
+    function (tracing and compiling included: for the articulated tasks the compiled physics
+    step's own entry, ``"physics step (<integrator>), with/without grad"``, and the first chunk
+    that called it; the backward's compilation happens in the first ``backward()`` instead),
+    and why compiled chunks were given up, if they were.
     """
     compiled = env.__dict__.get("_compiled_physics")
     if compiled is None:
         return None
-    return {"steps_per_chunk": compiled.steps_per_chunk, "first_call_seconds": dict(compiled.first_call_seconds),
+    return {"steps_per_chunk": compiled.steps_per_chunk, "granularity": compiled.granularity,
+            "first_call_seconds": dict(compiled.first_call_seconds),
             "fallback_reason": compiled.fallback_reason}
 
 
