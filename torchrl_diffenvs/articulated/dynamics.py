@@ -40,7 +40,7 @@ from __future__ import annotations
 from .contact import _contact_points_and_forces, _point_mass_matrix, body_contact_forces, contact_force
 from .forces import actuator_force, fluid_force, passive_force
 from .inertia import _composite_mass_matrix, _joint_space_inertia, _spatial_inertia, dof_invweight0, mass_matrix_and_bias
-from .integrators import StepResult, step
+from .integrators import StepResult, eager_step, step, stepping_with
 from .kinematics import (Kinematics, _tree_sum, body_velocities, forward_kinematics, generalised_force,
                          integrate_position, site_positions)
 from .limits import _complementary_forces, _impedance, _pivot, limit_force
@@ -51,7 +51,8 @@ from .tree import RigidBodyTree, default_params
 
 __all__ = [
     "RigidBodyTree", "Kinematics", "StepResult", "forward_kinematics", "integrate_position", "mass_matrix_and_bias",
-    "accelerations", "step", "constraint_force", "site_positions", "default_params", "body_contact_forces",
+    "accelerations", "step", "eager_step", "stepping_with", "constraint_force", "site_positions", "default_params",
+    "body_contact_forces",
     "contact_force", "limit_force", "actuator_force", "passive_force", "fluid_force", "dof_invweight0",
     "body_velocities", "generalised_force", "integrate_quaternion", "quaternion_to_matrix", "cross_motion",
     "cross_force", "Params",

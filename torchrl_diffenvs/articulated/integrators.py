@@ -2,6 +2,7 @@
 semi-implicit Euler (with implicit joint and contact damping) and classic RK4."""
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -12,7 +13,7 @@ from .pipeline import accelerations
 from .spatial import Params
 from .tree import RigidBodyTree
 
-__all__ = ['StepResult', 'step']
+__all__ = ['StepResult', 'eager_step', 'step', 'stepping_with']
 
 
 class StepResult(NamedTuple):
@@ -25,8 +26,47 @@ class StepResult(NamedTuple):
     contact_force: torch.Tensor | None = None  # [N] the largest contact normal force at the evaluated state
 
 
+#: id(tree) -> the function that runs its physics steps instead of :func:`eager_step` (see
+#: :func:`stepping_with`): how ``compile_physics`` runs one compiled physics step at a time
+_STEPPERS: dict[int, Callable] = {}
+
+
+class stepping_with:  # noqa: N801 (a context manager, used as a function)
+    """Within ``with stepping_with(tree, stepper):``, :func:`step` on ``tree`` calls ``stepper``
+    (same arguments, same result) instead of :func:`eager_step`: how
+    :func:`~torchrl_diffenvs.compile_physics` runs the articulated tasks, whose env step is
+    ``frame_skip`` physics steps, through one compiled physics step reused at every step (a
+    graph ``frame_skip`` times smaller than the env step's, and the same graph for every step of
+    a chunk). Code being traced by ``torch.compile`` always takes the eager step (no nesting)."""
+
+    def __init__(self, tree: RigidBodyTree, stepper: Callable):
+        self.key, self.stepper = id(tree), stepper
+
+    def __enter__(self):
+        self.previous = _STEPPERS.get(self.key)
+        _STEPPERS[self.key] = self.stepper
+        return self
+
+    def __exit__(self, *exc):
+        if self.previous is None:
+            _STEPPERS.pop(self.key, None)
+        else:
+            _STEPPERS[self.key] = self.previous
+        return False
+
+
 def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,
          invweight0=None) -> StepResult:
+    """One physics step (:func:`eager_step`, or the stepper :func:`stepping_with` set for ``tree``)."""
+    if _STEPPERS and not torch.compiler.is_compiling():
+        stepper = _STEPPERS.get(id(tree))
+        if stepper is not None:
+            return stepper(tree, qpos, qvel, ctrl, params, dt, integrator, invweight0)
+    return eager_step(tree, qpos, qvel, ctrl, params, dt, integrator, invweight0)
+
+
+def eager_step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,
+               invweight0=None) -> StepResult:
     """One physics step of MuJoCo's ``integrator`` (``"euler"`` or ``"rk4"``).
 
     Besides the new state, returns the state at which MuJoCo evaluated the forward dynamics last

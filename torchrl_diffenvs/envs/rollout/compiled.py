@@ -3,6 +3,7 @@ lean loop (policy, :func:`~.step.physics_step`, :func:`~.step.merge_reset`) as o
 from __future__ import annotations
 
 import itertools
+import time
 import types
 import weakref
 from collections.abc import Callable
@@ -11,6 +12,8 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs import EnvBase
 
+from ...articulated.integrators import eager_step, stepping_with
+from ...articulated.tree import RigidBodyTree
 from .step import ENV_KEYS, FLAG_KEYS, merge_reset, physics_step
 from .support import fast_rollout_unsupported
 
@@ -87,13 +90,29 @@ def chunk_inputs(root: dict) -> dict:
             "episode_step": root["episode_step"].contiguous()}
 
 
+def physics_step_tree(env: EnvBase) -> RigidBodyTree | None:
+    """The articulated model of an env whose physics runs through
+    :func:`~torchrl_diffenvs.articulated.integrators.step` (the MuJoCo tasks), else ``None``."""
+    tree = getattr(env, "tree", None)
+    return tree if isinstance(tree, RigidBodyTree) else None
+
+
 class CompiledPhysics:
-    """The ``torch.compile``'d chunk functions of one env and what its rollouts learned."""
+    """The ``torch.compile``'d chunk functions of one env and what its rollouts learned.
+
+    Two granularities: ``"chunk"`` compiles the whole ``K``-step chunk (policy, physics, reward,
+    resets) as one function; ``"physics step"`` (the articulated tasks) runs the chunk's Python
+    eagerly and compiles one physics step of :func:`~torchrl_diffenvs.articulated.integrators.step`,
+    reused for every one of the chunk's ``K x frame_skip`` physics steps.
+    """
 
     def __init__(self, env: EnvBase, steps_per_chunk: int, compile_kwargs: dict):
         self.steps_per_chunk = steps_per_chunk
         self.compile_kwargs = {"dynamic": False, **compile_kwargs}
         self.env_ref = weakref.ref(env)  # the env holds this object: no reference cycle
+        self.tree = physics_step_tree(env)
+        self.granularity = "chunk" if self.tree is None else "physics step"
+        self.step_functions: dict = {}  # (dt, integrator) -> the compiled physics step
         # policy -> {with_resets: compiled chunk}; without a policy: self.functions
         self.policy_functions: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self.functions: dict = {}
@@ -117,8 +136,35 @@ class CompiledPhysics:
             def chunk(root, extras, actions, fresh):
                 return chunk_steps(env_ref(), policy_ref(), steps, root, extras, actions, fresh)
 
-            fn = functions[with_resets] = torch.compile(_own_code(chunk), **self.compile_kwargs)
+            if self.granularity == "physics step":
+                tree, stepper = self.tree, self.physics_step
+
+                def fn(root, extras, actions, fresh):
+                    with stepping_with(tree, stepper):
+                        return chunk(root, extras, actions, fresh)
+
+                functions[with_resets] = fn
+            else:
+                fn = functions[with_resets] = torch.compile(_own_code(chunk), **self.compile_kwargs)
         return fn
+
+    def physics_step(self, tree, qpos, qvel, ctrl, params, dt, integrator, invweight0):
+        """:func:`~torchrl_diffenvs.articulated.integrators.step` through ``torch.compile``: one
+        compiled function per step size and integrator (the tree and both are constants of its
+        graph), reused at every physics step; its first call per grad mode is timed."""
+        fn = self.step_functions.get((dt, integrator))
+        if fn is None:
+            def one_step(qpos, qvel, ctrl, params, invweight0):
+                return eager_step(tree, qpos, qvel, ctrl, params, dt, integrator, invweight0)
+
+            fn = self.step_functions[(dt, integrator)] = torch.compile(_own_code(one_step), **self.compile_kwargs)
+        what = f"physics step ({integrator}), {'with' if torch.is_grad_enabled() else 'without'} grad"
+        if what in self.first_call_seconds:
+            return fn(qpos, qvel, ctrl, params, invweight0)
+        started = time.perf_counter()
+        result = fn(qpos, qvel, ctrl, params, invweight0)
+        self.first_call_seconds[what] = time.perf_counter() - started
+        return result
 
 
 _CHUNK_FUNCTIONS = itertools.count()
@@ -152,6 +198,14 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
       step (the eager loop resets the env and goes on).
     * Steps beyond whole chunks (``max_steps`` not a multiple of ``K``) run eagerly: choose
       ``K`` dividing the window length.
+    * The articulated tasks (the MuJoCo models: an env step is ``frame_skip`` physics steps of
+      a few forward-dynamics passes each) compile one physics step instead
+      (:func:`~torchrl_diffenvs.articulated.integrators.step`, ``dynamic=False``): the chunk's
+      policy, reward and resets run eagerly and call the same compiled step ``K x frame_skip``
+      times. A whole chunk of HalfCheetah-v5 was a graph of 40 physics steps that did not finish
+      compiling in 15 minutes on one CPU thread; one step compiles in about a minute, its
+      backward too (benchmarks/compile_physics.py). The joint-limit solve runs eagerly inside
+      it (a graph break, see :func:`~torchrl_diffenvs.articulated.limits.limit_force`).
 
     The result is that of the eager path up to floating-point rounding (fused kernels may round
     differently), gradients included, with one exception: random numbers drawn inside compiled
@@ -181,15 +235,18 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
 def compile_report(env: EnvBase) -> dict | None:
     """What :func:`compile_physics` did on ``env`` so far; ``None`` if it is not compiled.
 
-    ``{"steps_per_chunk": K, "first_call_seconds": {function: seconds}, "fallback_reason": str
-    or None}``: the first call of each compiled function (tracing and compiling included; the
-    backward's compilation happens in the first ``backward()`` instead), and why compiled
-    chunks were given up, if they were.
+    ``{"steps_per_chunk": K, "granularity": "chunk" or "physics step", "first_call_seconds":
+    {function: seconds}, "fallback_reason": str or None}``: the first call of each compiled
+    function (tracing and compiling included: for the articulated tasks the compiled physics
+    step's own entry, ``"physics step (<integrator>), with/without grad"``, and the first chunk
+    that called it; the backward's compilation happens in the first ``backward()`` instead),
+    and why compiled chunks were given up, if they were.
     """
     compiled = env.__dict__.get("_compiled_physics")
     if compiled is None:
         return None
-    return {"steps_per_chunk": compiled.steps_per_chunk, "first_call_seconds": dict(compiled.first_call_seconds),
+    return {"steps_per_chunk": compiled.steps_per_chunk, "granularity": compiled.granularity,
+            "first_call_seconds": dict(compiled.first_call_seconds),
             "fallback_reason": compiled.fallback_reason}
 
 
