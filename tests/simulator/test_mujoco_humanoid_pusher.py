@@ -191,17 +191,21 @@ def _tendon_xml(tmp_path, attributes):
     text = gymnasium_asset("humanoid.xml").read_text()
     text = text.replace('<fixed name="left_hipknee">', f'<fixed name="left_hipknee" {attributes}>')
     text = text.replace('<fixed name="right_hipknee">', '<fixed name="right_hipknee" stiffness="7" damping="0.5">')
+    # a spring reference on one of its joints: MuJoCo's default rest length is the length there
+    text = text.replace('name="right_knee" pos="0 0 .02"', 'name="right_knee" springref="-30" pos="0 0 .02"')
     path = tmp_path / "humanoid_tendons.xml"
     path.write_text(text)
     return path
 
 
 def test_fixed_tendon_springs_and_dampers_match_mujocos_passive_force(tmp_path):
-    """Tendon springs (an explicit springlength, and MuJoCo's default: the length at qpos0) and
-    dampers on the humanoid's hip-knee tendons: ``qfrc_passive`` equals MuJoCo's at random states."""
+    """Tendon springs (an explicit springlength, and MuJoCo's default: the length with the joints at
+    their springref, here -30 degrees on the right knee) and dampers on the humanoid's hip-knee
+    tendons: the rest lengths and ``qfrc_passive`` equal MuJoCo's at random states."""
     path = _tendon_xml(tmp_path, 'stiffness="30" damping="2" springlength="0.3"')
     model, mm, data, tree, params = _setup("humanoid.xml", xml=path)
     np.testing.assert_allclose(model.tendon_springlength, mm.tendon_lengthspring[:, 0], atol=1e-12)
+    assert model.tendon_springlength[1] == pytest.approx(-np.pi / 6)
     rng = np.random.default_rng(2)
     for _ in range(5):
         data.qpos[:] = mm.qpos0 + rng.normal(size=mm.nq) * 0.5
@@ -269,12 +273,13 @@ def _same_start(env, genv, qpos, qvel):
 
 @pytest.mark.parametrize("name", ["Humanoid-v5", "HumanoidStandup-v5"])
 def test_humanoids_in_the_air_match_gymnasium(name):
-    """Lifted 5 m (gravity on), 12 steps of random actions with the file's RK4: observations (348:
-    qpos, qvel, cinert, cvel, qfrc_actuator, cfrc_ext), rewards and terminations equal gymnasium's
-    (the healthy range widened in both; MuJoCo 4's RK4 on a quaternion differs from the classic
-    tableau by ~1e-7 per physics step, see test_mujoco_parity.py, hence 1e-4). The smooth contact
-    is switched off, as MuJoCo has none here: except HumanoidStandup's start pose, whose hands rest
-    1.4 cm inside its hips in MuJoCo too, so only its start observation is compared."""
+    """Humanoid-v5 lifted 5 m (gravity on), 12 steps of random actions with the file's RK4:
+    observations (348: qpos, qvel, cinert, cvel, qfrc_actuator, cfrc_ext), rewards and
+    terminations equal gymnasium's (the healthy range widened in both; MuJoCo 4's RK4 on a
+    quaternion differs from the classic tableau by ~1e-7 per physics step, see
+    test_mujoco_parity.py, hence 1e-4). The smooth contact is switched off, as MuJoCo has none
+    there. HumanoidStandup-v5: only its start observation (its hands rest 1.4 cm inside its hips,
+    in MuJoCo too, so its steps involve contact; its reward is checked by hand below)."""
     kwargs = {"healthy_z_range": (1.0, 10.0)} if name == "Humanoid-v5" else {}
     genv = gym.make(name, **kwargs)
     params = {"healthy_z_high": 10.0} if name == "Humanoid-v5" else {}
@@ -364,7 +369,8 @@ def test_pusher_matches_gymnasium_before_the_wrist_reaches_the_object():
 
 def test_pusher_start_states_follow_gymnasiums_distribution():
     env = make_env("Pusher-v5", num_envs=4096, seed=0)
-    qpos, qvel = env.reset()["state", "qpos"], env.reset()["state", "qvel"]
+    state = env.reset()["state"]
+    qpos, qvel = state["qpos"], state["qvel"]
     cylinder, goal = qpos[:, -4:-2], qpos[:, -2:]
     assert (goal == 0).all() and (cylinder.norm(dim=-1) > 0.17).all()
     assert (cylinder[:, 0] >= -0.3).all() and (cylinder[:, 0] <= 0).all() and (cylinder[:, 1].abs() <= 0.2).all()
@@ -415,3 +421,18 @@ def test_pusher_wrist_pushes_the_object_and_its_gradient_matches_finite_differen
                       for e in torch.eye(7, dtype=torch.float64).unsqueeze(1)])
     assert torch.isfinite(grad).all() and grad.abs().max() > 1e-4
     torch.testing.assert_close(grad[0], fd, rtol=1e-4, atol=1e-7)
+
+
+@pytest.mark.parametrize("name", ["Humanoid-v5", "Pusher-v5", "Ant-v5"])
+def test_a_state_reset_needs_only_qpos_and_qvel(name):
+    """``reset(td, set_state=True)`` with only ``qpos`` and ``qvel``: the entries MuJoCo derives
+    from them are computed, the last step's readings start at 0, and the result equals the
+    env's own reset from the same start."""
+    env = make_env(name, num_envs=3, dtype=torch.float64, seed=0)
+    fresh = env.reset()
+    td = fresh.exclude("state")
+    td["state"] = fresh["state"].select("qpos", "qvel")
+    again = env.reset(td, set_state=True)
+    for key in fresh["state"].keys():
+        torch.testing.assert_close(again["state", key], fresh["state", key])
+    torch.testing.assert_close(again["observation"], fresh["observation"])

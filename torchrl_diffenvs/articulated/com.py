@@ -16,23 +16,11 @@ def body_com(tree: RigidBodyTree, kin: Kinematics) -> torch.Tensor:
     return kin.body_pos + (kin.body_rot @ tree.body_com.unsqueeze(-1)).squeeze(-1)
 
 
-def _root_subtree_mask(tree: RigidBodyTree, like: torch.Tensor) -> torch.Tensor:
-    """``[nbody, nbody]``: ``mask[b, c] = 1`` where body ``c`` is in the subtree of ``b``'s root
-    (the world's: every body), MuJoCo's ``body_rootid``."""
-    parent = tree.body_parent
-    root = [0] * len(parent)
-    for b in range(1, len(parent)):
-        root[b] = b if parent[b] == 0 else root[parent[b]]
-    mask = torch.tensor([[1.0 if b == 0 or root[c] == root[b] else 0.0 for c in range(len(parent))]
-                         for b in range(len(parent))], dtype=like.dtype, device=like.device)
-    return mask
-
-
 def root_subtree_com(tree: RigidBodyTree, kin: Kinematics, params: Params) -> torch.Tensor:
     """``[N, nbody, 3]`` for every body, the centre of mass of its root's subtree
     (``subtree_com[body_rootid]``): the point MuJoCo takes ``cinert``, ``cvel`` and ``cfrc_ext`` about."""
     mass = params["body_mass"]  # [N, nbody]
-    mask = _root_subtree_mask(tree, mass)
+    mask = tree.root_subtree_mask
     weighted = torch.einsum("bc,nc,nck->nbk", mask, mass, body_com(tree, kin))
     total = (mass @ mask.T).clamp_min(1e-12)
     return weighted / total.unsqueeze(-1)

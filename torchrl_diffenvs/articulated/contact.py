@@ -98,7 +98,7 @@ def _pair_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params) -> 
     """
     dist, normal, point = pair_geometry(tree, kin)
     jacobian = None
-    if tree.pair_frictional.any():
+    if tree.has_frictional_pairs:
         jacobian = pair_jacobian(tree, kin, point)
         vel = (jacobian * qvel[:, None, :, None]).sum(2)  # B's point velocity relative to A's
     else:

@@ -81,9 +81,8 @@ def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
             mean = weight[:, first:first + 3].mean(-1, keepdim=True)
             weight = torch.cat([weight[:, :first], mean.expand(-1, 3), weight[:, first + 3:]], dim=-1)
     if tree.simple_dofs:  # MuJoCo: a slide-only body hanging from the world weighs its mass, armature aside
-        dofs, bodies = zip(*tree.simple_dofs)
-        weight = weight.index_copy(1, torch.tensor(dofs, device=weight.device),
-                                   1.0 / params["body_mass"][:, list(bodies)].clamp_min(1e-15))
+        mass = params["body_mass"].index_select(1, tree.simple_dof_body)
+        weight = weight.index_copy(1, tree.simple_dof_index, 1.0 / mass.clamp_min(1e-15))
     return weight
 
 

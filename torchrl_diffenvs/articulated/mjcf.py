@@ -558,14 +558,15 @@ class _Reader:
 
     def tendon_arrays(self, joints, ndof) -> dict:
         """The fixed tendons as dense per-dof coefficients; a negative springlength is MuJoCo's
-        "the length at qpos0"."""
+        "the length with the joints at their springref"."""
         dofadr = np.cumsum([0] + ndof)[:-1]
         coef = np.zeros((len(self.tendons), sum(ndof)))
         rest = np.zeros(len(self.tendons))
         for i, t in enumerate(self.tendons):
             for j, c in t["coef"].items():
                 coef[i, dofadr[j]] = c
-            length0 = sum(c * float(joints[j]["ref"][0]) for j, c in t["coef"].items())
+            # MuJoCo's default rest length: the tendon's length with every joint at its springref
+            length0 = sum(c * float(joints[j]["springref"][0]) for j, c in t["coef"].items())
             rest[i] = length0 if t["springlength"] < 0 else t["springlength"]
         return dict(tendon_names=[t["name"] for t in self.tendons], tendon_coef=coef,
                     tendon_stiffness=np.array([t["stiffness"] for t in self.tendons]),

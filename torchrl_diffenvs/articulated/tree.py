@@ -73,9 +73,13 @@ class RigidBodyTree:
     pair_slot: torch.Tensor  # [npair] long: its friction entry
     pair_dof_sign: torch.Tensor  # [npair, nv]: +1 dof moves B only, -1 A only, 0 both or neither
     pair_frictional: torch.Tensor  # [npair]: 1 where the pair's larger condim is above 1 (MuJoCo: 1 is frictionless)
+    has_frictional_pairs: bool  # any of them (a Python bool: no device sync in the step)
     # dofs of MuJoCo's "simple" bodies (children of the world with orthogonal slides only and no
     # children): (dof, body) pairs, whose dof_invweight0 MuJoCo takes as 1 / mass (no armature)
     simple_dofs: list[tuple[int, int]]
+    simple_dof_index: torch.Tensor  # [nsimple] long: those dofs
+    simple_dof_body: torch.Tensor  # [nsimple] long: their bodies
+    root_subtree_mask: torch.Tensor  # [nbody, nbody]: body c is in the subtree of body b's root (b = 0: all)
     # fixed tendons
     tendon_coef: torch.Tensor  # [ntendon, nv]
     tendon_springlength: torch.Tensor  # [ntendon]
@@ -171,7 +175,7 @@ class RigidBodyTree:
             for p in planes:
                 collide = (model.geom_contype[g] & model.geom_conaffinity[p]) or (
                     model.geom_contype[p] & model.geom_conaffinity[g])
-                if not collide:
+                if not collide or _slides_along(model, int(model.geom_body[g]), model.geom_rot[p][:, 2]):
                     continue
                 local = _contact_points(model, g)
                 normal = model.geom_rot[p][:, 2]
@@ -229,11 +233,43 @@ class RigidBodyTree:
             pair_segment=t([[p[2], p[3]] for p in geom_pairs]).reshape(-1, 2, 2, 3),
             pair_radius=t([p[4] for p in geom_pairs]).reshape(-1, 2),
             pair_slot=idx([p[5] for p in geom_pairs]), pair_frictional=t([float(p[6]) for p in geom_pairs]),
+            has_frictional_pairs=any(p[6] for p in geom_pairs),
             pair_dof_sign=t(np.array([moves[p[1]] - moves[p[0]] for p in geom_pairs]).reshape(-1, nv)),
             tendon_coef=t(tendon_coef), tendon_springlength=t(model.tendon_springlength), simple_dofs=simple_dofs,
+            simple_dof_index=idx([d for d, _ in simple_dofs]), simple_dof_body=idx([b for _, b in simple_dofs]),
+            root_subtree_mask=t(_root_subtree_mask(model)),
             body_inertial_frame=t(np.linalg.eigh(model.body_inertia)[1]),
         )
         return tree
+
+
+def _slides_along(model: ArticulatedModel, body: int, normal: np.ndarray) -> bool:
+    """Whether only slides parallel to a plane move ``body`` (the Pusher's object on its table):
+    its contact with that plane could push it along no dof, so it is left out (MuJoCo computes
+    it, to no effect)."""
+    rot, chain = np.eye(3), []
+    while body != 0:
+        chain.append(body)
+        body = int(model.body_parent[body])
+    joints = [j for j in range(model.njnt) if model.joint_body[j] in chain]
+    if not joints or any(model.joint_type[j] != "slide" for j in joints):
+        return False
+    for b in reversed(chain):  # slides do not turn anything: the world axes are the file's
+        rot = rot @ model.body_rot[b]
+        if any(abs((rot @ model.joint_axis[j]) @ normal) > 1e-12 for j in joints if model.joint_body[j] == b):
+            return False
+    return True
+
+
+def _root_subtree_mask(model: ArticulatedModel) -> np.ndarray:
+    """``mask[b, c] = 1`` where body ``c`` is in the subtree of ``b``'s root (MuJoCo's
+    ``body_rootid``; the world's root is the world, whose subtree is every body)."""
+    parent = [int(p) for p in model.body_parent]
+    root = [0] * len(parent)
+    for b in range(1, len(parent)):
+        root[b] = b if parent[b] == 0 else root[parent[b]]
+    return np.array([[1.0 if b == 0 or root[c] == root[b] else 0.0 for c in range(len(parent))]
+                     for b in range(len(parent))])
 
 
 def _weld(model: ArticulatedModel, body: int) -> int:
@@ -274,12 +310,14 @@ def _colliding_geom_pairs(model: ArticulatedModel) -> list[tuple[int, int]]:
 def _segment(model: ArticulatedModel, g: int) -> np.ndarray:
     """``[2, 3]`` the geom's core segment in its body frame: the geom is the set of points within
     its radius of it. A sphere's is its centre (twice), a capsule's its axis; a cylinder is
-    taken as the capsule on its axis (exact on its side, its flat ends rounded off)."""
+    taken as the capsule inscribed in it (its axis shortened by the radius at both ends: exact on
+    its side between the ends' rounding, never larger than the cylinder)."""
     kind, size, pos, rot = model.geom_type[g], model.geom_size[g], model.geom_pos[g], model.geom_rot[g]
     if kind == "sphere":
         return np.stack([pos, pos])
     if kind in ("capsule", "cylinder"):
-        half = rot[:, 2] * size[1]
+        length = size[1] if kind == "capsule" else max(size[1] - size[0], 0.0)
+        half = rot[:, 2] * length
         return np.stack([pos - half, pos + half])
     raise ValueError(
         f"{model.path}: geom {model.geom_names[g]!r} of type {kind} can touch another body's geom, but "

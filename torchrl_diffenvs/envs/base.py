@@ -100,6 +100,11 @@ class DiffEnv(EnvBase):
     #: state entries that are readings of the last step (as a MuJoCo task's contact force), not
     #: inputs of the next: ``reset(td, set_state=True)`` starts a missing one at 0
     reading_state_keys: tuple[str, ...] = ()
+
+    def derived_state(self, state, params) -> dict:
+        """State entries that follow from others (e.g. positions MuJoCo derives from ``qpos``):
+        ``reset(td, set_state=True)`` computes those missing from ``td["state"]``. None here."""
+        return {}
     _USE_DEFAULT = object()
 
     # ------------------------------------------------------------------ physics (subclasses)
@@ -420,6 +425,9 @@ class DiffEnv(EnvBase):
                 if key not in state.keys():
                     spec = self.state_spec["state", key]
                     state.set(key, torch.zeros(spec.shape, dtype=spec.dtype, device=self.device))
+            for key, value in self.derived_state(state, params).items():  # derived from the given ones
+                if key not in state.keys():
+                    state.set(key, value)
             self._check_state(state)
         else:
             state = self.start_states(params)

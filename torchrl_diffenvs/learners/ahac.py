@@ -163,8 +163,9 @@ class TwinCriticLearner(ActorCriticCheckpoint, Learner):
     def _critic_targets(self, data) -> None:
         """The critic targets of the detached window: those the loss wrote (override to recompute)."""
 
-    def _after_window(self, data) -> dict[str, float]:
-        """After the critic and normaliser updates, before the schedules step: extra metrics."""
+    def _after_window(self, data, keep) -> dict[str, float]:
+        """After the critic and normaliser updates, before the schedules step: extra metrics
+        (``keep [N]``: the finite envs)."""
         return {}
 
     def _critic_pass_count(self) -> tuple[int, bool]:
@@ -246,7 +247,7 @@ class TwinCriticLearner(ActorCriticCheckpoint, Learner):
         force = window_contact_force(data)
         if force is not None:
             metrics["contact_force_max"] = force.max().item()
-        metrics.update(self._after_window(data[keep] if keep.any() else data))
+        metrics.update(self._after_window(data, keep))
         if self.collector.finished_returns:
             metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
         for schedule in self.schedules:
@@ -303,7 +304,8 @@ class AHACLearner(TwinCriticLearner):
         if state is not None and "contact_force" in state.keys():
             return []
         return [f"env {getattr(env, 'name', type(env).__name__)!r} reports no contact force (AHAC adapts its window to "
-                "it): train it with shac, or AHAC on HalfCheetah-v5, Hopper-v5, Walker2d-v5 or Ant-v5"]
+                "it): train it with shac, or AHAC on a MuJoCo contact task (HalfCheetah-v5, Hopper-v5, Walker2d-v5, "
+                "Ant-v5, Humanoid-v5, HumanoidStandup-v5, Pusher-v5)"]
 
     @staticmethod
     def _policy_and_normalizer(loss_cfg: Mapping, env):
@@ -340,10 +342,13 @@ class AHACLearner(TwinCriticLearner):
     def _check_window(self, window) -> None:
         window_contact_force(window, type(self).__name__)  # a clear error before any update
 
-    def _after_window(self, data) -> dict[str, float]:
-        force = window_contact_force(data, type(self).__name__)
-        all_ranks = self.world.gather(force)  # the same horizon on every rank
-        horizon = self.adaptive_horizon.update(all_ranks.reshape(-1, force.shape[-1]), self.horizon_lr)
+    def _after_window(self, data, keep) -> dict[str, float]:
+        force = window_contact_force(data, type(self).__name__)  # [N, H]
+        # the per-step mean over every rank's finite envs: the same horizon on every rank
+        weight = keep.to(force.dtype).unsqueeze(-1).expand_as(force)
+        total = self.world.gather(torch.where(keep.unsqueeze(-1), force, 0.0)).reshape(-1, force.shape[-1]).sum(0)
+        count = self.world.gather(weight).reshape(-1, force.shape[-1]).sum(0).clamp_min(1.0)
+        horizon = self.adaptive_horizon.update(total / count, self.horizon_lr)
         self.collector.horizon = horizon  # the collector reads it at each rollout
         return {"horizon": float(self._last_window_steps), "horizon_next": float(horizon),
                 "horizon_dual": float(self.adaptive_horizon.dual[0])}

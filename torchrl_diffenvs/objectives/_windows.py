@@ -63,7 +63,7 @@ def window_contact_force(window: TensorDictBase, who: str | None = None) -> torc
             return None
         raise KeyError(
             f"{who}: the rollout has no ('next', 'state', 'contact_force') entry; AHAC adapts its window from the "
-            "contact force that the MuJoCo contact tasks (HalfCheetah-v5, Hopper-v5, Walker2d-v5, Ant-v5) report at "
+            "contact force that the MuJoCo contact tasks (HalfCheetah-v5, Hopper-v5, Walker2d-v5, Ant-v5, the humanoids, Pusher-v5) report at "
             "every step; for another env add a transform that writes ('next', 'contact_force') ([N, 1], newtons)"
         )
     return value.detach().reshape(window.batch_size)

@@ -66,6 +66,11 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
         self._set_healthy_gradient(healthy_gradient_width, healthy_gradient_scale)
         self._set_posture_gradient(posture_gradient_scale)
         super().__init__(num_envs, **kwargs)
+        self.reading_state_keys = (*self.reading_state_keys, "cfrc_ext")  # 0 after a reset, as MuJoCo's
+
+    def derived_state(self, state, params) -> dict:
+        """``torso_xy`` of the given ``qpos`` (for a state reset)."""
+        return {"torso_xy": state["qpos"][:, :2]}
 
     def contact_wrenches(self, qpos, qvel, params):
         """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` from the smooth contact: about the centre of mass."""

@@ -1,5 +1,5 @@
 """The healthy check and its bonus's surrogate gradient, shared by the tasks that end when the
-robot falls (Hopper-v5, Walker2d-v5, Ant-v5)."""
+robot falls (Hopper-v5, Walker2d-v5, Ant-v5, Humanoid-v5)."""
 import torch
 import torch.nn.functional as F
 
@@ -33,7 +33,7 @@ class HealthySurrogate:
                              f"zero gradient of the healthy bonus), got {width!r}")
         if width > 0 and not self.healthy_ranges:
             raise ValueError(f"{self.name}: healthy_gradient_width applies to tasks with a healthy bonus "
-                             f"(Hopper-v5, Walker2d-v5, Ant-v5); {self.name} has none")
+                             f"(Hopper-v5, Walker2d-v5, Ant-v5, Humanoid-v5); {self.name} has none")
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0.0 <= scale < float("inf"):
             raise ValueError(f"{self.name}: healthy_gradient_scale must be a finite number >= 0, got {scale!r}")
         self.healthy_gradient_width = float(width)

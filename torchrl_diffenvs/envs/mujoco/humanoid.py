@@ -41,6 +41,13 @@ class _HumanoidBase(MuJoCoModelEnv):
                          "qfrc_actuator": bool(include_qfrc_actuator_in_observation),
                          "cfrc_ext": bool(include_cfrc_ext_in_observation)}
         super().__init__(num_envs, **kwargs)
+        # readings of the last step (0 after a reset), as contact_force: a state reset may leave them out
+        self.reading_state_keys = (*self.reading_state_keys, "cfrc_ext", "qfrc_actuator")
+
+    def derived_state(self, state, params) -> dict:
+        """``mass_center_xy``, ``cinert`` and ``cvel`` at the given ``qpos``/``qvel`` (for a state reset)."""
+        derived = self.derived(state["qpos"], state["qvel"], params)
+        return {key: derived[key] for key in ("mass_center_xy", "cinert", "cvel")}
 
     def derived(self, qpos, qvel, params) -> dict:
         """The quantities MuJoCo derives from a state that the task reads: ``mass_center_xy``,

@@ -37,7 +37,7 @@ class PlanarLocomotionEnv(HealthySurrogate, MuJoCoModelEnv):
         self._set_posture_gradient(posture_gradient_scale)
         if posture_gradient_scale > 0 and not self.healthy_ranges:
             raise ValueError(f"{self.name}: posture_gradient_scale applies to tasks with a healthy height "
-                             f"(Hopper-v5, Walker2d-v5, Ant-v5); {self.name} has none")
+                             f"(Hopper-v5, Walker2d-v5, Ant-v5, Humanoid-v5); {self.name} has none")
         super().__init__(num_envs, **kwargs)
 
     def initial_state(self, params, n):

@@ -19,9 +19,10 @@ class PusherV5Env(MuJoCoModelEnv):
     positions are read where ``mj_step`` leaves them (the start of the last Euler step); they travel
     as ``("state", "body_points")``.
 
-    Contact (the wrist's capsules against the object and the table; the object on the table): the
-    smooth model, frictionless as the file's ``condim=1`` says; the object's cylinder is taken as the
-    capsule on its axis when the wrist pushes it (exact on its side).
+    Contact (the wrist's capsules against the object and the table): the smooth model,
+    frictionless as the file's ``condim=1`` says; the object's cylinder is taken as the capsule
+    inscribed in it when the wrist pushes it. The object resting on the table is left out: it
+    slides only along the table, so that contact could push it nowhere.
     """
 
     name = "Pusher-v5"
@@ -36,8 +37,12 @@ class PusherV5Env(MuJoCoModelEnv):
 
     def body_points(self, qpos):
         """``[N, 3, 3]`` the world positions of the ``tips_arm``, ``object`` and ``goal`` bodies."""
-        kin = forward_kinematics(self.tree, qpos)
-        return kin.body_pos[:, [self.model.body_index(b) for b in self.points]]
+        if "_point_bodies" not in self.__dict__:
+            self._point_bodies = torch.tensor([self.model.body_index(b) for b in self.points], device=self.device)
+        return forward_kinematics(self.tree, qpos).body_pos.index_select(1, self._point_bodies)
+
+    def derived_state(self, state, params) -> dict:
+        return {"body_points": self.body_points(state["qpos"])}
 
     def initial_state(self, params, n):
         draw = lambda: torch.cat([self.uniform(-0.3, 0.0, n, 1), self.uniform(-0.2, 0.2, n, 1)], dim=-1)  # noqa: E731
