@@ -134,9 +134,12 @@ def pair_contact_force(tree: RigidBodyTree, kin: Kinematics, qvel, params: Param
         return generalised
     unit = torch.cat([_cross(c.point, c.normal), c.normal], dim=-1)
     u = (unit @ kin.motion.transpose(1, 2)) * tree.pair_dof_sign  # [N, K, nv]: J^T n
-    damping_matrix = torch.einsum("nkd,nke,nk->nde", u, u, c.normal_rate - c.tangent_rate)
+    # one batched product each (an einsum over three operands materialises [N, nv, nv, K] first)
+    damping_matrix = (u * (c.normal_rate - c.tangent_rate).unsqueeze(-1)).transpose(1, 2) @ u
     if c.jacobian is not None:
-        damping_matrix = damping_matrix + torch.einsum("nkdi,nkei,nk->nde", c.jacobian, c.jacobian, c.tangent_rate)
+        jac = c.jacobian.transpose(1, 2).flatten(2)  # [N, nv, K * 3]
+        weighted = (c.jacobian * c.tangent_rate[..., None, None]).transpose(1, 2).flatten(2)
+        damping_matrix = damping_matrix + weighted @ jac.transpose(1, 2)
     return generalised, damping_matrix
 
 
