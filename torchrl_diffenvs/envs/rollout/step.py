@@ -63,7 +63,7 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
     episode_step = episode_step + 1
     observation = env.observation(state, params)
     n, values = episode_step.shape[0], (*state.values(), reward)
-    if all_false is None or not math.isfinite(_flat(n, values).sum().item()):
+    if all_false is None or not _all_finite(values):
         nonfinite = nonfinite_envs(n, values, episode_step.device)
         terminated = nonfinite if terminated is None else terminated | nonfinite
         observation, reward = (torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for x in (observation, reward))
@@ -81,6 +81,27 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
         done = terminated | truncated
     return {"observation": observation, "state": state, "episode_step": episode_step, "reward": reward,
             "terminated": terminated, "truncated": truncated, "done": done, "nonfinite": nonfinite}
+
+
+def _all_finite(values) -> bool:
+    """Whether every value is finite: one sum of them all, one host sync (non-finite exactly when
+    the sum of :func:`_flat`'s ``[N, K]`` is: the same values in another layout, ``cat`` and
+    ``stack`` promoting to the widest dtype as ``_flat`` converts; integer entries are finite and
+    change nothing). No autograd bookkeeping for it, and none of ``torch.no_grad``'s when autograd
+    is off already.
+    """
+    grad = torch.is_grad_enabled()
+    if grad:
+        torch.set_grad_enabled(False)
+    try:
+        if all(value.dim() == 1 for value in values):  # one op, no reshapes
+            total = torch.stack(values).sum()
+        else:
+            total = torch.cat([value.reshape(-1) for value in values]).sum()
+        return math.isfinite(total.item())
+    finally:
+        if grad:
+            torch.set_grad_enabled(True)
 
 
 def _flat(n: int, values) -> torch.Tensor:
