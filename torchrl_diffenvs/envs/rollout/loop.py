@@ -114,6 +114,8 @@ class _Loop:
         self.all_false = torch.zeros(self.n, dtype=torch.bool, device=self.device)
         self.compiled = env.__dict__.get("_compiled_physics")
         self.chunk = 1 if self.compiled is None else self.compiled.steps_per_chunk
+        self.check_actions = not isinstance(action_source, RandomActions) or policy is not None  # (ours are valid)
+        self.start_table = _StartTable(self)
 
     # ------------------------------------------------------------------ main loop
     def run(self, td0: TensorDictBase, max_steps: int, break_when_any_done: bool, return_contiguous: bool,
@@ -153,7 +155,7 @@ class _Loop:
                 if t == 0:  # EnvBase writes step 0's action into the input tensordict
                     td0.set("action", self.first_action(action))
                 root_t = {**root, **extras, "action": action}
-            if not isinstance(self.action_source, RandomActions) or self.policy is not None:  # (ours are valid)
+            if self.check_actions:
                 self.env._check_action(action)
             nxt = physics_step(self.env, root_t["state"], root_t["params"], root_t["episode_step"], action,
                                self.all_false)
@@ -217,7 +219,8 @@ class _Loop:
         # without a policy the action is replaced before anyone sees it: no need to zero it
         keep = {"action": extras["action"]} if self.policy is None and "action" in extras else {}
         zeroable = {key: value for key, value in extras.items() if key not in keep}
-        root, extras = merge_reset(done, nxt, self.starts(), zeroable, nxt["params"], self.reset_params())
+        root, extras = merge_reset(done, nxt, self.start_table.starts(done), zeroable, nxt["params"],
+                                   self.reset_params())
         self.env.rng.episodes = self.env.episodes + done.to(torch.int64)
         return root, {**extras, **keep}
 
@@ -326,3 +329,68 @@ class _Loop:
                     break
         compiled.expect_resets = reset_inside
         return t, finished, root, extras
+
+
+class _StartTable:
+    """The start states a reset merges, served from a table of each env's next episodes.
+
+    Env ``i``'s start state at episode ``e`` depends on ``(seed, i, e)`` only (per-env streams),
+    and a reset takes it for the done envs only; the other envs' rows of a full-batch draw are
+    thrown away, and drawn again, identical, at the next reset. The table holds the start states
+    of episodes ``base_i ... base_i + depth - 1`` of every env (``depth`` full-batch draws); a
+    reset picks row ``episodes_i - base_i`` of each done env (one ``index_select`` per entry)
+    and draws a new table only when a done env has used up its rows. ``depth`` starts at 1
+    (a draw per reset, as before, when all envs reset together) and doubles while a table serves
+    more reset steps than it has rows (envs that reset at different steps). Same values and
+    gradients as drawing at each reset: the rows of the envs not done are not merged.
+    """
+
+    MAX_DEPTH = 16
+    MAX_ELEMENTS = 1 << 22  # of a table, all entries together
+
+    def __init__(self, loop: _Loop):
+        self.loop = loop
+        self.n = loop.n
+        self.depth = 1
+        self.table: dict | None = None  # {"observation": [depth * N, ...], "state": {key: [depth * N, ...]}}
+        self.base: torch.Tensor | None = None  # env.episodes at the draw
+        self.served = 0  # reset steps served by the current table
+        self.rows: torch.Tensor | None = None  # arange(N)
+
+    def starts(self, done: torch.Tensor) -> dict:
+        """``{"observation", "state"}`` of every env, right (``env.episodes``) for the ``done`` envs."""
+        episodes = self.loop.env.episodes
+        pick = None
+        if self.table is not None:
+            pick = torch.where(done, episodes - self.base, 0)
+            if int(pick.max()) >= self.depth:
+                pick = None
+        if pick is None:
+            self.draw(episodes)
+            if self.depth == 1:
+                self.served = 1
+                return self.table
+            pick = torch.zeros_like(episodes)
+        self.served += 1
+        if self.depth == 1:
+            return self.table
+        index = pick * self.n + self.rows
+        table = self.table
+        return {"observation": table["observation"].index_select(0, index),
+                "state": {key: value.index_select(0, index) for key, value in table["state"].items()}}
+
+    def draw(self, episodes: torch.Tensor) -> None:
+        """A new table from ``episodes`` on, deeper if the last one served more reset steps than it had rows."""
+        if self.table is not None and self.served > self.depth:
+            per_env = self.table["observation"][0].numel() + sum(v[0].numel() for v in self.table["state"].values())
+            self.depth = max(self.depth, min(2 * self.depth, self.MAX_DEPTH,
+                                             self.MAX_ELEMENTS // max(1, per_env * self.n)))
+        self.base, self.served = episodes, 0
+        if self.depth == 1:
+            self.table = self.loop.starts(episodes)
+            return
+        if self.rows is None:
+            self.rows = torch.arange(self.n, device=episodes.device)
+        starts = [self.loop.starts(episodes + r) for r in range(self.depth)]
+        self.table = {"observation": torch.cat([s["observation"] for s in starts]),
+                      "state": {key: torch.cat([s["state"][key] for s in starts]) for key in starts[0]["state"]}}
