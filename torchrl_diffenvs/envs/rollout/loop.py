@@ -8,6 +8,7 @@ lists and stacked once at the end (:mod:`~.output`).
 from __future__ import annotations
 
 import logging
+import math
 import operator
 import time
 from collections.abc import Callable, Iterable
@@ -116,6 +117,7 @@ class _Loop:
         self.chunk = 1 if self.compiled is None else self.compiled.steps_per_chunk
         self.check_actions = not isinstance(action_source, RandomActions) or policy is not None  # (ours are valid)
         self.start_table = _StartTable(self)
+        self.replay = None  # the actions of a rollout stepped again with finiteness checks
 
     # ------------------------------------------------------------------ main loop
     def run(self, td0: TensorDictBase, max_steps: int, break_when_any_done: bool, return_contiguous: bool,
@@ -131,6 +133,38 @@ class _Loop:
             not value.requires_grad and not env_params[key].requires_grad and torch.equal(value, env_params[key])
             for key, value in root["params"].items()
         )
+        # Without a policy and without breaking, the eager steps may skip the per-step finiteness
+        # check: the output is checked at the end (one sum per stacked entry), and only if some
+        # value is not finite are the same actions stepped again from the start, with checks (an
+        # env that did that once checks every step from then on).
+        deferred = (self.policy is None and not break_when_any_done and self.compiled is None
+                    and not self.env.__dict__.get("_nonfinite_seen", False))
+        episodes = self.env.episodes
+        roots, nexts = self.steps(td0, root, extras, max_steps, break_when_any_done, check=not deferred)
+        out_td = build_output(roots, nexts, return_contiguous, self.bs, self.device)
+        if deferred and not _output_finite(out_td):
+            self.env.__dict__["_nonfinite_seen"] = True
+            self.env.rng.episodes = episodes
+            self.start_table = _StartTable(self)
+            self.replay = iter([r["action"] for r in roots])
+            roots, nexts = self.steps(td0, root, extras, max_steps, break_when_any_done, check=True)
+            out_td = build_output(roots, nexts, return_contiguous, self.bs, self.device)
+
+        if isinstance(self.action_source, RandomActions):
+            self.action_source.close(unused=len(self.pending))
+        # EnvBase leaves step 0's "next" in the input tensordict; rendering wants the last output
+        td0.set("next", as_tensordict(nexts[0], self.bs, self.device))
+        remember = getattr(self.env, "_remember_for_render", None)
+        if remember is not None:
+            remember(as_tensordict(nexts[-1], self.bs, self.device))
+        if set_truncated:
+            set_truncated_last_step(out_td)
+        out_td.refine_names(..., "time")
+        return out_td
+
+    def steps(self, td0: TensorDictBase, root: dict, extras: dict, max_steps: int, break_when_any_done: bool,
+              check: bool) -> tuple[list[dict], list[dict]]:
+        """The rollout's steps: the root entries and the ``"next"`` entries of each."""
         roots: list[dict] = []
         nexts: list[dict] = []
         t, finished = 0, False
@@ -152,13 +186,13 @@ class _Loop:
                 action = root_t["action"]
             else:
                 action = self.next_action()
-                if t == 0:  # EnvBase writes step 0's action into the input tensordict
+                if t == 0 and self.replay is None:  # EnvBase writes step 0's action into the input tensordict
                     td0.set("action", self.first_action(action))
                 root_t = {**root, **extras, "action": action}
             if self.check_actions:
                 self.env._check_action(action)
             nxt = physics_step(self.env, root_t["state"], root_t["params"], root_t["episode_step"], action,
-                               self.all_false)
+                               self.all_false, check)
             nxt["params"] = root_t["params"]
             roots.append(root_t)
             nexts.append(nxt)
@@ -171,19 +205,7 @@ class _Loop:
             extras = {key: value for key, value in root_t.items() if key not in ENV_KEYS}
             if any_done:  # only without break_when_any_done
                 root, extras = self.reset_done(nxt, extras)
-
-        if isinstance(self.action_source, RandomActions):
-            self.action_source.close(unused=len(self.pending))
-        out_td = build_output(roots, nexts, return_contiguous, self.bs, self.device)
-        # EnvBase leaves step 0's "next" in the input tensordict; rendering wants the last output
-        td0.set("next", as_tensordict(nexts[0], self.bs, self.device))
-        remember = getattr(self.env, "_remember_for_render", None)
-        if remember is not None:
-            remember(as_tensordict(nexts[-1], self.bs, self.device))
-        if set_truncated:
-            set_truncated_last_step(out_td)
-        out_td.refine_names(..., "time")
-        return out_td
+        return roots, nexts
 
     def call_policy(self, td: TensorDictBase, views: dict) -> dict:
         """Runs the policy on a step TensorDict; returns the root entries it leaves."""
@@ -195,6 +217,8 @@ class _Loop:
 
     def next_action(self) -> torch.Tensor:
         """The next random or given action (without a policy)."""
+        if self.replay is not None:
+            return next(self.replay)
         return self.pending.pop(0) if self.pending else next(self.action_source)
 
     def first_action(self, action: torch.Tensor) -> torch.Tensor:
@@ -329,6 +353,14 @@ class _Loop:
                     break
         compiled.expect_resets = reset_inside
         return t, finished, root, extras
+
+
+def _output_finite(out_td: TensorDictBase) -> bool:
+    """Whether every ``"next"`` state and reward of a rollout output is finite (one sum of each)."""
+    nxt = out_td.get("next")
+    with torch.no_grad():
+        sums = [value.sum() for value in (*nxt.get("state").values(True, True), nxt.get("reward"))]
+        return math.isfinite(torch.stack(sums).sum().item())
 
 
 class _StartTable:
