@@ -388,12 +388,14 @@ class _StartTable:
         self.base: torch.Tensor | None = None  # env.episodes at the draw
         self.served = 0  # reset steps served by the current table
         self.rows: torch.Tensor | None = None  # arange(N)
+        self.rng = self.key = None  # the env's generator and seed key at the draw
 
     def starts(self, done: torch.Tensor) -> dict:
         """``{"observation", "state"}`` of every env, right (``env.episodes``) for the ``done`` envs."""
-        episodes = self.loop.env.episodes
+        rng = self.loop.env.rng
+        episodes = rng.episodes
         pick = None
-        if self.table is not None:
+        if self.table is not None and rng is self.rng and rng.key == self.key:  # (not reseeded meanwhile)
             pick = torch.where(done, episodes - self.base, 0)
             if int(pick.max()) >= self.depth:
                 pick = None
@@ -418,6 +420,7 @@ class _StartTable:
             self.depth = max(self.depth, min(2 * self.depth, self.MAX_DEPTH,
                                              self.MAX_ELEMENTS // max(1, per_env * self.n)))
         self.base, self.served = episodes, 0
+        self.rng, self.key = self.loop.env.rng, self.loop.env.rng.key
         if self.depth == 1:
             self.table = self.loop.starts(episodes)
             return
