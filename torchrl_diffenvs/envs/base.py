@@ -33,7 +33,7 @@ from torchrl.envs import EnvBase
 
 from .rollout import fast_rollout, fast_rollout_unsupported
 from .rollout.step import physics_step
-from .streams import EnvGenerator, StartDraw
+from .streams import EnvGenerator, StartDraw, env_index_keys
 
 __all__ = ["DiffEnv"]
 
@@ -297,7 +297,11 @@ class DiffEnv(EnvBase):
         (default: :attr:`episodes`, the next ones). Pure: advances no counter (``_reset`` does)."""
         episodes = self.episodes if episodes is None else episodes
         # hash as many words up front as the last call used (one numpy hash instead of one per draw)
-        draw = StartDraw(self.rng.key, self._env_index, episodes, self.__dict__.get("_start_words", 0))
+        key = self.rng.key
+        cached = self.__dict__.get("_index_keys")
+        if cached is None or cached[0] != key or cached[1] is not self._env_index:
+            cached = self.__dict__["_index_keys"] = (key, self._env_index, env_index_keys(key, self._env_index))
+        draw = StartDraw(key, self._env_index, episodes, self.__dict__.get("_start_words", 0), cached[2])
         self.__dict__["_start_draw"] = draw
         try:
             return self.initial_state(params, self.num_envs)

@@ -15,7 +15,7 @@ import math
 import numpy as np
 import torch
 
-__all__ = ["EnvGenerator", "StartDraw", "seed_key"]
+__all__ = ["EnvGenerator", "StartDraw", "env_index_keys", "seed_key"]
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -25,9 +25,12 @@ _S30, _S27, _S31 = np.uint64(30), np.uint64(27), np.uint64(31)
 
 def _mix(x: np.ndarray) -> np.ndarray:
     """splitmix64's finaliser: a bijection of 64-bit words with full avalanche (wrapping arithmetic)."""
-    x = (x ^ (x >> _S30)) * _M1
-    x = (x ^ (x >> _S27)) * _M2
-    return x ^ (x >> _S31)
+    x = x ^ (x >> _S30)  # a new array: the input is left as it is, the rest works in place
+    x *= _M1
+    x ^= x >> _S27
+    x *= _M2
+    x ^= x >> _S31
+    return x
 
 
 _MASK64 = (1 << 64) - 1
@@ -46,6 +49,39 @@ def seed_key(seed: int) -> np.uint64:
     return np.uint64(_mix_int(int(seed) + 0x9E3779B97F4A7C15))
 
 
+def _as_words(values: torch.Tensor) -> np.ndarray:
+    """An integer tensor's values as 64-bit words (int64's bits as they are: no copy on the CPU)."""
+    values = values.detach().cpu().numpy()
+    return values.view(np.uint64) if values.dtype == np.int64 else values.astype(np.uint64)
+
+
+def env_index_keys(key: np.uint64, index: torch.Tensor) -> np.ndarray:
+    """``[n]``: the part of each env's stream key that depends on the seed's key and its index only."""
+    return _mix(key ^ (_as_words(index) * _GOLDEN))
+
+
+_POSITIONS: dict[tuple[int, int], np.ndarray] = {}
+
+
+def _positions(start: int, count: int) -> np.ndarray:
+    """``[count]``: the hashed-in offsets of stream positions ``start ... start + count - 1`` (cached)."""
+    positions = _POSITIONS.get((start, count))
+    if positions is None:
+        positions = np.arange(start + 1, start + count + 1, dtype=np.uint64) * _GOLDEN
+        if len(_POSITIONS) < 4096:
+            _POSITIONS[(start, count)] = positions
+    return positions
+
+
+def _to_uniform(bits: np.ndarray, dtype: torch.dtype, device) -> torch.Tensor:
+    """``U[0, 1)`` values of 64-bit words: the top 53 (float64) or 24 (float32) bits."""
+    if dtype == torch.float64:
+        values = (bits >> np.uint64(11)).astype(np.float64) * 2.0**-53
+    else:
+        values = (bits >> np.uint64(40)).astype(np.float32) * np.float32(2.0**-24)
+    return torch.from_numpy(values).to(device=device, dtype=dtype)
+
+
 class StartDraw:
     """The random numbers of one ``initial_state`` call for envs ``index`` at episode ``episode``.
 
@@ -59,47 +95,58 @@ class StartDraw:
     it is hashed on its own, with the same result.
     """
 
-    def __init__(self, key: np.uint64, index: torch.Tensor, episode: torch.Tensor, block: int = 0):
+    def __init__(self, key: np.uint64, index: torch.Tensor, episode: torch.Tensor, block: int = 0,
+                 index_keys: np.ndarray | None = None):
         self.device = index.device
-        index = index.detach().cpu().numpy().astype(np.uint64)
-        episode = episode.detach().cpu().numpy().astype(np.uint64)
-        # (array arithmetic wraps modulo 2**64 silently, as the hash needs)
-        self.env_keys = _mix(_mix(key ^ (index * _GOLDEN)) + episode * _M1)  # [n]
+        # (array arithmetic wraps modulo 2**64 silently, as the hash needs; int64 -> uint64 is a
+        # reinterpretation of the same bits, as astype would give)
+        if index_keys is None:  # (the env caches them: they depend on the seed and the batch only)
+            index_keys = env_index_keys(key, index)
+        episode = _as_words(episode)
+        self.env_keys = _mix(index_keys + episode * _M1)  # [n]
         self.calls = 0  # the next word's position
         self.used = 0  # the last position + 1 of the main words (not those of redraws)
         self.block = None
         self.block = self._words(0, block) if block > 0 else None
+        self.block_values: dict = {}  # dtype -> the block's uniform samples, converted once
 
     def _words(self, start: int, count: int) -> np.ndarray:
         """``[n, count]``: the words at positions ``start ... start + count - 1`` of every env."""
         if self.block is not None and start + count <= self.block.shape[1]:
             return self.block[:, start:start + count]
-        position = np.arange(start + 1, start + count + 1, dtype=np.uint64) * _GOLDEN
-        return _mix(self.env_keys[:, None] ^ position[None, :])
+        return _mix(self.env_keys[:, None] ^ _positions(start, count)[None, :])
 
-    def _bits(self, shape: tuple[int, ...]) -> np.ndarray:
-        """One 64-bit word per element of ``shape`` (``[n, ...]``), from the next draw number."""
+    def _take(self, shape: tuple[int, ...]) -> tuple[int, int]:
+        """The positions ``(start, count)`` of the next draw of one word per element of ``shape``."""
         n = self.env_keys.shape[0]
         if not shape or shape[0] != n:
             raise ValueError(
                 f"start-state samplers draw one row per env being reset: the first dim of the shape must be "
                 f"n={n}, got shape {tuple(shape)}"
             )
-        event = math.prod(shape[1:])
-        bits = self._words(self.calls, event)
+        start, event = self.calls, math.prod(shape[1:])
         self.calls += event
         if self.calls < 1 << 20:  # a main draw (redraws take positions from 2**20 on)
             self.used = max(self.used, self.calls)
-        return bits.reshape(shape)
+        return start, event
+
+    def _bits(self, shape: tuple[int, ...]) -> np.ndarray:
+        """One 64-bit word per element of ``shape`` (``[n, ...]``), from the next draw number."""
+        start, event = self._take(shape)
+        return self._words(start, event).reshape(shape)
 
     def uniform(self, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
-        """``U[0, 1)`` of ``shape``: every value a multiple of ``2**-24`` (float32) or ``2**-53`` (float64)."""
-        bits = self._bits(shape)
-        if dtype == torch.float64:
-            values = (bits >> np.uint64(11)).astype(np.float64) * 2.0**-53
-        else:
-            values = (bits >> np.uint64(40)).astype(np.float32) * np.float32(2.0**-24)
-        return torch.from_numpy(values).to(device=self.device, dtype=dtype)
+        """``U[0, 1)`` of ``shape``: every value a multiple of ``2**-24`` (float32) or ``2**-53`` (float64).
+
+        Draws within the block hashed up front are slices of the block converted once (the same
+        values element by element)."""
+        start, event = self._take(shape)
+        if self.block is not None and start + event <= self.block.shape[1]:
+            values = self.block_values.get(dtype)
+            if values is None:
+                values = self.block_values[dtype] = _to_uniform(self.block, dtype, self.device)
+            return values[:, start:start + event].reshape(shape)
+        return _to_uniform(self._words(start, event).reshape(shape), dtype, self.device)
 
     def normal(self, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
         """Standard normal samples (Box-Muller on two uniform draws)."""

@@ -8,6 +8,7 @@ lists and stacked once at the end (:mod:`~.output`).
 from __future__ import annotations
 
 import logging
+import math
 import operator
 import time
 from collections.abc import Callable, Iterable
@@ -114,6 +115,9 @@ class _Loop:
         self.all_false = torch.zeros(self.n, dtype=torch.bool, device=self.device)
         self.compiled = env.__dict__.get("_compiled_physics")
         self.chunk = 1 if self.compiled is None else self.compiled.steps_per_chunk
+        self.check_actions = not isinstance(action_source, RandomActions) or policy is not None  # (ours are valid)
+        self.start_table = _StartTable(self)
+        self.replay = None  # the actions of a rollout stepped again with finiteness checks
 
     # ------------------------------------------------------------------ main loop
     def run(self, td0: TensorDictBase, max_steps: int, break_when_any_done: bool, return_contiguous: bool,
@@ -129,6 +133,38 @@ class _Loop:
             not value.requires_grad and not env_params[key].requires_grad and torch.equal(value, env_params[key])
             for key, value in root["params"].items()
         )
+        # Without a policy and without breaking, the eager steps may skip the per-step finiteness
+        # check: the output is checked at the end (one sum per stacked entry), and only if some
+        # value is not finite are the same actions stepped again from the start, with checks (an
+        # env that did that once checks every step from then on).
+        deferred = (self.policy is None and not break_when_any_done and self.compiled is None
+                    and not self.env.__dict__.get("_nonfinite_seen", False))
+        episodes = self.env.episodes
+        roots, nexts = self.steps(td0, root, extras, max_steps, break_when_any_done, check=not deferred)
+        out_td = build_output(roots, nexts, return_contiguous, self.bs, self.device)
+        if deferred and not _output_finite(out_td):
+            self.env.__dict__["_nonfinite_seen"] = True
+            self.env.rng.episodes = episodes
+            self.start_table = _StartTable(self)
+            self.replay = iter([r["action"] for r in roots])
+            roots, nexts = self.steps(td0, root, extras, max_steps, break_when_any_done, check=True)
+            out_td = build_output(roots, nexts, return_contiguous, self.bs, self.device)
+
+        if isinstance(self.action_source, RandomActions):
+            self.action_source.close(unused=len(self.pending))
+        # EnvBase leaves step 0's "next" in the input tensordict; rendering wants the last output
+        td0.set("next", as_tensordict(nexts[0], self.bs, self.device))
+        remember = getattr(self.env, "_remember_for_render", None)
+        if remember is not None:
+            remember(as_tensordict(nexts[-1], self.bs, self.device))
+        if set_truncated:
+            set_truncated_last_step(out_td)
+        out_td.refine_names(..., "time")
+        return out_td
+
+    def steps(self, td0: TensorDictBase, root: dict, extras: dict, max_steps: int, break_when_any_done: bool,
+              check: bool) -> tuple[list[dict], list[dict]]:
+        """The rollout's steps: the root entries and the ``"next"`` entries of each."""
         roots: list[dict] = []
         nexts: list[dict] = []
         t, finished = 0, False
@@ -150,13 +186,13 @@ class _Loop:
                 action = root_t["action"]
             else:
                 action = self.next_action()
-                if t == 0:  # EnvBase writes step 0's action into the input tensordict
+                if t == 0 and self.replay is None:  # EnvBase writes step 0's action into the input tensordict
                     td0.set("action", self.first_action(action))
                 root_t = {**root, **extras, "action": action}
-            if not isinstance(self.action_source, RandomActions) or self.policy is not None:  # (ours are valid)
+            if self.check_actions:
                 self.env._check_action(action)
             nxt = physics_step(self.env, root_t["state"], root_t["params"], root_t["episode_step"], action,
-                               self.all_false)
+                               self.all_false, check)
             nxt["params"] = root_t["params"]
             roots.append(root_t)
             nexts.append(nxt)
@@ -169,19 +205,7 @@ class _Loop:
             extras = {key: value for key, value in root_t.items() if key not in ENV_KEYS}
             if any_done:  # only without break_when_any_done
                 root, extras = self.reset_done(nxt, extras)
-
-        if isinstance(self.action_source, RandomActions):
-            self.action_source.close(unused=len(self.pending))
-        out_td = build_output(roots, nexts, return_contiguous, self.bs, self.device)
-        # EnvBase leaves step 0's "next" in the input tensordict; rendering wants the last output
-        td0.set("next", as_tensordict(nexts[0], self.bs, self.device))
-        remember = getattr(self.env, "_remember_for_render", None)
-        if remember is not None:
-            remember(as_tensordict(nexts[-1], self.bs, self.device))
-        if set_truncated:
-            set_truncated_last_step(out_td)
-        out_td.refine_names(..., "time")
-        return out_td
+        return roots, nexts
 
     def call_policy(self, td: TensorDictBase, views: dict) -> dict:
         """Runs the policy on a step TensorDict; returns the root entries it leaves."""
@@ -193,6 +217,8 @@ class _Loop:
 
     def next_action(self) -> torch.Tensor:
         """The next random or given action (without a policy)."""
+        if self.replay is not None:
+            return next(self.replay)
         return self.pending.pop(0) if self.pending else next(self.action_source)
 
     def first_action(self, action: torch.Tensor) -> torch.Tensor:
@@ -217,7 +243,8 @@ class _Loop:
         # without a policy the action is replaced before anyone sees it: no need to zero it
         keep = {"action": extras["action"]} if self.policy is None and "action" in extras else {}
         zeroable = {key: value for key, value in extras.items() if key not in keep}
-        root, extras = merge_reset(done, nxt, self.starts(), zeroable, nxt["params"], self.reset_params())
+        root, extras = merge_reset(done, nxt, self.start_table.starts(done), zeroable, nxt["params"],
+                                   self.reset_params())
         self.env.rng.episodes = self.env.episodes + done.to(torch.int64)
         return root, {**extras, **keep}
 
@@ -326,3 +353,79 @@ class _Loop:
                     break
         compiled.expect_resets = reset_inside
         return t, finished, root, extras
+
+
+def _output_finite(out_td: TensorDictBase) -> bool:
+    """Whether every ``"next"`` state and reward of a rollout output is finite (one sum of each)."""
+    nxt = out_td.get("next")
+    with torch.no_grad():
+        sums = [value.sum() for value in (*nxt.get("state").values(True, True), nxt.get("reward"))]
+        return math.isfinite(torch.stack(sums).sum().item())
+
+
+class _StartTable:
+    """The start states a reset merges, served from a table of each env's next episodes.
+
+    Env ``i``'s start state at episode ``e`` depends on ``(seed, i, e)`` only (per-env streams),
+    and a reset takes it for the done envs only; the other envs' rows of a full-batch draw are
+    thrown away, and drawn again, identical, at the next reset. The table holds the start states
+    of episodes ``base_i ... base_i + depth - 1`` of every env (``depth`` full-batch draws); a
+    reset picks row ``episodes_i - base_i`` of each done env (one ``index_select`` per entry)
+    and draws a new table only when a done env has used up its rows. ``depth`` starts at 1
+    (a draw per reset, as before, when all envs reset together) and doubles while a table serves
+    more reset steps than it has rows (envs that reset at different steps). Same values and
+    gradients as drawing at each reset: the rows of the envs not done are not merged.
+    """
+
+    MAX_DEPTH = 16
+    MAX_ELEMENTS = 1 << 22  # of a table, all entries together
+
+    def __init__(self, loop: _Loop):
+        self.loop = loop
+        self.n = loop.n
+        self.depth = 1
+        self.table: dict | None = None  # {"observation": [depth * N, ...], "state": {key: [depth * N, ...]}}
+        self.base: torch.Tensor | None = None  # env.episodes at the draw
+        self.served = 0  # reset steps served by the current table
+        self.rows: torch.Tensor | None = None  # arange(N)
+        self.rng = self.key = None  # the env's generator and seed key at the draw
+
+    def starts(self, done: torch.Tensor) -> dict:
+        """``{"observation", "state"}`` of every env, right (``env.episodes``) for the ``done`` envs."""
+        rng = self.loop.env.rng
+        episodes = rng.episodes
+        pick = None
+        if self.table is not None and rng is self.rng and rng.key == self.key:  # (not reseeded meanwhile)
+            pick = torch.where(done, episodes - self.base, 0)
+            if int(pick.max()) >= self.depth:
+                pick = None
+        if pick is None:
+            self.draw(episodes)
+            if self.depth == 1:
+                self.served = 1
+                return self.table
+            pick = torch.zeros_like(episodes)
+        self.served += 1
+        if self.depth == 1:
+            return self.table
+        index = pick * self.n + self.rows
+        table = self.table
+        return {"observation": table["observation"].index_select(0, index),
+                "state": {key: value.index_select(0, index) for key, value in table["state"].items()}}
+
+    def draw(self, episodes: torch.Tensor) -> None:
+        """A new table from ``episodes`` on, deeper if the last one served more reset steps than it had rows."""
+        if self.table is not None and self.served > self.depth:
+            per_env = self.table["observation"][0].numel() + sum(v[0].numel() for v in self.table["state"].values())
+            self.depth = max(self.depth, min(2 * self.depth, self.MAX_DEPTH,
+                                             self.MAX_ELEMENTS // max(1, per_env * self.n)))
+        self.base, self.served = episodes, 0
+        self.rng, self.key = self.loop.env.rng, self.loop.env.rng.key
+        if self.depth == 1:
+            self.table = self.loop.starts(episodes)
+            return
+        if self.rows is None:
+            self.rows = torch.arange(self.n, device=episodes.device)
+        starts = [self.loop.starts(episodes + r) for r in range(self.depth)]
+        self.table = {"observation": torch.cat([s["observation"] for s in starts]),
+                      "state": {key: torch.cat([s["state"][key] for s in starts]) for key in starts[0]["state"]}}

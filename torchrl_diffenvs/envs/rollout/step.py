@@ -40,7 +40,7 @@ def nonfinite_envs(n: int, tensors, device=None) -> torch.Tensor:
 
 
 def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, action: torch.Tensor,
-                 all_false: torch.Tensor | None = None) -> dict:
+                 all_false: torch.Tensor | None = None, check: bool = True) -> dict:
     """One step of ``env``'s physics: the ``"next"`` entries (``"params"`` excepted: unchanged).
 
     Clips the action if the task does (``clip_actions``), runs ``transition``, counts the step,
@@ -56,6 +56,10 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
     need no computation are ``all_false`` itself, and ``"done"`` is ``"truncated"`` itself for
     a task without termination: fewer ops per step, and the same tensors from step to step
     (the rollout output expands them instead of stacking). The values are the same.
+
+    ``check=False`` (with ``all_false``): no check at all, every env is taken as finite; for a
+    caller that checks the values afterwards and steps again with checks if one is not
+    (the eager loop without a policy, see :mod:`~.loop`).
     """
     if env.clip_actions:
         action = action.clamp(env.action_low, env.action_high)
@@ -63,7 +67,7 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
     episode_step = episode_step + 1
     observation = env.observation(state, params)
     n, values = episode_step.shape[0], (*state.values(), reward)
-    if all_false is None or not math.isfinite(_flat(n, values).sum().item()):
+    if all_false is None or (check and not _all_finite(values)):
         nonfinite = nonfinite_envs(n, values, episode_step.device)
         terminated = nonfinite if terminated is None else terminated | nonfinite
         observation, reward = (torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for x in (observation, reward))
@@ -81,6 +85,27 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
         done = terminated | truncated
     return {"observation": observation, "state": state, "episode_step": episode_step, "reward": reward,
             "terminated": terminated, "truncated": truncated, "done": done, "nonfinite": nonfinite}
+
+
+def _all_finite(values) -> bool:
+    """Whether every value is finite: one sum of them all, one host sync (non-finite exactly when
+    the sum of :func:`_flat`'s ``[N, K]`` is: the same values in another layout, ``cat`` and
+    ``stack`` promoting to the widest dtype as ``_flat`` converts; integer entries are finite and
+    change nothing). No autograd bookkeeping for it, and none of ``torch.no_grad``'s when autograd
+    is off already.
+    """
+    grad = torch.is_grad_enabled()
+    if grad:
+        torch.set_grad_enabled(False)
+    try:
+        if all(value.dim() == 1 for value in values):  # one op, no reshapes
+            total = torch.stack(values).sum()
+        else:
+            total = torch.cat([value.reshape(-1) for value in values]).sum()
+        return math.isfinite(total.item())
+    finally:
+        if grad:
+            torch.set_grad_enabled(True)
 
 
 def _flat(n: int, values) -> torch.Tensor:
