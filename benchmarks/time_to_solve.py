@@ -1,4 +1,4 @@
-"""Time to solve: SHAC vs BPTT vs PPO vs SAC on the swing-up tasks, in one run, same seeds.
+"""Time to solve: SHAC vs BPTT vs PPO vs SAC (and AHAC, SAPO) on any task, in one run, same seeds.
 
 Drives the project's public training entry point, ``sota_scripts/train.py`` (its ``run``
 function, on configurations composed by Hydra exactly as the command line composes them: the
@@ -47,7 +47,8 @@ from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "sota_scripts" / "train.py"
 CONFIGS = ROOT / "configs"
-LOSSES = ("shac", "bptt", "ppo", "sac")
+LOSSES = ("shac", "bptt", "ppo", "sac", "ahac", "sapo")
+DEFAULT_LOSSES = ("shac", "bptt", "ppo", "sac")  # the swing-up race; AHAC and SAPO need contact or time
 
 # quick=true: tiny networks and batches, a few iterations per learner (mirrors tests/training/test_train.py)
 QUICK = {
@@ -59,6 +60,10 @@ QUICK = {
             "loss.critic.hidden=[16]", "train.total_env_steps=32"],
     "sac": ["loss.rollout_len=2", "loss.init_random_frames=8", "loss.batch_size=8", "loss.buffer_size=256",
             "loss.actor.hidden=[16]", "loss.qvalue.hidden=[16]", "train.total_env_steps=32"],
+    "ahac": ["loss.min_horizon=4", "loss.max_horizon=5", "loss.actor.hidden=[16]", "loss.critic.hidden=[16]",
+             "loss.critic_passes=2", "loss.critic_minibatches=2", "train.total_env_steps=32"],
+    "sapo": ["loss.horizon=4", "loss.actor.hidden=[16]", "loss.critic.hidden=[16]", "loss.critic_passes=2",
+             "loss.critic_minibatches=2", "train.total_env_steps=32"],
 }
 
 
@@ -217,7 +222,7 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
 @dataclass(frozen=True)
 class TimeToSolveSettings(C.BenchmarkSettings):
     envs: list[str] | None = None  # envs (default: pendulum cartpole)
-    losses: list[str] = checked(list(LOSSES), checks.each(checks.one_of(LOSSES)))
+    losses: list[str] = checked(list(DEFAULT_LOSSES), checks.each(checks.one_of(LOSSES)))
     seeds: list[int] | None = None  # seeds (default 0 1 2)
     steps: list[str] = checked([], checks.each(lambda v: None if "=" in str(v) else "expected LOSS=N"))  # budgets
     eval_interval: int | None = None  # env steps between evaluations
