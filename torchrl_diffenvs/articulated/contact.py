@@ -37,6 +37,23 @@ class _PairForces(NamedTuple):
     jacobian: torch.Tensor | None  # [N, K, nv, 3] d(B's point velocity - A's) / d(qvel), None: frictionless pairs
 
 
+def _penalty_force(dist, vel, normal, mu, params: Params):
+    """The smooth contact force (see :func:`contact_force`) at points ``[N, K]`` with signed
+    distance ``dist``, relative velocity ``vel [N, K, 3]``, unit ``normal`` (pushing along it) and
+    friction ``mu``: ``(force, normal_force, touching, damping [N, 1], slip)``."""
+    normal_vel = (vel * normal).sum(-1)
+    tangent_vel = vel - normal_vel.unsqueeze(-1) * normal
+    width = params["contact_width"].unsqueeze(-1)
+    depth = F.softplus(-dist / width) * width
+    touching = torch.sigmoid(-dist / width)
+    stiffness, damping = params["contact_stiffness"].unsqueeze(-1), params["contact_damping"].unsqueeze(-1)
+    normal_force = torch.clamp(stiffness * depth - damping * touching * normal_vel, min=0.0)
+    eps = params["friction_velocity"].unsqueeze(-1)
+    slip = torch.sqrt((tangent_vel * tangent_vel).sum(-1) + eps * eps)
+    force = normal_force.unsqueeze(-1) * (normal - (mu / slip).unsqueeze(-1) * tangent_vel)
+    return force, normal_force, touching, damping, slip
+
+
 def has_contacts(tree: RigidBodyTree) -> bool:
     """Whether the model has any contact (geom-plane points or geom pairs)."""
     return bool(tree.contact_body.numel() or tree.pair_body.numel())
@@ -105,18 +122,9 @@ def _pair_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params) -> 
         body_vel = body_velocities(tree, kin, qvel)[:, tree.pair_body]  # [N, K, 2, 6]
         at_point = body_vel[..., 3:] + _cross(body_vel[..., :3], point.unsqueeze(2))
         vel = at_point[:, :, 1] - at_point[:, :, 0]
-    normal_vel = (vel * normal).sum(-1)
-    tangent_vel = vel - normal_vel.unsqueeze(-1) * normal
-    width = params["contact_width"].unsqueeze(-1)
-    depth = F.softplus(-dist / width) * width
-    touching = torch.sigmoid(-dist / width)
-    stiffness, damping = params["contact_stiffness"].unsqueeze(-1), params["contact_damping"].unsqueeze(-1)
-    normal_force = torch.clamp(stiffness * depth - damping * touching * normal_vel, min=0.0)
     # MuJoCo's condim=1 contacts are frictionless whatever their friction coefficient
     mu = params["contact_friction"][:, tree.pair_slot] * tree.pair_frictional
-    eps = params["friction_velocity"].unsqueeze(-1)
-    slip = torch.sqrt((tangent_vel * tangent_vel).sum(-1) + eps * eps)
-    force = normal_force.unsqueeze(-1) * (normal - (mu / slip).unsqueeze(-1) * tangent_vel)
+    force, normal_force, touching, damping, slip = _penalty_force(dist, vel, normal, mu, params)
     pushing = (normal_force > 0).to(qvel.dtype)
     return _PairForces(point, force, normal, normal_force, damping * touching * pushing, mu * normal_force / slip,
                        jacobian)
@@ -153,17 +161,8 @@ def _contact_points_and_forces(tree: RigidBodyTree, kin: Kinematics, qvel, param
     body_vel = body_velocities(tree, kin, qvel)[:, tree.contact_body]
     lever = point - kin.origin.unsqueeze(1)
     vel = body_vel[..., 3:] + _cross(body_vel[..., :3], lever)  # velocity of the body point at the contact
-    normal_vel = (vel * normal).sum(-1)
-    tangent_vel = vel - normal_vel.unsqueeze(-1) * normal
-    width = params["contact_width"].unsqueeze(-1)
-    depth = F.softplus(-dist / width) * width
-    touching = torch.sigmoid(-dist / width)
-    stiffness, damping = params["contact_stiffness"].unsqueeze(-1), params["contact_damping"].unsqueeze(-1)
-    normal_force = torch.clamp(stiffness * depth - damping * touching * normal_vel, min=0.0)
     mu = params["contact_friction"][:, tree.contact_slot] * tree.contact_frictional  # condim 1: frictionless
-    eps = params["friction_velocity"].unsqueeze(-1)
-    slip = torch.sqrt((tangent_vel * tangent_vel).sum(-1) + eps * eps)
-    force = normal_force.unsqueeze(-1) * (normal - (mu / slip).unsqueeze(-1) * tangent_vel)
+    force, normal_force, touching, damping, slip = _penalty_force(dist, vel, normal, mu, params)
     return _ContactForces(point, force, normal, normal_force, touching, damping, mu, slip)
 
 
