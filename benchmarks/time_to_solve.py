@@ -108,6 +108,14 @@ def first_time_at(curve, threshold: float) -> float:
     return math.inf
 
 
+def first_steps_at(curve, threshold: float) -> float:
+    """Env steps of the first evaluation at or above ``threshold`` (inf if never)."""
+    for steps, _, value in curve:
+        if value >= threshold:
+            return steps
+    return math.inf
+
+
 def speedup(reference_s: float, time_s: float) -> float | None:
     """``reference_s / time_s``; ``None`` when ``time_s`` never came (inf) or both are 0."""
     if not math.isfinite(time_s) or not math.isfinite(reference_s):
@@ -175,7 +183,9 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
                 times = [first_time_at(r["curve"], level) for r in group]
                 row["levels"][fraction] = {
                     "return": level, "time_s": statistics.median(times),
+                    "env_steps": statistics.median(first_steps_at(r["curve"], level) for r in group),
                     "reached": reached(times),
+                    "seeds_reached": [r["seed"] for r, t in zip(group, times) if math.isfinite(t)],
                     "speedup_vs_ppo": speedup(ppo_time, statistics.median(times)),
                 }
             row["fixed_levels"] = {}
@@ -195,8 +205,10 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
         cell = row["levels"].get(fraction)
         if cell is None:
             return "-"
-        t = "never" if not math.isfinite(cell["time_s"]) else f"{cell['time_s']:.0f} s"
-        return f"{t} ({cell['reached']}, {C.fmt_ratio(cell['speedup_vs_ppo'])})"
+        if not math.isfinite(cell["time_s"]):
+            return f"never ({cell['reached']})"
+        return (f"{cell['time_s']:.0f} s, {cell['env_steps'] / 1e3:,.0f}k steps ({cell['reached']}, "
+                f"{C.fmt_ratio(cell['speedup_vs_ppo'])})")
 
     def fixed_cell(row, level):
         cell = row["fixed_levels"][level]
@@ -219,6 +231,53 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
     return summary, table
 
 
+def write_summary_data(args, envs, seeds, table, per_env_tables=None) -> None:
+    """The docs' data file of a summary table (``data=``; see ``_common.write_data``): the table
+    under ``levels``, and with several envs one table per env too (under the env's name), whose
+    PPO-relative columns name that env's own levels."""
+    cells = "t, env steps (seeds that reached it, speed-up against PPO)"
+    tables = {"levels": C.data_table(
+        f"Time to solve: {', '.join(envs)} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''}; median [min, max]; "
+        f"{cells})", *C.table_cells(table))}
+    for env, env_table in (per_env_tables or {}).items():
+        tables[env] = C.data_table(f"{env} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''}; median [min, max]; "
+                                   f"{cells})", *C.table_cells(env_table))
+    C.write_data(args, "time_to_solve_" + "_".join(envs), tables, source="time_to_solve")
+
+
+def summarise_files(args) -> dict:
+    """``summarise=[a.json, ...]``: the runs of earlier result files merged and summarised again.
+
+    Runs of the same env, loss, variant and seed in two files are refused (one would silently
+    replace the other); PPO-relative levels need PPO's runs of each env among the files."""
+    runs, infos = [], []
+    for name in args.summarise:
+        path = Path(name)
+        if not path.is_file():
+            raise SystemExit(f"time_to_solve: summarise: no result file {name!r}")
+        payload = json.loads(path.read_text())
+        if payload.get("benchmark") != "time_to_solve" or "runs" not in payload:
+            raise SystemExit(f"time_to_solve: summarise: {name!r} is not a time_to_solve result file (out=)")
+        runs += payload["runs"]
+        infos.append(payload.get("info"))
+    keys = [(r["env"], run_label(r), r["seed"]) for r in runs]
+    repeated = sorted({k for k in keys if keys.count(k) > 1})
+    if repeated:
+        raise SystemExit(f"time_to_solve: summarise: these runs appear more than once: {repeated}")
+    envs = list(dict.fromkeys(r["env"] for r in runs))
+    seeds = sorted({r["seed"] for r in runs})
+    losses = list(dict.fromkeys(r["loss"] for r in runs))
+    summary, table = summarise(runs, envs, losses, args.levels)
+    payload = {"benchmark": "time_to_solve", "info": infos[0], "summary": summary, "runs": runs, "table": table,
+               "merged_from": [str(n) for n in args.summarise]}
+    C.write_json("time_to_solve", payload, args.out or (args.summarise[0] if len(args.summarise) == 1 else None))
+    if args.data:  # re-summarising alone never replaces a page's data
+        per_env = {env: summarise([r for r in runs if r["env"] == env], [env], losses, args.levels)[1]
+                   for env in envs} if len(envs) > 1 else None
+        write_summary_data(args, envs, seeds, table, per_env)
+    return payload
+
+
 @dataclass(frozen=True)
 class TimeToSolveSettings(C.BenchmarkSettings):
     envs: list[str] | None = None  # envs (default: pendulum cartpole)
@@ -231,19 +290,15 @@ class TimeToSolveSettings(C.BenchmarkSettings):
     variant: list[str] = field(default_factory=list)
     levels: list[float] = field(default_factory=list)  # also report the wall time to reach these returns
     keep_runs: str | None = None  # keep the run directories here
-    summarise: str | None = None  # only re-print the summary of an earlier result file (JSON)
+    # only summarise earlier result files (JSON, out= of earlier runs): their runs merged, e.g. one file per task
+    # and seed from runs side by side; with data= the summary is also the docs' data file
+    summarise: list[str] | None = None
 
 
 def main(argv=None) -> dict:
     args = parse_cli(TimeToSolveSettings, argv, __doc__)
     if args.summarise is not None:
-        payload = json.loads(Path(args.summarise).read_text())
-        runs = payload["runs"]
-        envs = list(dict.fromkeys(r["env"] for r in runs))
-        payload["summary"], payload["table"] = summarise(runs, envs, list(dict.fromkeys(r["loss"] for r in runs)),
-                                                         args.levels)
-        C.write_json("time_to_solve", payload, args.out or args.summarise)
-        return payload
+        return summarise_files(args)
     C.setup_threads(args.threads)
     train_script = load_train_script()
 
@@ -284,10 +339,7 @@ def main(argv=None) -> dict:
         r["curve"] = [list(p) for p in r["curve"]]
     payload = {"benchmark": "time_to_solve", "info": info, "summary": summary, "runs": runs, "table": table}
     C.write_json("time_to_solve" + ("_quick" if quick else ""), payload, args.out)
-    C.write_data(args, "time_to_solve_" + "_".join(envs), {"levels": C.data_table(
-        f"Time to solve: {', '.join(envs)} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''}; median [min, max]; "
-        "t (seeds that reached it, speed-up against PPO))", *C.table_cells(table))},
-        source="time_to_solve")
+    write_summary_data(args, envs, seeds, table)
     if args.keep_runs is None:
         shutil.rmtree(runs_root, ignore_errors=True)
     return payload

@@ -108,6 +108,45 @@ def test_time_to_solve_variants_and_fixed_levels(tmp_path):
         tts.parse_variants(["a=x=1", "a=y=2"])
 
 
+def _run(env, loss, seed, curve):
+    """A result file's run as time_to_solve writes it: ``curve`` = [(env steps, wall s, return), ...]."""
+    steps, wall, value = curve[-1]
+    return {"env": env, "loss": loss, "seed": seed, "variant": "", "curve": [list(p) for p in curve],
+            "eval/return": value, "eval/random_return": 0.0, "wall_time_s": wall, "env_steps": steps}
+
+
+def test_time_to_solve_merges_result_files(tmp_path):
+    """Runs from several result files (one per seed, run side by side) are summarised together:
+    PPO's final median, and each learner's wall time and env steps to it, by hand."""
+    tts = load("time_to_solve")
+    ppo = [[(0, 0, 0), (100_000, 50, 40), (200_000, 100, 90)], [(0, 0, 0), (100_000, 60, 80), (200_000, 120, 100)],
+           [(0, 0, 0), (100_000, 55, 70), (200_000, 110, 110)]]  # finals 90, 100, 110: PPO's final median 100
+    shac = [[(0, 0, 0), (50_000, 20, 101), (100_000, 40, 60)], [(0, 0, 0), (50_000, 30, 50), (100_000, 45, 120)],
+            [(0, 0, 0), (50_000, 25, 10), (100_000, 50, 20)]]  # reach 100: 20 s / 50k steps, 45 s / 100k, never
+    files = []
+    for seed in range(3):
+        path = tmp_path / f"seed{seed}.json"
+        path.write_text(json.dumps({"benchmark": "time_to_solve", "info": {}, "runs": [
+            _run("task", "ppo", seed, ppo[seed]), _run("task", "shac", seed, shac[seed])]}))
+        files.append(str(path))
+    out = tmp_path / "merged.json"
+    payload = tts.main([f"summarise=[{','.join(files)}]", f"out={out}", f"data={tmp_path / 'data.json'}"])
+    rows = {r["loss"]: r for r in payload["summary"]}
+    assert rows["ppo"]["final_return"]["median"] == 100
+    assert rows["ppo"]["levels"][1.0]["time_s"] == 120  # seeds 0, 1, 2 reach 100 at: never, 120 s, 110 s
+    shac_level = rows["shac"]["levels"][1.0]
+    assert shac_level["return"] == 100 and shac_level["reached"] == "2/3" and shac_level["seeds_reached"] == [0, 1]
+    assert shac_level["time_s"] == 45 and shac_level["env_steps"] == 100_000  # medians of (20, 45, inf), (50k, 100k, inf)
+    assert shac_level["speedup_vs_ppo"] == pytest.approx(120 / 45)
+    assert json.loads(out.read_text())["merged_from"] == files
+    data = json.loads((tmp_path / "data.json").read_text())
+    assert "45 s, 100k steps (2/3, 2.67x)" in json.dumps(data["tables"]["levels"]["rows"])
+    with pytest.raises(SystemExit, match=r"appear more than once: \[\('task', 'ppo', 0\)"):
+        tts.main([f"summarise=[{files[0]},{files[0]}]", f"out={out}"])
+    with pytest.raises(SystemExit, match="no result file"):
+        tts.main([f"summarise=[{tmp_path / 'missing.json'}]"])
+
+
 def test_benchmark_arguments_are_checked_like_the_training_scripts():
     tts = load("time_to_solve")
     with pytest.raises(SystemExit, match=r"losses=\['dqn'\]: element 'dqn': valid: shac, bptt, ppo, sac"):
