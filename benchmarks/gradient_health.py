@@ -41,7 +41,7 @@ from torchrl_diffenvs.checks import checked, each, one_of, parse_cli  # noqa: E4
 
 CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5"]
 # (integrator, substeps): the model file's own first, then the alternatives
-OPTIONS = [("model", 1), ("euler", 1), ("rk4", 1), ("euler", 2), ("rk4", 2)]
+OPTIONS = [("model", 1), ("euler", 1), ("implicit", 1), ("rk4", 1), ("euler", 2), ("rk4", 2)]
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,7 @@ from torchrl_diffenvs.checks import checked, each, one_of, parse_cli  # noqa: E4
 
 CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"]
 POLICIES = ["random", "bang-bang", "resonant", "greedy", "far"]
-HEADERS = ["task", "policy", "envs x steps", "non-finite envs", "max |qvel|", "max travel (m)"]
+HEADERS = ["task", "integrator", "policy", "envs x steps", "non-finite envs", "max |qvel|", "max travel (m)"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +49,8 @@ class StressSettings(BenchmarkSettings):
     num_envs: int = 1024
     steps: int = 1000
     seed: int = 0
+    integrator: str | None = checked(None, lambda v: None if v in (None, "model", "euler", "implicit", "rk4")
+                                     else "valid: model, euler, implicit, rk4")  # None: each task's default
 
 
 def make_policy(kind: str, env, gen: torch.Generator):
@@ -81,7 +83,8 @@ def make_policy(kind: str, env, gen: torch.Generator):
 
 def stress(task: str, kind: str, s: StressSettings) -> dict:
     env = make_env(task, num_envs=s.num_envs, seed=s.seed, max_episode_steps=None,
-                   params={"terminate_when_unhealthy": 0.0} if task != "HalfCheetah-v5" else {})
+                   params={"terminate_when_unhealthy": 0.0} if task != "HalfCheetah-v5" else {},
+                   **({"integrator": s.integrator} if s.integrator else {}))
     gen = torch.Generator().manual_seed(s.seed)
     td = env.reset()
     if kind == "far":
@@ -106,7 +109,7 @@ def stress(task: str, kind: str, s: StressSettings) -> dict:
             if finite.any():
                 speed = max(speed, float(qvel[finite].abs().max()))
                 travel = max(travel, float((td["state", "qpos"][finite, 0] - start_x[finite]).abs().max()))
-    return {"nonfinite": int(bad.sum()), "max_qvel": speed, "travel": travel,
+    return {"nonfinite": int(bad.sum()), "max_qvel": speed, "travel": travel, "integrator": env.integrator,
             "env_steps_per_s": s.num_envs * s.steps / (time.perf_counter() - began)}
 
 
@@ -120,7 +123,7 @@ def main(argv=None):
     for task in settings.tasks:
         for kind in settings.policies:
             r = stress(task, kind, settings)
-            row = [task, kind, f"{settings.num_envs} x {settings.steps}", str(r["nonfinite"]),
+            row = [task, r["integrator"], kind, f"{settings.num_envs} x {settings.steps}", str(r["nonfinite"]),
                    f"{r['max_qvel']:.3g}", f"{r['travel']:.3g}"]
             rows.append(row)
             print(" | ".join(row), flush=True)

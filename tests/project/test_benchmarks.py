@@ -183,3 +183,19 @@ def test_jax_comparison_quick(tmp_path):
         assert "pip install" in payload["jax_skipped"] and "gymnax" not in pendulum
     for result in payload["results"]:
         positive_rates(result["candidates"])
+
+
+def test_stress_quick(tmp_path):
+    rows = load("stress").main(["quick=true", "tasks=[Ant-v5]", "integrator=implicit", "policies=[resonant,greedy]",
+                                f"out={tmp_path / 's.json'}", "data=none"])
+    assert [r[:3] for r in rows] == [["Ant-v5", "implicit", "resonant"], ["Ant-v5", "implicit", "greedy"]]
+    assert all(r[4] == "0" for r in rows)  # 8 envs x 20 steps: nothing diverges
+    with pytest.raises(SystemExit, match="integrator='verlet': valid: model, euler, implicit, rk4"):
+        load("stress").main(["quick=true", "integrator=verlet"])
+
+
+def test_gradient_health_quick(tmp_path):
+    rows = load("gradient_health").main(["quick=true", "tasks=[Hopper-v5]", f"out={tmp_path / 'g.json'}", "data=none"])
+    labels = [r[1] for r in rows]
+    assert labels == ["rk4 (file)", "euler", "implicit", "euler x2", "rk4 x2"]
+    assert all(float(r[2]) > 0 for r in rows)  # a finite, non-zero actor gradient for every option

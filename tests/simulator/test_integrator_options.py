@@ -34,7 +34,7 @@ def lowered_onto_floor(env, n, depth, seed=0):
 
 
 @pytest.mark.parametrize("kwargs,expected", [
-    ({"integrator": "implicit"}, "unknown integrator 'implicit'; valid: 'model', 'euler', 'rk4'"),
+    ({"integrator": "implicitfast"}, "unknown integrator 'implicitfast'; valid: 'model', 'euler', 'implicit', 'rk4'"),
     ({"substeps": 0}, "substeps must be an integer >= 1"),
     ({"substeps": 2.5}, "substeps must be an integer >= 1"),
 ])
@@ -74,28 +74,41 @@ def test_substeps_are_k_physics_steps_of_timestep_over_k(name, integrator, subst
     torch.testing.assert_close(next_state["qvel"], v, rtol=0, atol=0)
 
 
+def test_swimmers_fluid_refuses_the_implicit_integrator():
+    with pytest.raises(ValueError, match="integrator 'implicit' is not available for a model with fluid forces"):
+        make_env("Swimmer-v5", num_envs=1, integrator="implicit")
+
+
 @pytest.mark.parametrize("name,integrator", [("Hopper-v5", "euler"), ("Walker2d-v5", "euler"),
-                                             ("HalfCheetah-v5", "rk4")])
+                                             ("HalfCheetah-v5", "rk4"), ("HalfCheetah-v5", "implicit"),
+                                             ("Ant-v5", "implicit"), ("Humanoid-v5", "implicit")])
 def test_other_integrator_matches_mujoco_run_with_it_in_the_air(name, integrator):
     """Lifted 3 m, the robot falls freely for 0.3 s (joint limits and motors active): the states
-    equal MuJoCo's with ``opt.integrator`` set to the same integrator."""
+    equal MuJoCo's with ``opt.integrator`` set to the same integrator (the free-floating ones
+    spinning at 10 rad/s, where ``implicit``'s Coriolis derivative matters)."""
     env = make_env(name, num_envs=1, dtype=torch.float64, seed=0, integrator=integrator)
     mm = mujoco.MjModel.from_xml_path(str(gymnasium_asset(env.model_file)))
-    mm.opt.integrator = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4}[integrator]
+    mm.opt.integrator = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4,
+                         "implicit": mujoco.mjtIntegrator.mjINT_IMPLICIT}[integrator]
     data = mujoco.MjData(mm)
     rng = np.random.default_rng(0)
+    free = env.model.joint_type[0] == "free"
     data.qpos[:] = mm.qpos0 + 0.1 * rng.normal(size=mm.nq)
-    data.qpos[1] += 3.0
+    data.qpos[2 if free else 1] += 3.0
     data.qvel[:] = rng.normal(size=mm.nv)
+    if free:
+        data.qvel[3:6] = 10.0 * rng.normal(size=3) / np.sqrt(3)
     q, v = torch.tensor(data.qpos[None]), torch.tensor(data.qvel[None])
     w0 = dof_invweight0(env.tree, env.params)
-    for _ in range(int(0.3 / mm.opt.timestep)):
+    # the spinning humanoid's limits are solved by MuJoCo to its solver's tolerance: 1e-9 after 0.1 s,
+    # 1e-6 after 0.3 s (Euler's too)
+    for _ in range(int((0.1 if name == "Humanoid-v5" else 0.3) / mm.opt.timestep)):
         ctrl = rng.uniform(-1, 1, mm.nu)
         data.ctrl[:] = ctrl
         mujoco.mj_step(mm, data)
         r = step(env.tree, q, v, torch.tensor(ctrl[None]), env.params, mm.opt.timestep, integrator, w0)
         q, v = r.qpos, r.qvel
-    assert data.qpos[1] > 1.5  # still in the air
+    assert data.qpos[2 if free else 1] > 1.5  # still in the air
     np.testing.assert_allclose(q[0].numpy(), data.qpos, atol=1e-7)
     np.testing.assert_allclose(v[0].numpy(), data.qvel, atol=1e-6)
 
@@ -106,7 +119,10 @@ def test_other_integrator_matches_mujoco_run_with_it_in_the_air(name, integrator
     ("Walker2d-v5", {"integrator": "rk4"}),
     ("HalfCheetah-v5", {"integrator": "rk4"}),
     ("Ant-v5", {"integrator": "rk4"}),
-])  # the default (Euler) of every contact task: tests/simulator/test_mujoco_gradients.py
+    ("Ant-v5", {"integrator": "euler"}),
+    ("HalfCheetah-v5", {"integrator": "implicit"}),
+    ("Hopper-v5", {"integrator": "implicit"}),
+])  # each task's default: tests/simulator/test_mujoco_gradients.py
 def test_gradcheck_one_step_through_contact(name, options):
     """One env step, 5 mm into the floor: gradients w.r.t. the action, the state and the masses."""
     n = 1

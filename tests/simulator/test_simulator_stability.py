@@ -118,3 +118,33 @@ def test_a_singular_env_does_not_raise_or_touch_the_others(name):
     assert not torch.isfinite(mixed.qvel[2]).all() or mixed.qvel[2].abs().max() > 1e6
     keep = [0, 1, 3]
     assert torch.equal(mixed.qvel[keep], healthy.qvel[keep]) and torch.equal(mixed.qpos[keep], healthy.qpos[keep])
+
+
+def test_the_spinning_ant_that_euler_blew_up_stays_bounded_with_the_implicit_integrator():
+    """An Ant thrown 1.9 m up by resonant full-range square waves (benchmarks/stress.py), its torso
+    spinning at 30 rad/s, and the 25 actions that followed: semi-implicit Euler, whose Coriolis and
+    centrifugal forces are explicit, pumps energy into the spin until the velocities overflow (in
+    float64 too: not rounding); MuJoCo's ``implicit`` integrator, which treats those forces'
+    velocity derivative implicitly, keeps them where RK4 keeps them (below 60)."""
+    qpos = [-2.0663311, 16.86693, 1.9135766, 0.4845021, -0.1109707, -0.1489101, 0.8548503, -0.1655935, 1.2516888,
+            0.2655221, -0.7576232, 0.5347204, -1.0503043, 0.2834452, 0.3754466]
+    qvel = [-3.996383, 7.009945, 7.816287, -11.043701, 27.222462, -9.238519, 10.396386, -0.908741, -9.36648,
+            -8.19788, -0.279348, 8.212225, -8.762749, -14.933318]
+    signs = ("-++---++ ++--++-+ ++-+++-- +-+++++- --++--++ " * 5).split()
+    actions = torch.tensor([[1.0 if c == "+" else -1.0 for c in row] for row in signs], dtype=torch.float64)
+    peak = {}
+    for integrator in ("euler", "implicit", "rk4"):
+        env = make_env("Ant-v5", num_envs=1, seed=0, dtype=torch.float64, integrator=integrator)
+        params = float_params(env, torch.float64)
+        w0 = dof_invweight0(env.tree, params)
+        q, v = torch.tensor([qpos], dtype=torch.float64), torch.tensor([qvel], dtype=torch.float64)
+        q[:, 3:7] /= q[:, 3:7].norm()
+        speeds = []
+        for a in actions:
+            for _ in range(env.frame_skip):
+                result = step(env.tree, q, v, a[None], params, env.model.timestep, integrator, w0)
+                q, v = result.qpos, result.qvel
+            speeds.append(v.abs().max().item() if torch.isfinite(v).all() else float("inf"))
+        peak[integrator] = max(speeds)
+    assert peak["euler"] > 1e6, peak  # the instability this integrator removes
+    assert peak["implicit"] < 60.0 and peak["rk4"] < 60.0, peak

@@ -9,7 +9,7 @@ from .kinematics import Kinematics, _tree_sum, forward_kinematics, generalised_f
 from .spatial import Params, _inverse, _skew, cross_force, cross_motion
 from .tree import RigidBodyTree
 
-__all__ = ['mass_matrix_and_bias', 'dof_invweight0']
+__all__ = ['mass_matrix_and_bias', 'bias_velocity_jacobian', 'dof_invweight0']
 
 
 def _spatial_inertia(tree: RigidBodyTree, kin: Kinematics, params: Params) -> torch.Tensor:
@@ -45,12 +45,17 @@ def _joint_space_inertia(tree: RigidBodyTree, motion: torch.Tensor, inertia: tor
     return _composite_mass_matrix(tree, motion, composite.reshape(n, -1, 6, 6))
 
 
-def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Params):
+def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Params, with_velocity_jacobian=False):
     """Joint-space mass matrix ``[N, nv, nv]`` (armature included) and bias force ``[N, nv]``.
 
     The bias force is MuJoCo's ``qfrc_bias``: Coriolis, centrifugal and gravity terms.
+    ``with_velocity_jacobian=True`` also returns ``d qfrc_bias / d qvel [N, nv, nv]``
+    (:func:`bias_velocity_jacobian`), as a third result.
     """
     inertia = _spatial_inertia(tree, kin, params)
+    if with_velocity_jacobian:
+        mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
+        return mass, bias, _bias_velocity_jacobian(tree, kin, qvel, inertia)
     mass = _joint_space_inertia(tree, kin.motion, inertia) + torch.diag_embed(params["armature"])
     # velocity-product accelerations; gravity enters as an upward acceleration of the world
     dof_motion = kin.motion * qvel.unsqueeze(-1)  # [N, nv, 6]
@@ -62,6 +67,42 @@ def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Para
     momentum = (inertia @ body_vel.unsqueeze(-1)).squeeze(-1)
     force = (inertia @ body_acc.unsqueeze(-1)).squeeze(-1) + cross_force(body_vel, momentum)
     return mass, generalised_force(tree.body_dof_mask, kin, force)
+
+
+def bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params) -> torch.Tensor:
+    """``d qfrc_bias / d qvel [N, nv, nv]`` (entry ``[i, j]``: of bias ``i`` in ``qvel_j``): the
+    velocity derivative of the Coriolis and centrifugal forces that MuJoCo's ``implicit``
+    integrator treats implicitly (MuJoCo's ``mjd_rne_v``)."""
+    return _bias_velocity_jacobian(tree, kin, qvel, _spatial_inertia(tree, kin, params))
+
+
+def _bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, inertia: torch.Tensor):
+    """:func:`bias_velocity_jacobian` from the bodies' spatial inertias: the derivative of the
+    velocity-product terms of :func:`mass_matrix_and_bias` along each ``qvel_j`` at once.
+
+    With ``S_j`` dof ``j``'s motion axis, ``v_b`` body ``b``'s velocity and ``I_b`` its inertia,
+    ``qvel_j`` changes ``v_b`` by ``S_j`` (where ``j`` moves ``b``), the velocity-product
+    acceleration ``a_b = sum_d v_pre(d) x S_d qvel_d`` (over the dofs ``d`` moving ``b``) by
+    ``S_j x sum_d S_d qvel_d`` (over the ``d`` that ``j`` precedes) ``+ v_pre(j) x S_j``, and the
+    body force ``I_b a_b + v_b x* I_b v_b`` accordingly; the bias is ``S_i`` against the forces of
+    the bodies dof ``i`` moves. Costs ``nv`` bias evaluations' worth of small products in one batch.
+    """
+    motion, moves = kin.motion, tree.body_dof_mask  # [N, nv, 6], [nbody, nv]
+    dof_motion = motion * qvel.unsqueeze(-1)  # [N, nv, 6]: S_d qvel_d
+    body_vel = _tree_sum(moves, dof_motion)  # [N, nbody, 6]
+    pre_vel = _tree_sum(tree.dof_pre_mask, dof_motion)  # [N, nv, 6]
+    axis = motion[:, :, None, :]  # [N, J, 1, 6]: S_j for every body
+    # sum_d moves[b, d] pre[d, j] S_d qvel_d: the velocity of b's dofs that dof j carries
+    carried = torch.einsum("bd,dj,ndk->njbk", moves, tree.dof_pre_mask, dof_motion)
+    moved = moves.transpose(0, 1)[None, :, :, None]  # [1, J, nbody, 1]: dof j moves body b
+    acc = cross_motion(axis, carried) + moved * cross_motion(pre_vel, motion)[:, :, None, :]
+    momentum = (inertia @ body_vel.unsqueeze(-1)).squeeze(-1)  # [N, nbody, 6]
+    axis_momentum = torch.einsum("nbkl,njl->njbk", inertia, motion)  # I_b S_j
+    force = (torch.einsum("nbkl,njbl->njbk", inertia, acc)
+             + moved * (cross_force(axis, momentum.unsqueeze(1)) + cross_force(body_vel.unsqueeze(1), axis_momentum)))
+    # bias_i = S_i . sum_b moves[b, i] force_b, for each j
+    summed = torch.einsum("bi,njbk->njik", moves, force)  # [N, J, nv, 6]
+    return (summed * motion.unsqueeze(1)).sum(-1).transpose(1, 2)
 
 
 def dof_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:

@@ -1,5 +1,6 @@
 """MuJoCo's integrators over :func:`~torchrl_diffenvs.articulated.pipeline.accelerations`:
-semi-implicit Euler (with implicit joint and contact damping) and classic RK4."""
+semi-implicit Euler (with implicit joint and contact damping), MuJoCo's ``implicit`` (Euler with
+the Coriolis and centrifugal forces implicit too) and classic RK4."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -67,10 +68,10 @@ def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integ
 
 def eager_step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,
                invweight0=None) -> StepResult:
-    """One physics step of MuJoCo's ``integrator`` (``"euler"`` or ``"rk4"``).
+    """One physics step of MuJoCo's ``integrator`` (``"euler"``, ``"implicit"`` or ``"rk4"``).
 
     Besides the new state, returns the state at which MuJoCo evaluated the forward dynamics last
-    (the start state for Euler, the fourth stage for RK4): after ``mj_step`` MuJoCo's derived
+    (the start state for Euler and implicit, the fourth stage for RK4): after ``mj_step`` MuJoCo's derived
     quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
     observations and rewards read some of them, and the largest contact normal force there
     (``contact_force [N]``, detached; None without contacts). ``invweight0``: :func:`dof_invweight0` of
@@ -81,13 +82,13 @@ def eager_step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float,
     w0 = invweight0
     if w0 is None and tree.limit_dof.numel():
         w0 = dof_invweight0(tree, params)
-    if integrator == "euler":
-        qacc, largest = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt, invweight0=w0,
-                                      with_contact_force=True)
+    if integrator in ("euler", "implicit"):
+        qacc, largest = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt,
+                                      implicit_bias=integrator == "implicit", invweight0=w0, with_contact_force=True)
         new_qvel = qvel + dt * qacc
         return StepResult(integrate_position(tree, qpos, new_qvel, dt), new_qvel, qpos, qvel, largest)
     if integrator != "rk4":
-        raise ValueError(f"unknown integrator {integrator!r}; valid: 'euler', 'rk4'")
+        raise ValueError(f"unknown integrator {integrator!r}; valid: 'euler', 'implicit', 'rk4'")
     # MuJoCo's mj_RungeKutta with the classic tableau
     acc1 = accelerations(tree, qpos, qvel, ctrl, params, invweight0=w0)
     vel2 = qvel + 0.5 * dt * acc1

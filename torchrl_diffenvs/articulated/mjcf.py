@@ -6,7 +6,7 @@ tensors. It follows MuJoCo's compiler where it matters for the dynamics:
 
 * ``<compiler>``: ``angle`` (degree by default), ``eulerseq``, ``inertiafromgeom``,
   ``settotalmass``; ``coordinate="local"`` only;
-* ``<option>``: ``timestep``, ``integrator`` (Euler, RK4), ``gravity``, ``density`` and
+* ``<option>``: ``timestep``, ``integrator`` (Euler, implicit, RK4), ``gravity``, ``density`` and
   ``viscosity`` (MuJoCo's inertia-box fluid forces);
 * ``<default>`` classes (nested, inherited; ``class`` and ``childclass``);
 * bodies with ``pos`` and any orientation (``quat``, ``axisangle``, ``euler``, ``xyaxes``,
@@ -203,8 +203,9 @@ class _Reader:
                 raise self.fail(child, "<option> children (flags) are not supported")
         self.timestep = float(element.get("timestep", 0.002))
         integrator = element.get("integrator", "Euler")
-        if integrator not in ("Euler", "RK4"):
-            raise self.fail(element, f"integrator {integrator!r} is not supported; supported: 'Euler', 'RK4'")
+        if integrator not in ("Euler", "implicit", "RK4"):
+            raise self.fail(element, f"integrator {integrator!r} is not supported; supported: 'Euler', 'implicit', "
+                                     "'RK4'")
         self.integrator = integrator.lower()
         self.gravity = _floats(element.get("gravity", "0 0 -9.81"), 3, f"{self.path}: <option gravity>")
         # MuJoCo's inertia-box fluid model (articulated.dynamics.fluid_force); the geom-level

@@ -31,7 +31,7 @@ class ArticulatedModel:
     name: str
     path: str
     timestep: float
-    integrator: str  # "euler" | "rk4"
+    integrator: str  # "euler" | "implicit" | "rk4"
     gravity: np.ndarray  # [3]
     density: float  # of the medium (MuJoCo's option density; 0: no fluid forces)
     viscosity: float  # of the medium (option viscosity)

@@ -50,7 +50,7 @@ def _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=False)
 
 
 def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, implicit_damping_dt=None,
-                  invweight0=None, with_contact_force=False):
+                  implicit_bias=False, invweight0=None, with_contact_force=False):
     """``qacc [N, nv]`` of MuJoCo's forward dynamics: the simulator's pipeline, stage by stage.
 
     1. kinematics: body poses and dof motion axes (:mod:`.kinematics`);
@@ -63,14 +63,23 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     ``implicit_damping_dt = h`` gives the acceleration of MuJoCo's Euler integrator, which solves
     with ``M + h D``: joint damping treated implicitly (MuJoCo), and here the contact's velocity
     damping too (explicit contact friction and damping at MuJoCo's 0.01 s steps would be unstable).
+    ``implicit_bias=True`` (with ``implicit_damping_dt``): MuJoCo's ``implicit`` integrator, which
+    also treats the Coriolis and centrifugal forces implicitly, ``M + h (D + d bias / d qvel)``
+    (:func:`~.inertia.bias_velocity_jacobian`): stable where a light body spins fast, where the
+    explicit velocity-product forces pump energy into it.
     ``invweight0``: :func:`dof_invweight0` of ``params`` when the caller has it (computed if not).
     ``with_contact_force``: also return the largest contact normal force ``[N]`` (detached; None
     for a model without contacts), as ``(qacc, largest)``.
     """
     implicit = implicit_damping_dt is not None
     kin = forward_kinematics(tree, qpos)
-    mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
+    if implicit and implicit_bias:
+        mass, bias, bias_jacobian = mass_matrix_and_bias(tree, kin, qvel, params, with_velocity_jacobian=True)
+    else:
+        mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
     force, damping, largest = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=implicit)
+    if implicit and implicit_bias:
+        damping = damping + bias_jacobian  # the force carries -bias: its velocity damping is +d bias / d qvel
     if tree.limit_dof.numel():
         mass_inv = _inverse(mass)
         smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)

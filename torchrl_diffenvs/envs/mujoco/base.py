@@ -55,7 +55,8 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         num_envs, device, dtype, seed, max_episode_steps, params: as :class:`DiffEnv`.
         integrator: ``"model"`` (the model file's own, as MuJoCo and Gymnasium run it),
             ``"euler"`` (MuJoCo's semi-implicit Euler, with the joint damping and here the smooth
-            contact's velocity damping treated implicitly) or ``"rk4"``; ``None`` (default): the
+            contact's velocity damping treated implicitly), ``"implicit"`` (MuJoCo's: Euler with
+            the Coriolis and centrifugal forces implicit too) or ``"rk4"``; ``None`` (default): the
             task's ``default_integrator``. The choice changes how well the step's Jacobian is
             conditioned while a foot sticks (the regularised friction is a stiff damper: RK4's
             stability bound is exceeded there, implicit Euler has none), not the task: HalfCheetah,
@@ -67,7 +68,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             env step ``dt`` is unchanged).
     """
 
-    INTEGRATORS = ("model", "euler", "rk4")
+    INTEGRATORS = ("model", "euler", "implicit", "rk4")
     default_integrator = "model"  # the contact tasks: "euler"
 
     model_file: str = ""
@@ -87,6 +88,10 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             raise ValueError(f"{self.name}: substeps must be an integer >= 1 (physics steps per MuJoCo step), "
                              f"got {substeps!r}")
         self.integrator = model.integrator if integrator == "model" else integrator
+        if self.integrator == "implicit" and (model.viscosity or model.density):
+            raise ValueError(f"{self.name}: integrator 'implicit' is not available for a model with fluid forces "
+                             "(MuJoCo's also treats their velocity derivative implicitly; this one does not); "
+                             "valid here: 'euler', 'rk4', 'model'")
         self.substeps = substeps
         self.action_dim = model.nu
         low, high = model.ctrl_range[:, 0], model.ctrl_range[:, 1]
