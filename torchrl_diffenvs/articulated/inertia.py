@@ -94,10 +94,11 @@ def _bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Te
     # the cross products as 6x6 matrices, applied by batched products: broadcasting [N, nv, nbody, 6]
     # vectors through element-wise crosses was 10x slower at N = 1024
     axis_cross = _motion_cross_matrix(motion)  # [N, J, 6, 6]: S_j x .
-    # sum_d moves[b, d] pre[d, j] S_d qvel_d: the velocity of b's dofs that dof j carries
-    carried = torch.einsum("bd,dj,ndk->njkb", moves, tree.dof_pre_mask, dof_motion)  # [N, J, 6, nbody]
+    # d a_b / d qvel_j = S_j x (sum_d moves[b, d] pre[d, j] S_d qvel_d) + moves[b, j] v_pre(j) x S_j, and
+    # v_pre(j) x S_j = -S_j x v_pre(j): one cross with S_j of the velocities weighted by tree.bias_carry
+    carried = torch.einsum("bdj,ndk->njkb", tree.bias_carry, dof_motion)  # [N, J, 6, nbody]
     moved = moves.transpose(0, 1)[None, :, None, :]  # [1, J, 1, nbody]: dof j moves body b
-    acc = axis_cross @ carried + moved * cross_motion(pre_vel, motion).unsqueeze(-1)  # [N, J, 6, nbody]
+    acc = axis_cross @ carried  # [N, J, 6, nbody]
 
     momentum = (inertia @ body_vel.unsqueeze(-1)).squeeze(-1)  # [N, nbody, 6]
     # S_j x* (I_b v_b) = -(S_j x)^T (I_b v_b), and v_b x* (I_b S_j)

@@ -40,6 +40,9 @@ class RigidBodyTree:
     body_dof_mask: torch.Tensor  # [nbody, nv]: dof d moves body b
     dof_pre_mask: torch.Tensor  # [nv, nv]: dof d' moves the frame dof d is attached to (d' before d)
     dof_support: torch.Tensor  # [nv, nv]: dof i moves the body of dof j (where M_ij = S_i . Ic_j S_j)
+    # [nbody, nv (d), nv (j)]: moves[b, d] pre[d, j] - moves[b, j] pre[j, d], the weight of S_d qvel_d in the
+    # change of body b's velocity-product acceleration per qvel_j (inertia.bias_velocity_jacobian)
+    bias_carry: torch.Tensor
     contact_dof_mask: torch.Tensor  # [npoint, nv]: dof d moves the body of contact point p
     # joint limits (rows for the lower and upper side of every limited joint)
     limit_dof: torch.Tensor  # [nlimit] long
@@ -209,6 +212,8 @@ class RigidBodyTree:
             qpos_spring=t(model.qpos_spring), dof_qpos=idx(dof_qpos), dof_has_spring=t(dof_has_spring),
             position_segments=segments, body_dof_mask=t(moves), dof_pre_mask=t(pre),
             dof_support=t(moves[dof_body].T.reshape(nv, nv)),
+            bias_carry=t(np.asarray(moves)[:, :, None] * np.asarray(pre)[None]
+                         - np.asarray(moves)[:, None, :] * np.asarray(pre).T[None]),
             contact_dof_mask=t(moves[[p[0] for p in points]].reshape(len(points), nv)),
             limit_dof=idx(limit_dof), limit_sign=t([1.0 if s == 0 else -1.0 for _, s in rows]),
             limit_value=t([model.joint_range[j, s] for j, s in rows]),
