@@ -14,7 +14,8 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
 
     As Gymnasium's v5: reward ``forward_reward_weight * vx + healthy_reward * healthy
     - ctrl_cost_weight |a|^2 - contact_cost_weight |clip(cfrc_ext)|^2``, ``vx`` the torso's x
-    displacement per ``dt`` (0.05 s: RK4 at 0.01 s, 5 steps; semi-implicit Euler with ``integrator="euler"``); healthy while the state is finite
+    displacement per ``dt`` (0.05 s: 5 steps of 0.01 s, by MuJoCo's implicit integrator; the file's RK4 with
+    ``integrator="model"``); healthy while the state is finite
     and the torso height ``qpos[2]`` is in ``[0.2, 1]`` (closed, as Gymnasium's); terminated when
     unhealthy; truncated after 1000 steps; observation ``[qpos[2:], qvel, clip(cfrc_ext[1:])]``
     (13 + 14 + 78 = 105; 27 with ``include_cfrc_ext_in_observation=False``, 2 more with
@@ -25,7 +26,8 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     mass, force; world frame), here from the smooth contact model instead of MuJoCo's solver, so
     its values and the trajectories differ from Gymnasium's once a leg touches the ground (the
     contact-free dynamics equal MuJoCo's, see the docs). As Gymnasium does, the torso position
-    and ``cfrc_ext`` are read where ``mj_step`` leaves them (the last RK4 stage, or the start of the last Euler step): they travel as
+    and ``cfrc_ext`` are read where ``mj_step`` leaves them (the start of the last implicit or Euler step, or the
+    last RK4 stage): they travel as
     ``("state", "torso_xy")`` and ``("state", "cfrc_ext")``; ``cfrc_ext`` is 0 after a reset.
 
     ``healthy_gradient_width`` / ``healthy_gradient_scale``: a surrogate gradient for the healthy
@@ -38,11 +40,12 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
 
     name = "Ant-v5"
     model_file = "ant.xml"
-    # the file's RK4: with semi-implicit Euler the Ant's gradients are 10^5x smaller, but 4 of 256 envs
-    # diverged under full-range resonant square waves (benchmarks/stress.py), none with RK4
-    default_integrator = "model"
+    # MuJoCo's implicit integrator: the file's RK4 gives 10^2-10^4x larger actor gradients, and semi-implicit
+    # Euler's explicit Coriolis forces blew up Ants spun fast in the air by resonant full-range square waves
+    # (benchmarks/stress.py, docs/simulator.md)
+    default_integrator = "implicit"
     frame_skip = 5
-    # the Ant weighs 0.9 kg (HalfCheetah 14): a softer, less damped floor keeps explicit RK4 at 0.01 s stable
+    # the Ant weighs 0.9 kg (HalfCheetah 14): a softer, less damped floor than theirs
     contact_params = {"contact_stiffness": 2e3, "contact_damping": 20.0, "contact_width": 0.002,
                       "friction_velocity": 0.01}
     task_params = {
