@@ -21,6 +21,11 @@ the pendulum.
     python benchmarks/time_to_solve.py envs=[pendulum] losses=[shac] seeds=[0,1] eval_interval=20000 \
         'variant=["default=","H8=loss.horizon=8 loss.actor_lr=2e-2"]' levels=[74.2,72.3,70.4]
 
+Runs side by side (one process per core, e.g. one per task and seed, each with ``out=``) are
+summarised together afterwards, PPO-relative levels across all of them::
+
+    python benchmarks/time_to_solve.py summarise=[hc_s0.json,hc_s1.json,hc_s2.json] data=race_halfcheetah
+
 Arguments are ``key=value`` (lists as ``[a,b]``), as for the training script. A variant
 (``variant=["LABEL=OVERRIDES", ...]``) runs every loss again with those Hydra overrides and is
 reported as ``loss:LABEL``; ``levels`` adds columns with the time to reach fixed returns.
