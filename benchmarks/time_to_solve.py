@@ -223,7 +223,9 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
 
     first = next((r for r in summary if r["levels"]), None)
     ppo_levels = LEVELS if first else ()  # PPO-relative levels need a PPO run
-    level_names = [f"{'PPO final' if f == 1.0 else f'{f:.0%} of PPO'} = {first['levels'][f]['return']:.3g}"
+    # one env: the levels' values in the header; several: each env has its own (see each row's env's table)
+    level_names = [f"{'PPO final' if f == 1.0 else f'{f:.0%} of PPO'}"
+                   + (f" = {first['levels'][f]['return']:.3g}" if len(envs) == 1 else " (the env's own)")
                    for f in ppo_levels]
     table = C.print_table(
         ["env", "loss", "final eval return", "random policy", "wall s", "env steps", *level_names,
