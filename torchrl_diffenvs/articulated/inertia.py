@@ -53,9 +53,6 @@ def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Para
     (:func:`bias_velocity_jacobian`), as a third result.
     """
     inertia = _spatial_inertia(tree, kin, params)
-    if with_velocity_jacobian:
-        mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
-        return mass, bias, _bias_velocity_jacobian(tree, kin, qvel, inertia)
     mass = _joint_space_inertia(tree, kin.motion, inertia) + torch.diag_embed(params["armature"])
     # velocity-product accelerations; gravity enters as an upward acceleration of the world
     dof_motion = kin.motion * qvel.unsqueeze(-1)  # [N, nv, 6]
@@ -66,7 +63,10 @@ def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Para
     body_acc = gravity.unsqueeze(1) + _tree_sum(tree.body_dof_mask, motion_dot)
     momentum = (inertia @ body_vel.unsqueeze(-1)).squeeze(-1)
     force = (inertia @ body_acc.unsqueeze(-1)).squeeze(-1) + cross_force(body_vel, momentum)
-    return mass, generalised_force(tree.body_dof_mask, kin, force)
+    bias = generalised_force(tree.body_dof_mask, kin, force)
+    if with_velocity_jacobian:
+        return mass, bias, _bias_velocity_jacobian(tree, kin, qvel, inertia)
+    return mass, bias
 
 
 def bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params: Params) -> torch.Tensor:
@@ -90,7 +90,6 @@ def _bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Te
     motion, moves = kin.motion, tree.body_dof_mask  # [N, nv, 6], [nbody, nv]
     dof_motion = motion * qvel.unsqueeze(-1)  # [N, nv, 6]: S_d qvel_d
     body_vel = _tree_sum(moves, dof_motion)  # [N, nbody, 6]
-    pre_vel = _tree_sum(tree.dof_pre_mask, dof_motion)  # [N, nv, 6]
     # the cross products as 6x6 matrices, applied by batched products: broadcasting [N, nv, nbody, 6]
     # vectors through element-wise crosses was 10x slower at N = 1024
     axis_cross = _motion_cross_matrix(motion)  # [N, J, 6, 6]: S_j x .
@@ -99,7 +98,6 @@ def _bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Te
     carried = torch.einsum("bdj,ndk->njkb", tree.bias_carry, dof_motion)  # [N, J, 6, nbody]
     moved = moves.transpose(0, 1)[None, :, None, :]  # [1, J, 1, nbody]: dof j moves body b
     acc = axis_cross @ carried  # [N, J, 6, nbody]
-
     momentum = (inertia @ body_vel.unsqueeze(-1)).squeeze(-1)  # [N, nbody, 6]
     # S_j x* (I_b v_b) = -(S_j x)^T (I_b v_b), and v_b x* (I_b S_j)
     gyroscopic = -axis_cross.transpose(-1, -2) @ momentum.transpose(1, 2).unsqueeze(1)  # [N, J, 6, nbody]
