@@ -33,6 +33,7 @@ import _common as C  # noqa: E402
 from _common import BenchmarkSettings, print_table  # noqa: E402
 
 from torchrl_diffenvs import make_env  # noqa: E402
+from torchrl_diffenvs.envs.mujoco.base import MuJoCoModelEnv  # noqa: E402
 from torchrl_diffenvs.checks import checked, each, one_of, parse_cli  # noqa: E402
 
 CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"]
@@ -49,8 +50,8 @@ class StressSettings(BenchmarkSettings):
     num_envs: int = 1024
     steps: int = 1000
     seed: int = 0
-    integrator: str | None = checked(None, lambda v: None if v in (None, "model", "euler", "implicit", "rk4")
-                                     else "valid: model, euler, implicit, rk4")  # None: each task's default
+    # None: each task's default
+    integrator: str | None = checked(None, lambda v: None if v is None else one_of(MuJoCoModelEnv.INTEGRATORS)(v))
 
 
 def make_policy(kind: str, env, gen: torch.Generator):

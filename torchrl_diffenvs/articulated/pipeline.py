@@ -73,13 +73,11 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     """
     implicit = implicit_damping_dt is not None
     kin = forward_kinematics(tree, qpos)
-    if implicit and implicit_bias:
-        mass, bias, bias_jacobian = mass_matrix_and_bias(tree, kin, qvel, params, with_velocity_jacobian=True)
-    else:
-        mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
+    mass, bias, *bias_jacobian = mass_matrix_and_bias(tree, kin, qvel, params,
+                                                      with_velocity_jacobian=implicit and implicit_bias)
     force, damping, largest = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=implicit)
-    if implicit and implicit_bias:
-        damping = damping + bias_jacobian  # the force carries -bias: its velocity damping is +d bias / d qvel
+    if bias_jacobian:
+        damping = damping + bias_jacobian[0]  # the force carries -bias: its velocity damping is +d bias / d qvel
     if tree.limit_dof.numel():
         mass_inv = _inverse(mass)
         smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)

@@ -61,15 +61,15 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             conditioned while a foot sticks (the regularised friction is a stiff damper: RK4's
             stability bound is exceeded there, implicit Euler has none), not the task: HalfCheetah,
             Hopper and Walker2d default to ``"euler"`` (closed-loop actor gradients 1000x smaller on
-            Walker2d, 3-4x cheaper steps, the same fidelity to MuJoCo), the Ant to its file's RK4
-            (with Euler a few envs diverged under resonant full-range actions); the docs list
-            each option's numbers.
+            Walker2d, 3-4x cheaper steps, the same fidelity to MuJoCo), the Ant to ``"implicit"``
+            (with Euler, Ants spun fast in the air by resonant full-range actions diverged); the
+            docs list each option's numbers.
         substeps: ``k >= 1`` physics steps of ``timestep / k`` for each of MuJoCo's steps (the
             env step ``dt`` is unchanged).
     """
 
     INTEGRATORS = ("model", "euler", "implicit", "rk4")
-    default_integrator = "model"  # the contact tasks: "euler"
+    default_integrator = "model"  # the planar contact tasks and the humanoids: "euler"; the Ant: "implicit"
 
     model_file: str = ""
     frame_skip: int = 1
@@ -91,7 +91,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         if self.integrator == "implicit" and (model.viscosity or model.density):
             raise ValueError(f"{self.name}: integrator 'implicit' is not available for a model with fluid forces "
                              "(MuJoCo's also treats their velocity derivative implicitly; this one does not); "
-                             "valid here: 'euler', 'rk4', 'model'")
+                             "valid here: 'euler', 'rk4'")
         self.substeps = substeps
         self.action_dim = model.nu
         low, high = model.ctrl_range[:, 0], model.ctrl_range[:, 1]
