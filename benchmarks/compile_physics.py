@@ -15,7 +15,11 @@ Throughput: eager and compiled timed interleaved (see ``_common``), env-steps/s 
 the ratio is the median over rounds. ``max abs diff``: between the eager and the compiled
 rollout's observations and rewards from the same start and actions, after the first env step and
 over the whole rollout (and, for ``bptt``, of the policy's gradient relative to its largest
-element). Fused kernels round differently, and the contact tasks amplify rounding: on
+element). Beside it, ``eager at start x (1 +- 6e-8)``: the same gradient difference between eager
+windows whose start states differ by float32's rounding (every float under ``"state"`` times
+``1 + 6e-8 z``, 3 draws, the largest): how much rounding alone moves this window's gradient.
+``dtype=float64`` runs both paths in float64, where the compiled math must equal eager's to
+rounding (1e-10), however sensitive the window. Fused kernels round differently, and the contact tasks amplify rounding: on
 HalfCheetah-v5 eager float32 and float64 rollouts from one start with the same random actions
 are themselves 0.8 apart (max over 1024 envs; median 6e-6) after 32 steps. Articulated tasks (the MuJoCo ones) compile
 one physics step, reused at every step; the others a ``chunk``-step chunk.
@@ -52,6 +56,7 @@ class CompilePhysicsSettings(C.BenchmarkSettings):
     steps: int | None = None  # rollout length (default 32; quick: 8)
     window: int | None = None  # BPTT window length (default 16; quick: 8)
     chunk: int = checked(8, checks.positive_int)  # steps_per_chunk
+    dtype: str = checked("float32", checks.one_of(("float32", "float64")))  # of the envs and the policy
     timeout: int = checked(900, checks.positive_int)  # seconds per (task, N, mode) process
     worker: str | None = None  # internal: "task,N,mode" measured in this process
 
@@ -67,17 +72,18 @@ def measure(task: str, n: int, mode: str, args) -> dict:
     quick = args.quick
     steps = args.steps or (8 if quick else 32)
     window = args.window or (8 if quick else 16)
-    envs = {name: make_env(task, num_envs=n, seed=0) for name in ("eager", "compiled")}
+    dtype = getattr(torch, args.dtype)
+    envs = {name: make_env(task, num_envs=n, seed=0, dtype=dtype) for name in ("eager", "compiled")}
     compile_physics(envs["compiled"], steps_per_chunk=args.chunk)
     start = envs["eager"].reset()
     torch.manual_seed(0)
     env = envs["eager"]
     net = torch.nn.Sequential(torch.nn.Linear(env.observation_dim, 64), torch.nn.Tanh(), torch.nn.Linear(64, 64),
-                              torch.nn.Tanh(), torch.nn.Linear(64, env.action_dim), torch.nn.Tanh())
+                              torch.nn.Tanh(), torch.nn.Linear(64, env.action_dim), torch.nn.Tanh()).to(dtype)
     scale = float(env.action_spec.space.high.flatten()[0])
     policy = TensorDictModule(lambda obs: net(obs) * scale, in_keys=["observation"], out_keys=["action"])
 
-    def runner(name: str):
+    def runner(name: str, start=start):
         env = envs[name]
         if mode == "rollout":
             def run():
@@ -106,12 +112,16 @@ def measure(task: str, n: int, mode: str, args) -> dict:
     timings = C.interleaved({name: run for name, (run, _) in runs.items()}, rounds, warmup=0)
     cpu = {name: timings[name]["cpu"] for name in runs}
     rate = {name: length * n / C.spread(cpu[name])["median"] for name in runs}
+    grad_diff = rounding_grad_diff = None
     if mode == "bptt":
         (eager_out, eager_grads), (compiled_out, compiled_grads) = eager_out, compiled_out
         scale_g = max(float(g.abs().max()) for g in eager_grads)
-        grad_diff = max(float((a - b).abs().max()) for a, b in zip(compiled_grads, eager_grads)) / scale_g
-    else:
-        grad_diff = None
+
+        def grad_diff_to_eager(grads):
+            return max(float((a - b).abs().max()) for a, b in zip(grads, eager_grads)) / scale_g
+        grad_diff = grad_diff_to_eager(compiled_grads)
+        rounding_grad_diff = max(grad_diff_to_eager(runner("eager", perturbed_start(start, draw))[0]()[1])
+                                 for draw in range(3))
     diffs = [(compiled_out["next", key] - eager_out["next", key]).abs() for key in ("observation", "reward")]
     diff = max(float(d.max()) for d in diffs)
     first_diff = max(float(d[:, 0].max()) for d in diffs)  # [N, T, ...]: after the first env step
@@ -121,8 +131,22 @@ def measure(task: str, n: int, mode: str, args) -> dict:
             "first_call_s": first, "steady_call_s": steady, "compile_s": first - steady,
             "first_calls": report["first_call_seconds"], "fallback_reason": report["fallback_reason"],
             "granularity": envs["compiled"].__dict__["_compiled_physics"].granularity,
-            "max_abs_diff": diff, "max_abs_diff_first_step": first_diff, "grad_rel_diff": grad_diff, "rounds": rounds,
+            "max_abs_diff": diff, "max_abs_diff_first_step": first_diff, "grad_rel_diff": grad_diff,
+            "grad_rel_diff_rounding": rounding_grad_diff, "dtype": args.dtype, "rounds": rounds,
             "cpu_s": {name: C.spread(cpu[name]) for name in cpu}}
+
+
+def perturbed_start(start, draw: int):
+    """``start`` with every float under ``"state"`` times ``1 + 6e-8 z`` (float32's rounding), z ~ N(0, 1)."""
+    import torch
+
+    generator = torch.Generator().manual_seed(draw)
+    out = start.clone()
+    for key, value in start.get("state").items(include_nested=True, leaves_only=True):
+        if value.is_floating_point():
+            noise = torch.randn(value.shape, generator=generator, dtype=value.dtype)
+            out.set(("state", *((key,) if isinstance(key, str) else key)), value * (1 + 6e-8 * noise))
+    return out
 
 
 def run_worker(task: str, n: int, mode: str, argv: list[str], timeout: int) -> dict:
@@ -147,18 +171,23 @@ def run_worker(task: str, n: int, mode: str, argv: list[str], timeout: int) -> d
 def docs_tables(results: list[dict]) -> dict:
     rows = []
     for r in results:
+        dtype = r.get("dtype", "float32")
         if "error" in r:
-            rows.append([r["task"], r["N"], r["mode"], "-", "-", "-", "-", "-", r["error"]])
+            rows.append([r["task"], r["N"], r["mode"], dtype, "-", "-", "-", "-", "-", r["error"], "-"])
             continue
         diff = f"{r['max_abs_diff_first_step']:.2g} / {r['max_abs_diff']:.2g}"
+        grads = "-"
         if r["grad_rel_diff"] is not None:
-            diff += f" (grad {r['grad_rel_diff']:.2g} rel)"
-        rows.append([r["task"], r["N"], {"rollout": "no-grad rollout", "bptt": "BPTT window"}[r["mode"]],
+            grads = f"{r['grad_rel_diff']:.2g}"
+            if r.get("grad_rel_diff_rounding") is not None:
+                grads += f" / {r['grad_rel_diff_rounding']:.2g}"
+        rows.append([r["task"], r["N"], {"rollout": "no-grad rollout", "bptt": "BPTT window"}[r["mode"]], dtype,
                      C.fmt_rate(r["eager_steps_per_s"]), C.fmt_rate(r["compiled_steps_per_s"]),
-                     C.fmt_ratio(r["ratio"]), f"{r['compile_s']:.0f}", r["granularity"], diff])
+                     C.fmt_ratio(r["ratio"]), f"{r['compile_s']:.0f}", r["granularity"], diff, grads])
     return {"compile_physics": C.data_table(
         "compile_physics against eager: env-steps/s from CPU time, cold compile seconds, max abs difference",
-        ["task", "N", "mode", "eager", "compiled", "compiled/eager", "compile s", "compiled unit", "max abs diff (step 1 / all)"],
+        ["task", "N", "mode", "dtype", "eager", "compiled", "compiled/eager", "compile s", "compiled unit",
+         "max abs diff (step 1 / all)", "policy grad vs eager, rel: compiled / eager at start x (1 +- 6e-8)"],
         rows)}
 
 
