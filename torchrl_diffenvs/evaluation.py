@@ -21,7 +21,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from .envs.multi_agent import reward_per_env
 
 __all__ = [
-    "episode_returns", "evaluate", "evaluate_random", "first_episode_mask", "record_video", "uniform_random_policy",
+    "episode_returns", "evaluate", "evaluate_random", "first_episode_ends", "first_episode_mask", "record_video",
+    "uniform_random_policy",
 ]
 
 
@@ -31,6 +32,17 @@ def first_episode_mask(rollout: TensorDictBase) -> torch.Tensor:
     done = rollout.get(("next", "done"))[..., 0].to(torch.int64)
     ended_before = torch.cumsum(done, dim=-1) - done  # dones strictly before t
     return (ended_before == 0).to(torch.float64)
+
+
+def first_episode_ends(rollout: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(length [N], terminated [N])`` of each env's *first* episode in a ``[N, T]`` rollout: its
+    number of steps (``T`` if it did not end), and whether it ended by termination (a fall, a
+    goal) rather than by truncation or the rollout's end."""
+    in_first = first_episode_mask(rollout)
+    length = in_first.sum(-1).long()
+    last = (length - 1).clamp(max=rollout.shape[-1] - 1)
+    terminated = rollout.get(("next", "terminated"))[..., 0].bool()
+    return length, terminated[torch.arange(rollout.shape[0]), last]
 
 
 def episode_returns(rollout: TensorDictBase, reward_key: NestedKey = "reward") -> torch.Tensor:
@@ -87,6 +99,9 @@ def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, 
         "reward_mean": (returns.sum() / in_first.sum()).item(),
         "tail_reward_mean": reward[:, -tail_steps:].mean().item(),
     }
+    length, terminated = first_episode_ends(rollout)
+    scores["episode_length"] = length.double().mean().item()
+    scores["terminated"] = terminated.double().mean().item()
     if hasattr(env, "player_wins"):  # a two-player env: did the policy beat the opponent in its first episode?
         last = in_first.sum(-1).long() - 1  # each env's last step of its first episode
         end = rollout.get("next")[torch.arange(rollout.shape[0]), last]

@@ -113,13 +113,16 @@ def test_evaluate_reports_returns_and_rewards():
     learner = make_learner("bptt")
     env = make_env("pendulum", num_envs=4, seed=0, max_episode_steps=10)
     result = evaluate(env, learner.policy)
-    assert set(result) == {"return", "return_std", "return_min", "return_max", "reward_mean", "tail_reward_mean"}
+    assert set(result) == {"return", "return_std", "return_min", "return_max", "reward_mean", "tail_reward_mean",
+                           "episode_length", "terminated"}
     assert result["return"] == pytest.approx(10 * result["reward_mean"], rel=1e-5)
+    assert result["episode_length"] == 10 and result["terminated"] == 0  # the pendulum only truncates
     assert result["return_min"] <= result["return"] <= result["return_max"]
 
 
 def test_evaluate_counts_only_the_first_episode():
-    """CartPole-v1 pays +1 per step, so each env's return is the length of its first episode."""
+    """CartPole-v1 pays +1 per step, so each env's return is the length of its first episode; an
+    episode shorter than the limit ended by a fall (termination), one of 60 steps by truncation."""
     from torchrl.envs.utils import RandomPolicy
 
     env = make_env("CartPole-v1", num_envs=8, dtype=torch.float64, seed=3, max_episode_steps=60)
@@ -134,6 +137,8 @@ def test_evaluate_counts_only_the_first_episode():
     assert min(lengths) < 60  # random actions do make some pole fall before the limit
     assert stats["return"] == pytest.approx(sum(lengths) / len(lengths))
     assert stats["reward_mean"] == pytest.approx(1.0)
+    assert stats["episode_length"] == pytest.approx(sum(lengths) / len(lengths))
+    assert stats["terminated"] == pytest.approx(sum(n < 60 for n in lengths) / len(lengths))
 
 
 # ---------------------------------------------------------------------------- fidelity knobs

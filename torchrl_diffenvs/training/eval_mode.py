@@ -13,7 +13,7 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from ..evaluation import episode_returns, evaluate_random, record_video
+from ..evaluation import episode_returns, evaluate_random, first_episode_ends, record_video
 from ..learners import LEARNERS
 from .checkpoint import load_checkpoint
 from .config import ConfigError, make_env_from_config
@@ -140,19 +140,23 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
         compile_physics(env, steps_per_chunk=chunk_length(steps))
     # rl_games' player: eval.games_num episodes, played eval.num_envs at a time from successive seeds
     games = int(cfg.eval.get("games_num") or cfg.eval.num_envs)
-    returns = []
+    returns, lengths, terminated = [], [], []
     for round_index in range(-(-games // cfg.eval.num_envs)):
         env.set_seed(cfg.eval.seed + round_index)
         with torch.no_grad(), set_exploration_type(exploration_of(cfg)):
             rollout = env.rollout(steps, policy, break_when_any_done=False)
         returns.extend(episode_returns(rollout, env.reward_key).double().tolist())
+        length, ended = first_episode_ends(rollout)
+        lengths.extend(length.tolist())
+        terminated.extend(ended.tolist())
     returns = torch.tensor(returns[:games], dtype=torch.float64)
     scores = {"return": returns.mean().item(), "return_std": returns.std(unbiased=False).item(),
-              "return_min": returns.min().item(), "return_max": returns.max().item()}
+              "return_min": returns.min().item(), "return_max": returns.max().item(),
+              "episode_length": sum(lengths[:games]) / games, "terminated": sum(terminated[:games]) / games}
     result = {"env": cfg.env.name, "loss": cfg.loss.name, "checkpoint": str(cfg.checkpoint),
               "trained_env_steps": ckpt["progress"]["env_steps"], "eval_steps": steps, "games": games,
               "env_overrides": changed,
-              "returns": returns.tolist(),
+              "returns": returns.tolist(), "episode_lengths": lengths[:games],
               "deterministic": bool(cfg.eval.get("deterministic", True)),
               "eval/random_return": evaluate_random(env, steps, cfg.eval.seed),
               **{f"eval/{k}": v for k, v in scores.items()}}
