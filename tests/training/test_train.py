@@ -437,6 +437,7 @@ def test_eval_mode_loads_a_checkpoint_and_reproduces_the_final_evaluation(tmp_pa
     assert evaluation["env"] == "reacher" and evaluation["loss"] == "shac"
     assert evaluation["eval/return"] == pytest.approx(result["eval/return"], rel=1e-6)
     assert evaluation["episode_lengths"] == [12, 12] and evaluation["eval/terminated"] == 0  # reacher only truncates
+    assert result["eval/episode_length"] == 12 and result["eval/terminated"] == 0
     with Image.open(tmp_path / "eval" / "eval.gif") as gif:
         assert gif.n_frames > 1
     assert json.loads((tmp_path / "eval" / "eval_metrics.json").read_text())["eval_steps"] == 12

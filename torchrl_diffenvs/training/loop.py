@@ -257,6 +257,7 @@ class Trainer:
                 self.log({"eval/random_return": last["eval/random_return"]})
             scores = evaluate(self.eval_env, self.learner.policy, self.eval_steps, cfg.eval.seed)
             score = last["eval/return"] = scores["return"]
+            last["eval/episode_length"], last["eval/terminated"] = scores["episode_length"], scores["terminated"]
             self.log({f"eval/{k}": v for k, v in scores.items()})
         score = self.world.broadcast_object(score)
         progress["last_eval"] = progress["env_steps"]
@@ -329,6 +330,7 @@ class Trainer:
             "wall_time_s": progress["wall_time_s"],
             "steps_per_s": progress["env_steps"] / max(progress["wall_time_s"], 1e-9),
             "eval/return": last["eval/return"], "eval/random_return": last.get("eval/random_return"),
+            "eval/episode_length": last.get("eval/episode_length"), "eval/terminated": last.get("eval/terminated"),
             "train/return": last["train/return"], "checkpoint": str(self.ckpt_dir / "last.pt"),
             "run_dir": str(self.run_dir),
             "wandb_dir": str(self.logger.wandb_dir) if self.logger.wandb_dir else None,
@@ -371,7 +373,8 @@ class Trainer:
             history = read_history(ckpt, path)
             for row in history:  # what the progress bar and the final metrics show (checkpoints before "last")
                 self.progress["last"].update({k: v for k, v in row.items()
-                                              if k in ("eval/return", "train/return", "eval/random_return")})
+                                              if k in ("eval/return", "train/return", "eval/random_return",
+                                                       "eval/episode_length", "eval/terminated")})
         log.info(f"resumed {path} at env step {self.progress['env_steps']:,}")
         return history, ckpt.get("wandb_run_id")
 
