@@ -28,7 +28,11 @@ summarised together afterwards, PPO-relative levels across all of them::
 
 Arguments are ``key=value`` (lists as ``[a,b]``), as for the training script. A variant
 (``variant=["LABEL=OVERRIDES", ...]``) runs every loss again with those Hydra overrides and is
-reported as ``loss:LABEL``; ``levels`` adds columns with the time to reach fixed returns.
+reported as ``loss:LABEL``; ``levels`` adds columns with the time to reach fixed returns, and
+``env_levels=[ENV=RETURN, ...]`` a level of one env only (in that env's table), e.g. the PPO final
+median of a race whose PPO runs are not among the summarised files::
+
+    python benchmarks/time_to_solve.py summarise=[hc_s0_sapo.json,hc_s1_sapo.json] env_levels=[HalfCheetah-v5=2230]
 """
 from __future__ import annotations
 
@@ -196,8 +200,9 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
             row["fixed_levels"] = {}
             for level in fixed_levels:
                 times = [first_time_at(r["curve"], level) for r in group]
-                row["fixed_levels"][level] = {"time_s": statistics.median(times), "reached": reached(times),
-                                              "times_s": times}
+                row["fixed_levels"][level] = {
+                    "time_s": statistics.median(times), "reached": reached(times), "times_s": times,
+                    "env_steps": statistics.median(first_steps_at(r["curve"], level) for r in group)}
             summary.append(row)
 
     print("\n## time to solve (median over seeds; min-max in brackets; t: wall s to reach the level, "
@@ -218,8 +223,9 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
     def fixed_cell(row, level):
         cell = row["fixed_levels"][level]
         times = ", ".join("never" if not math.isfinite(t) else f"{t:.1f}" for t in cell["times_s"])
-        median = "never" if not math.isfinite(cell["time_s"]) else f"{cell['time_s']:.1f} s"
-        return f"{median} ({cell['reached']}: {times})"
+        if not math.isfinite(cell["time_s"]):
+            return f"never ({cell['reached']}: {times})"
+        return f"{cell['time_s']:.1f} s, {cell['env_steps'] / 1e3:,.0f}k steps ({cell['reached']}: {times})"
 
     first = next((r for r in summary if r["levels"]), None)
     ppo_levels = LEVELS if first else ()  # PPO-relative levels need a PPO run
@@ -252,6 +258,21 @@ def write_summary_data(args, envs, seeds, table, per_env_tables=None) -> None:
     C.write_data(args, "time_to_solve_" + "_".join(envs), tables, source="time_to_solve")
 
 
+def env_levels(items: list[str], envs: list[str]) -> dict[str, list[float]]:
+    """``["Hopper-v5=547", ...]`` -> ``{env: [levels]}`` for every env of ``envs``."""
+    levels = {env: [] for env in envs}
+    for item in items:
+        env, _, value = item.partition("=")
+        if env not in levels:
+            raise SystemExit(f"time_to_solve: env_levels names {env!r}, which no summarised run has; "
+                             f"valid: {', '.join(envs)}")
+        try:
+            levels[env].append(float(value))
+        except ValueError:
+            raise SystemExit(f"time_to_solve: env_levels expects ENV=RETURN (a number), got {item!r}") from None
+    return levels
+
+
 def summarise_files(args) -> dict:
     """``summarise=[a.json, ...]``: the runs of earlier result files merged and summarised again.
 
@@ -274,12 +295,14 @@ def summarise_files(args) -> dict:
     envs = list(dict.fromkeys(r["env"] for r in runs))
     seeds = sorted({r["seed"] for r in runs})
     losses = list(dict.fromkeys(r["loss"] for r in runs))
-    summary, table = summarise(runs, envs, losses, args.levels)
+    own_levels = env_levels(args.env_levels, envs)
+    summary, table = summarise(runs, envs, losses, [*args.levels, *(own_levels[envs[0]] if len(envs) == 1 else [])])
     payload = {"benchmark": "time_to_solve", "info": infos[0], "summary": summary, "runs": runs, "table": table,
                "merged_from": [str(n) for n in args.summarise]}
     C.write_json("time_to_solve", payload, args.out or (args.summarise[0] if len(args.summarise) == 1 else None))
     if args.data:  # re-summarising alone never replaces a page's data
-        per_env = {env: summarise([r for r in runs if r["env"] == env], [env], losses, args.levels)[1]
+        per_env = {env: summarise([r for r in runs if r["env"] == env], [env], losses,
+                                  [*args.levels, *own_levels[env]])[1]
                    for env in envs} if len(envs) > 1 else None
         write_summary_data(args, envs, seeds, table, per_env)
     return payload
@@ -296,6 +319,9 @@ class TimeToSolveSettings(C.BenchmarkSettings):
     # LABEL=OVERRIDES: run every loss once per variant, with these space-separated Hydra overrides
     variant: list[str] = field(default_factory=list)
     levels: list[float] = field(default_factory=list)  # also report the wall time to reach these returns
+    # ENV=RETURN: a level of that env only (its own table), e.g. another race's PPO final median when the
+    # PPO runs are not among the summarised files
+    env_levels: list[str] = checked([], checks.each(lambda v: None if "=" in str(v) else "expected ENV=RETURN"))
     keep_runs: str | None = None  # keep the run directories here
     # only summarise earlier result files (JSON, out= of earlier runs): their runs merged, e.g. one file per task
     # and seed from runs side by side; with data= the summary is also the docs' data file

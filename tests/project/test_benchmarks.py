@@ -147,6 +147,28 @@ def test_time_to_solve_merges_result_files(tmp_path):
         tts.main([f"summarise=[{tmp_path / 'missing.json'}]"])
 
 
+def test_time_to_solve_env_levels_apply_to_their_env_only(tmp_path):
+    """``env_levels=[ENV=RETURN]``: a fixed level in that env's table only (another race's PPO
+    final when PPO's runs are not among the files); wall time and env steps to it by hand."""
+    tts = load("time_to_solve")
+    curves = {"a": [(0, 0, 0), (50_000, 20, 101), (100_000, 40, 60)], "b": [(0, 0, 0), (50_000, 30, 5), (100_000, 45, 7)]}
+    path = tmp_path / "runs.json"
+    path.write_text(json.dumps({"benchmark": "time_to_solve", "info": {}, "runs": [
+        _run(env, "sapo", 0, curve) for env, curve in curves.items()]}))
+    payload = tts.main([f"summarise=[{path}]", "env_levels=[a=100,b=6]", f"out={tmp_path / 'out.json'}",
+                        f"data={tmp_path / 'data.json'}"])
+    tables = json.loads((tmp_path / "data.json").read_text())["tables"]
+    assert tables["a"]["columns"][-1] == "return >= 100" and tables["b"]["columns"][-1] == "return >= 6"
+    assert tables["a"]["rows"][0][-1] == "20.0 s, 50k steps (1/1: 20.0)"  # a passes 100 at its first evaluation
+    assert tables["b"]["rows"][0][-1] == "45.0 s, 100k steps (1/1: 45.0)"
+    assert not any(c.startswith("return >=") for c in tables["levels"]["columns"])  # not in the combined table
+    assert payload["summary"][0]["fixed_levels"] == {}
+    with pytest.raises(SystemExit, match="names 'c', which no summarised run has; valid: a, b"):
+        tts.main([f"summarise=[{path}]", "env_levels=[c=1]", f"out={tmp_path / 'out.json'}"])
+    with pytest.raises(SystemExit, match="expected ENV=RETURN"):
+        tts.main([f"summarise=[{path}]", "env_levels=[100]", f"out={tmp_path / 'out.json'}"])
+
+
 def test_benchmark_arguments_are_checked_like_the_training_scripts():
     tts = load("time_to_solve")
     with pytest.raises(SystemExit, match=r"losses=\['dqn'\]: element 'dqn': valid: shac, bptt, ppo, sac"):
