@@ -1,7 +1,9 @@
 """The MuJoCo-model tasks against gymnasium's own MuJoCo envs: contact fidelity.
 
 Fidelity (float64): the torso height after 2 s at zero action (a dropped robot coming to rest),
-and the gap after 1 s of the same random actions from the same start (no reset noise).
+the gap after 1 s of the same random actions from the same start (no reset noise), and the
+return of a still robot: the task's own episode (reset noise, termination, at most 1000 steps) at
+zero action, mean over 5 starts: what a learner that only learned to keep still scores.
 Speed is measured by ``benchmarks/mujoco_throughput.py``. Needs ``pip install "torchrl_diffenvs[mujoco]"``.
 
     OMP_NUM_THREADS=1 python benchmarks/contact_fidelity.py
@@ -95,6 +97,36 @@ def fidelity(task, seconds_rest=2.0, seconds_open_loop=1.0, **options):
     }
 
 
+def still_return(task, episodes: int = 5, steps: int = 1000) -> tuple[float, float]:
+    """Mean return of ``episodes`` zero-action episodes of the task as shipped (reset noise and
+    termination on): gymnasium's (seeds 0..episodes-1) and ours (``episodes`` envs, float64)."""
+    import gymnasium as gym
+
+    genv, theirs = gym.make(task), []
+    for seed in range(episodes):
+        genv.reset(seed=seed)
+        total = 0.0
+        for _ in range(steps):
+            _, reward, terminated, truncated, _ = genv.step(np.zeros(genv.action_space.shape))
+            total += reward
+            if terminated or truncated:
+                break
+        theirs.append(total)
+    env = make_env(task, num_envs=episodes, dtype=torch.float64, seed=0)
+    td, total = env.reset(), torch.zeros(episodes, dtype=torch.float64)
+    running = torch.ones(episodes, dtype=torch.bool)
+    with torch.no_grad():
+        for _ in range(steps):
+            td["action"] = torch.zeros(episodes, env.action_dim, dtype=torch.float64)
+            out = env.step(td)
+            total += torch.where(running, out["next", "reward"].reshape(-1), 0.0)
+            running &= ~out["next", "done"].reshape(-1)
+            if not running.any():
+                break
+            td = env.step_mdp(out)
+    return float(np.mean(theirs)), float(total.mean())
+
+
 def _same_start(task, genv, env, td):
     """The Pusher's start is random in both (its object's place): ours starts from gymnasium's."""
     if task != "Pusher-v5":
@@ -121,18 +153,21 @@ def main(argv=None):
     rows = []
     for task in settings.tasks:
         result = fidelity(task)
-        print(task, {k: round(float(v), 4) for k, v in result.items()}, flush=True)
+        still = "{:.4g} / {:.4g}".format(*still_return(task))
+        print(task, {k: round(float(v), 4) for k, v in result.items()}, "still return", still, flush=True)
         if task == "Pusher-v5":  # no gravity: nothing comes to rest
             rows.append([task, "(no gravity)", f"object x {result['x_gap']:.3g} m, "
-                         f"joints {result['joint_rms_gap']:.3g} rad rms"])
+                         f"joints {result['joint_rms_gap']:.3g} rad rms", still])
             continue
         rows.append([task, f"{result['rest_z_mujoco']:.3f} m / {result['rest_z_ours']:.3f} m",
                      f"root x {result['x_gap']:.3g} m, height up to {result['z_gap_max']:.3g} m, "
-                     f"angle up to {result['angle_gap_max']:.3g} rad, joints {result['joint_rms_gap']:.3g} rad rms"])
+                     f"angle up to {result['angle_gap_max']:.3g} rad, joints {result['joint_rms_gap']:.3g} rad rms",
+                     still])
     C.write_data(settings, "contact_fidelity", {"fidelity": C.data_table(
         "Smooth contact against MuJoCo (same model, float64)",
         ["task", "rest height of the torso after 2 s, zero action (MuJoCo / ours)",
-         "gap after 1 s of the same random actions"], rows)})
+         "gap after 1 s of the same random actions",
+         "return of a still robot: zero action, the task's episode (MuJoCo / ours)"], rows)})
 
 
 if __name__ == "__main__":
