@@ -42,27 +42,43 @@ def window(env, net, policy, start, steps):
     return out.detach(), grads
 
 
-def test_articulated_tasks_compile_one_physics_step_with_values_and_gradients_of_eager():
-    """Hopper-v5 (Euler, joint limits, contact), 8 steps in chunks of 4 through ``aot_eager``:
-    the report names the compiled physics step (forward with grad), nothing fell back, the
-    values and gradients (policy and body masses) are eager's; afterwards ``step`` is eager again."""
-    env = make_env("Hopper-v5", num_envs=3, seed=0)
+def eager_and_compiled_windows(env, steps: int, chunk: int):
+    """The same ``steps``-step window (values, gradients) eager and then compiled in chunks of
+    ``chunk`` through ``aot_eager``, and the compile report; the env is eager again afterwards."""
     net, policy = deterministic_policy(env)
+    net.to(env.float_dtype)
     start = env.reset()
-    eager = window(env, net, policy, start, 8)
-    compile_physics(env, steps_per_chunk=4, backend="aot_eager")
+    eager = window(env, net, policy, start, steps)
+    compile_physics(env, steps_per_chunk=chunk, backend="aot_eager")
     try:
-        compiled = window(env, net, policy, start, 8)
+        compiled = window(env, net, policy, start, steps)
         report = compile_report(env)
     finally:
         eager_physics(env)
+    return eager, compiled, report
+
+
+@pytest.mark.parametrize("task, integrator, num_envs, steps, chunk", [
+    ("Hopper-v5", "euler", 3, 8, 4),  # joint limits and contact
+    ("HalfCheetah-v5", "implicit", 2, 6, 3),  # the Ant's default integrator, on a smaller tree that compiles sooner
+])
+def test_articulated_tasks_compile_one_physics_step_with_values_and_gradients_of_eager(
+        task, integrator, num_envs, steps, chunk):
+    """A window through ``aot_eager`` in chunks: the report names the compiled physics step of the
+    integrator (forward with grad), nothing fell back, the values and gradients (policy and body
+    masses) are eager's; afterwards ``step`` is eager again. In float64, where it is the same math
+    to 1e-10: in float32 the reordered backward's rounding grows through the contact steps (about
+    2e-5 relative with Euler on the Hopper, 1e-2 with the implicit integrator on HalfCheetah) and
+    depends on the CPU's vector instructions."""
+    env = make_env(task, num_envs=num_envs, seed=0, integrator=integrator, dtype=torch.float64)
+    eager, compiled, report = eager_and_compiled_windows(env, steps, chunk)
     assert report["fallback_reason"] is None, report
-    assert "physics step (euler), with grad" in report["first_call_seconds"], report
+    assert f"physics step ({integrator}), with grad" in report["first_call_seconds"], report
     assert not integrators._STEPPERS, "the compiled step must be active only inside a chunk"
     for key in ("observation", "reward"):
-        torch.testing.assert_close(compiled[0]["next", key], eager[0]["next", key], rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(compiled[0]["next", key], eager[0]["next", key], rtol=1e-10, atol=1e-10)
     for got, want in zip(compiled[1], eager[1]):
-        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
 
 
 def test_inductor_compiled_physics_step_matches_eager():
@@ -89,28 +105,3 @@ def test_inductor_compiled_physics_step_matches_eager():
     torch.testing.assert_close(compiled["action"], eager["action"], rtol=0, atol=0)
     for key in ("observation", "reward"):
         torch.testing.assert_close(compiled["next", key], eager["next", key], rtol=1e-4, atol=1e-5)
-
-
-def test_implicit_integrator_compiles_with_values_and_gradients_of_eager():
-    """MuJoCo's implicit integrator (the Ant's default; here on HalfCheetah-v5, whose smaller tree
-    compiles sooner): the compiled step is the implicit one, and 6 steps in chunks of 3 through
-    ``aot_eager`` give eager's values and gradients (policy and body masses). In float64: the
-    same math to 1e-10; in float32 the reordered backward's rounding grows through the contact
-    steps to about 1e-2 relative on this task (1e-5 with Euler), so the comparison is in float64."""
-    env = make_env("HalfCheetah-v5", num_envs=2, seed=0, integrator="implicit", dtype=torch.float64)
-    net, policy = deterministic_policy(env)
-    net.to(torch.float64)
-    start = env.reset()
-    eager = window(env, net, policy, start, 6)
-    compile_physics(env, steps_per_chunk=3, backend="aot_eager")
-    try:
-        compiled = window(env, net, policy, start, 6)
-        report = compile_report(env)
-    finally:
-        eager_physics(env)
-    assert report["fallback_reason"] is None, report
-    assert "physics step (implicit), with grad" in report["first_call_seconds"], report
-    for key in ("observation", "reward"):
-        torch.testing.assert_close(compiled[0]["next", key], eager[0]["next", key], rtol=1e-10, atol=1e-10)
-    for got, want in zip(compiled[1], eager[1]):
-        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
