@@ -99,8 +99,9 @@ def test_the_diverging_halfcheetah_stays_with_float64():
 @pytest.mark.parametrize("name", CONTACT_TASKS)
 def test_a_singular_env_does_not_raise_or_touch_the_others(name):
     """An env whose mass matrix is singular (massless bodies: torch.linalg.inv raised on it) gives
-    meaningless values (non-finite or huge) for itself only: nothing raises, and the other envs'
-    values are bit-identical to a batch without it."""
+    meaningless values for itself only: nothing raises, and the other envs' values are
+    bit-identical to a batch without it. (Which values it gets depends on the LAPACK build:
+    non-finite, huge, or finite and wrong, as on some AMD CPUs.)"""
     env = make_env(name, num_envs=4, seed=0, dtype=torch.float64)
     qpos, qvel = touching_states(env, 4)
     ctrl = torch.zeros(4, env.tree.ctrl_low.shape[-1], dtype=torch.float64)
@@ -115,7 +116,7 @@ def test_a_singular_env_does_not_raise_or_touch_the_others(name):
     w0 = dof_invweight0(env.tree, params)
     healthy = step(env.tree, qpos, qvel, ctrl, params, env.model.timestep, env.model.integrator, w0)
     mixed = step(env.tree, qpos, qvel, ctrl, broken, env.model.timestep, env.model.integrator, w0)
-    assert not torch.isfinite(mixed.qvel[2]).all() or mixed.qvel[2].abs().max() > 1e6
+    assert not torch.equal(mixed.qvel[2], healthy.qvel[2])  # the massless bodies did change env 2
     keep = [0, 1, 3]
     assert torch.equal(mixed.qvel[keep], healthy.qvel[keep]) and torch.equal(mixed.qpos[keep], healthy.qpos[keep])
 
