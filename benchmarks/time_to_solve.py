@@ -344,7 +344,9 @@ def main(argv=None) -> dict:
     C.print_header("time to solve (sota_scripts/train.py, interleaved runs)", info)
     runs_root = Path(args.keep_runs) if args.keep_runs else Path(tempfile.mkdtemp(prefix="time_to_solve_"))
 
-    runs = []
+    # every run's configuration is composed before the first run starts: a mistyped override fails
+    # at once, not after hours of the runs before it
+    plan = []
     for seed in seeds:
         for env in envs:
             for loss, (variant, variant_overrides) in itertools.product(args.losses, variants):
@@ -358,14 +360,21 @@ def main(argv=None) -> dict:
                     overrides.append(f"train.total_env_steps={budgets[loss]}")
                 overrides += args.override + variant_overrides
                 run_dir = runs_root / f"{env}_{loss}{'_' + variant if variant else ''}_seed{seed}"
-                cfg = compose(overrides)
-                wall, cpu = C.timed(lambda: runs.append(train_script.run(cfg, run_dir, overrides)))
-                result = runs[-1]
-                result.update({"overrides": overrides, "variant": variant, "curve": eval_curve(run_dir),
-                               "process_wall_s": wall, "process_cpu_s": cpu,
-                               "total_env_steps": int(cfg.train.total_env_steps)})
-                print(f"# {env} {run_label(result)} seed {seed}: eval return {result['eval/return']:.4g} after "
-                      f"{result['env_steps']:,} env steps, {result['wall_time_s']:.1f} s")
+                try:
+                    cfg = compose(overrides)
+                except Exception as error:  # Hydra's composition errors name the override
+                    raise SystemExit(f"time_to_solve: the run {env} {loss} {variant or ''} seed {seed} does not "
+                                     f"compose ({' '.join(overrides)}): {error}") from None
+                plan.append((seed, env, variant, overrides, run_dir, cfg))
+    runs = []
+    for seed, env, variant, overrides, run_dir, cfg in plan:
+        wall, cpu = C.timed(lambda: runs.append(train_script.run(cfg, run_dir, overrides)))
+        result = runs[-1]
+        result.update({"overrides": overrides, "variant": variant, "curve": eval_curve(run_dir),
+                       "process_wall_s": wall, "process_cpu_s": cpu,
+                       "total_env_steps": int(cfg.train.total_env_steps)})
+        print(f"# {env} {run_label(result)} seed {seed}: eval return {result['eval/return']:.4g} after "
+              f"{result['env_steps']:,} env steps, {result['wall_time_s']:.1f} s")
 
     summary, table = summarise(runs, envs, args.losses, args.levels)
     for r in runs:

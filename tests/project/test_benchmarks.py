@@ -6,6 +6,7 @@ they run end to end and report what they claim, in seconds, in-process.
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -106,6 +107,20 @@ def test_time_to_solve_variants_and_fixed_levels(tmp_path):
         tts.parse_variants(["no-label"])
     with pytest.raises(SystemExit, match="must be distinct"):
         tts.parse_variants(["a=x=1", "a=y=2"])
+
+
+def test_time_to_solve_checks_every_run_before_the_first(tmp_path, monkeypatch):
+    """A variant whose override does not compose stops the benchmark before any run starts (the
+    runs before it would otherwise take hours and be lost), naming the run and the override."""
+    tts = load("time_to_solve")
+    real = tts.load_train_script()
+    started = []
+    monkeypatch.setattr(tts, "load_train_script", lambda: SimpleNamespace(run=lambda *a: started.append(a)))
+    assert real.run  # the training script still loads (it registers the loss configs)
+    with pytest.raises(SystemExit, match=r"Hopper-v5 shac bad seed 0 does not compose .*no_such_option"):
+        tts.main(["quick=true", "envs=[Hopper-v5]", "losses=[shac]", 'variant=["ok=","bad=env.options.no_such_option=1"]',
+                  f"out={tmp_path / 'tts.json'}"])
+    assert started == []
 
 
 def _run(env, loss, seed, curve):
