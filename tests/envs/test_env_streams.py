@@ -155,6 +155,27 @@ def test_env_rng_state_carries_the_streams():
     assert torch.equal(other.episodes, torch.tensor([4, 2, 5, 2]))
 
 
+def test_env_rng_state_of_a_cuda_generator_loads_on_the_cpu():
+    """A CUDA generator's state (16 bytes: Philox seed and offset) cannot be a CPU generator's
+    (Mersenne Twister, 5056 bytes): a run resumed on another device seeds the generator from it,
+    the same way every time, warns, and continues the start-state streams exactly."""
+    env, other = make_env("CartPole-v1", num_envs=4, seed=1), make_env("CartPole-v1", num_envs=4, seed=2)
+    td = partial_reset(env, env.reset(), [2])
+    state = env.rng.get_state()
+    own = env.rng.get_state().numel() - 8 * (4 + 2)
+    philox = torch.arange(16, dtype=torch.uint8)  # what torch.cuda's generator.get_state() returns
+    cuda_state = torch.cat([philox, state[own:]])
+    expected = partial_reset(env, td, [0, 2])["observation"]
+    draws = []
+    for _ in range(2):
+        with pytest.warns(RuntimeWarning, match="16 bytes.*not one of a cpu generator's"):
+            other.rng.set_state(cuda_state)
+        assert torch.equal(other.episodes, torch.tensor([1, 1, 2, 1]))
+        draws.append(torch.rand(3, generator=other.rng))
+    assert torch.equal(draws[0], draws[1])
+    assert torch.equal(partial_reset(other, td, [0, 2])["observation"], expected)
+
+
 def test_a_pickled_or_copied_env_continues_the_same_start_states():
     """ParallelEnv workers and deepcopies get the streams too (a plain torch.Generator would not)."""
     import copy

@@ -10,7 +10,9 @@ about as cheap as ``torch.rand`` for small batches); the samples then go to the 
 """
 from __future__ import annotations
 
+import hashlib
 import math
+import warnings
 
 import numpy as np
 import torch
@@ -185,14 +187,28 @@ class EnvGenerator(torch.Generator):
                             dtype=torch.int64)
         return torch.cat([super().get_state(), counts.view(torch.uint8), tail.view(torch.uint8)])
 
+    def _set_own_state(self, own: torch.Tensor) -> None:
+        """The generator's own state; one saved on another kind of device (a CPU generator's
+        Mersenne Twister state against a CUDA generator's Philox seed and offset: a run resumed
+        on another device) cannot be loaded, and seeds this one instead (deterministically)."""
+        if own.numel() == super().get_state().numel():
+            super().set_state(own)
+            return
+        seed = int.from_bytes(hashlib.sha256(own.numpy().tobytes()).digest()[:8], "little") >> 1
+        self.manual_seed(seed)
+        warnings.warn(f"env.rng: the saved generator state ({own.numel()} bytes) is not one of a {self.device.type} "
+                      f"generator's ({super().get_state().numel()} bytes), e.g. a run resumed on another device: the "
+                      f"random actions and noise continue from a seed derived from it (not the same numbers); the "
+                      f"envs' start-state streams continue exactly", RuntimeWarning, stacklevel=3)
+
     def set_state(self, new_state: torch.Tensor) -> EnvGenerator:
         new_state = new_state.detach().cpu()
         n = self.episodes.numel()
         own = new_state.numel() - 8 * (n + 2)
         if own <= 0 or int(new_state[-8:].clone().view(torch.int64)) != n:  # a plain generator state
-            super().set_state(new_state)
+            self._set_own_state(new_state)
             return self
-        super().set_state(new_state[:own].clone())
+        self._set_own_state(new_state[:own].clone())
         self.episodes = new_state[own:-16].clone().view(torch.int64).to(self.episodes.device)
         self.key = np.uint64(int(new_state[-16:-8].clone().view(torch.int64)) & _MASK64)
         return self

@@ -47,15 +47,17 @@ def nonfinite_envs(batch: TensorDictBase, keys: Iterable[NestedKey] = (("next", 
     (the flag an env reports itself), or marked ``"isolated"`` (by the window collector).
     Missing entries are ignored."""
     n = batch.batch_size[0]
+    # on the batch's device; a batch without one (TorchRL's collectors on CUDA) gets a CPU mask,
+    # which indexes its entries on any device
     bad = torch.zeros(n, dtype=torch.bool, device=batch.device)
     for key in keys:
         value = batch.get(key, None)
         if isinstance(value, torch.Tensor) and value.dtype.is_floating_point:
-            bad |= ~torch.isfinite(value.detach()).reshape(n, -1).all(-1)
+            bad |= (~torch.isfinite(value.detach()).reshape(n, -1).all(-1)).to(bad.device)
     for key in (("next", NONFINITE_KEY), ISOLATED_KEY):
         flag = batch.get(key, None)
         if isinstance(flag, torch.Tensor):
-            bad |= flag.reshape(n, -1).any(-1)
+            bad |= flag.reshape(n, -1).any(-1).to(bad.device)
     return bad
 
 
