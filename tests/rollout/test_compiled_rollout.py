@@ -326,3 +326,17 @@ def test_train_rejects_a_non_boolean_compile():
 
     with pytest.raises(ConfigError, match="compile='yes': expected true or false"):
         validate_config(tiny_cfg("pendulum", "shac", 2, "compile=yes"))
+
+
+def test_cuda_graph_modes_are_recognised_and_turned_off_for_windows_with_gradient():
+    """Which ``torch.compile`` settings replay CUDA graphs (rollouts without gradient copy their
+    outputs out of them), and the settings a window with gradient compiles with instead."""
+    from torchrl_diffenvs.envs.rollout.compiled import uses_cudagraphs, without_cudagraphs
+
+    assert uses_cudagraphs({"mode": "reduce-overhead"}) and uses_cudagraphs({"mode": "max-autotune"})
+    assert uses_cudagraphs({"options": {"triton.cudagraphs": True}})
+    assert not uses_cudagraphs({"dynamic": False}) and not uses_cudagraphs({"mode": "max-autotune-no-cudagraphs"})
+    assert without_cudagraphs({"mode": "reduce-overhead", "dynamic": False}) == {"dynamic": False}
+    assert without_cudagraphs({"mode": "max-autotune"}) == {"mode": "max-autotune-no-cudagraphs"}
+    assert without_cudagraphs({"options": {"triton.cudagraphs": True, "x": 1}}) == {
+        "options": {"triton.cudagraphs": False, "x": 1}}

@@ -109,6 +109,7 @@ class CompiledPhysics:
     def __init__(self, env: EnvBase, steps_per_chunk: int, compile_kwargs: dict):
         self.steps_per_chunk = steps_per_chunk
         self.compile_kwargs = {"dynamic": False, **compile_kwargs}
+        self.cudagraphs = uses_cudagraphs(self.compile_kwargs)
         self.env_ref = weakref.ref(env)  # the env holds this object: no reference cycle
         self.tree = physics_step_tree(env)
         self.granularity = "chunk" if self.tree is None else "physics step"
@@ -145,8 +146,26 @@ class CompiledPhysics:
 
                 functions[with_resets] = fn
             else:
-                fn = functions[with_resets] = torch.compile(_own_code(chunk), **self.compile_kwargs)
+                fn = functions[with_resets] = self.compiled(chunk)
         return fn
+
+    def compiled(self, function: Callable) -> Callable:
+        """``torch.compile(function)``. With CUDA graphs, calls without gradient each start a new
+        graph step and return copies of the outputs (the graph's own output buffers are overwritten
+        by its next replay, while a rollout keeps every step's outputs and the next physics step
+        reads them); calls with gradient run the same compiled graphs without CUDA graphs: a
+        window's tensors saved for its backward must outlive many replays."""
+        fn = torch.compile(_own_code(function), **self.compile_kwargs)
+        if not self.cudagraphs:
+            return fn
+        with_grad = torch.compile(_own_code(function), **without_cudagraphs(self.compile_kwargs))
+
+        def run(*args):
+            if torch.is_grad_enabled():
+                return with_grad(*args)
+            torch.compiler.cudagraph_mark_step_begin()
+            return _copied(fn(*args))
+        return run
 
     def physics_step(self, tree, qpos, qvel, ctrl, params, dt, integrator, invweight0):
         """:func:`~torchrl_diffenvs.articulated.integrators.step` through ``torch.compile``: one
@@ -157,7 +176,7 @@ class CompiledPhysics:
             def one_step(qpos, qvel, ctrl, params, invweight0):
                 return eager_step(tree, qpos, qvel, ctrl, params, dt, integrator, invweight0)
 
-            fn = self.step_functions[(dt, integrator)] = torch.compile(_own_code(one_step), **self.compile_kwargs)
+            fn = self.step_functions[(dt, integrator)] = self.compiled(one_step)
         what = f"physics step ({integrator}), {'with' if torch.is_grad_enabled() else 'without'} grad"
         if what in self.first_call_seconds:
             return fn(qpos, qvel, ctrl, params, invweight0)
@@ -168,6 +187,39 @@ class CompiledPhysics:
 
 
 _CHUNK_FUNCTIONS = itertools.count()
+
+
+def uses_cudagraphs(compile_kwargs: dict) -> bool:
+    """Whether ``torch.compile(**compile_kwargs)`` runs its graphs as CUDA graphs (inductor's
+    ``mode="reduce-overhead"`` and ``"max-autotune"``, or the ``triton.cudagraphs`` option)."""
+    options = compile_kwargs.get("options") or {}
+    return compile_kwargs.get("mode") in ("reduce-overhead", "max-autotune") or bool(options.get("triton.cudagraphs"))
+
+
+def without_cudagraphs(compile_kwargs: dict) -> dict:
+    """``compile_kwargs`` with inductor's CUDA graphs turned off (the rest of the mode kept)."""
+    kwargs = dict(compile_kwargs)
+    mode = kwargs.pop("mode", None)
+    if mode == "max-autotune":
+        kwargs["mode"] = "max-autotune-no-cudagraphs"
+    elif mode not in (None, "reduce-overhead"):
+        kwargs["mode"] = mode
+    if kwargs.get("options"):
+        kwargs["options"] = {**kwargs["options"], "triton.cudagraphs": False}
+    return kwargs
+
+
+def _copied(value):
+    """``value`` (tensors in tuples, lists, dicts and named tuples) with every tensor cloned."""
+    if isinstance(value, torch.Tensor):
+        return value.clone()
+    if isinstance(value, dict):
+        return {key: _copied(item) for key, item in value.items()}
+    if isinstance(value, tuple) and hasattr(value, "_fields"):
+        return type(value)(*(_copied(item) for item in value))
+    if isinstance(value, (list, tuple)):
+        return type(value)(_copied(item) for item in value)
+    return value
 
 
 def _own_code(function: Callable) -> Callable:
@@ -219,7 +271,11 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
     for repeated rollouts, mostly at small and medium batch sizes. :func:`compile_report` says
     how long the first calls took. If ``torch.compile`` fails (no C++ compiler for inductor, an
     operation it cannot trace), the rollout logs the reason and runs eagerly from there on.
-    ``compile_kwargs`` go to ``torch.compile`` (default ``dynamic=False``). Undo with
+    ``compile_kwargs`` go to ``torch.compile`` (default ``dynamic=False``). On CUDA,
+    ``mode="reduce-overhead"`` replays each compiled graph as a CUDA graph (inductor's CUDA graph
+    trees), which removes most of the kernel-launch overhead of an eager GPU step: rollouts
+    without gradient use them (each call's outputs are copied out of the graph's buffers); windows
+    with gradient run the same graphs compiled without CUDA graphs. Undo with
     :func:`eager_physics`. ``EnvBase.rollout`` and ``env.step`` are not affected.
     """
     if isinstance(steps_per_chunk, bool) or not isinstance(steps_per_chunk, int) or steps_per_chunk < 1:
