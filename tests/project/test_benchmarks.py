@@ -64,6 +64,23 @@ def test_benchmarks_refuse_cuda_without_a_gpu(tmp_path):
         load("jax_comparison").main(["quick=true", "device=tpu", f"out={tmp_path / 'jax.json'}"])
 
 
+def test_gpu_throughput_on_the_cpu_quick(tmp_path):
+    """The GPU benchmark's smoke run on the CPU: eager cells with positive rates, the CUDA-graph
+    cells refused with a reason, a bad mode refused, the budget skipping what is left."""
+    bench = load("gpu_throughput")
+    out = bench.main(["quick=true", "device=cpu", "tasks=[pendulum]", "modes=[eager,cudagraphs]",
+                      f"out={tmp_path / 'gpu.json'}", f"data={tmp_path / 'gpu_data.json'}"])
+    cells = {(r["mode"], r["kind"]): r for r in out["results"]}
+    assert cells["eager", "rollout"]["env_steps_per_s"] > 0 and cells["eager", "bptt"]["env_steps_per_s"] > 0
+    assert cells["cudagraphs", "rollout"]["error"] == "CUDA graphs need device=cuda"
+    assert json.loads((tmp_path / "gpu_data.json").read_text())["tables"]["rollout"]["rows"][0][:2] == ["pendulum", "4"]
+    with pytest.raises(SystemExit, match="valid values"):
+        bench.main(["quick=true", "device=cpu", "modes=[graphs]", f"out={tmp_path / 'x.json'}", "data=none"])
+    skipped = bench.main(["quick=true", "device=cpu", "tasks=[pendulum]", "modes=[eager]", "budget_s=1e-9",
+                          f"out={tmp_path / 'y.json'}", "data=none"])
+    assert {r.get("error") for r in skipped["results"]} == {"skipped (budget)"}
+
+
 def test_gradient_throughput_quick(tmp_path):
     payload = load("gradient_throughput").main(["quick=true", f"out={tmp_path / 'grad.json'}"])
     assert [(r["mode"], r["H"], r["N"]) for r in payload["results"]] == [("policy", 4, 2), ("open-loop", 4, 2)]

@@ -1,0 +1,250 @@
+"""Throughput on a GPU, wall clock: env steps without gradient and BPTT windows with their
+backward, per task and batch size, eager, compiled and compiled with CUDA graphs.
+
+For each task and N (sizes up to 65536), timed on the device with ``torch.cuda.synchronize``
+after every call (env-steps/s = N x steps / wall seconds, the median of ``repeats`` calls after
+one warm-up call, which is also the compiling call):
+
+* ``rollout``: ``env.rollout(steps, break_when_any_done=False)`` under ``torch.no_grad``, random
+  actions, auto-resets included;
+* ``bptt``: a ``window``-step ``env.rollout`` from fixed start states with a 64-64 tanh MLP
+  policy (deterministic), then ``(-reward.mean()).backward()``;
+
+in each of the modes ``eager``; ``compiled`` (``compile_physics(env, steps_per_chunk=8)``) and
+``cudagraphs`` (the same with ``mode="reduce-overhead"``: inductor's CUDA graphs around each
+compiled graph). A compiled mode's warm-up time (tracing, compiling, the first run) is reported
+as ``first call s``. Two diagnostics per task, at the first size: the CUDA kernels launched by
+one env step without gradient (``torch.profiler``) and the host-device synchronisations in it
+(``torch.cuda.set_sync_debug_mode``): an eager GPU step that launches thousands of small kernels is
+bound by their launch overhead, not by the GPU.
+
+``budget_s`` bounds the whole run: once it is spent the remaining cells are reported as
+skipped; results are written after every cell, so a run stopped from outside keeps what it
+measured. An out-of-memory cell is reported as such and the run goes on.
+
+    python benchmarks/gpu_throughput.py                                     # device=cuda, every task
+    python benchmarks/gpu_throughput.py tasks=[HalfCheetah-v5] sizes=[16384,65536] modes=[eager,cudagraphs]
+    python benchmarks/gpu_throughput.py quick=true device=cpu                # smoke run on the CPU
+"""
+from __future__ import annotations
+
+import statistics
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
+
+from torchrl_diffenvs import checks  # noqa: E402
+from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
+
+MODES = ("eager", "compiled", "cudagraphs")
+KINDS = ("rollout", "bptt")
+# The Ivy tasks, Gymnasium's classic control and the MuJoCo suite (the multi-agent envs roll out through
+# EnvBase.rollout, which neither compile_physics nor this benchmark's lean rollout covers)
+DEFAULT_TASKS = ("pendulum", "cartpole", "mountaincar", "reacher", "swimmer", "Pendulum-v1", "CartPole-v1",
+                 "HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "Swimmer-v5",
+                 "InvertedPendulum-v5", "Reacher-v5")
+
+
+@dataclass(frozen=True)
+class GPUThroughputSettings(C.BenchmarkSettings):
+    tasks: list[str] | None = None  # default: DEFAULT_TASKS (quick: [pendulum, Hopper-v5])
+    sizes: list[int] | None = None  # batch sizes N (default 1024 4096 16384 65536; quick: [4])
+    modes: list[str] | None = None  # eager, compiled, cudagraphs (default: all three)
+    kinds: list[str] | None = None  # rollout, bptt (default: both)
+    steps: int = checked(16, checks.positive_int)  # env steps per timed rollout
+    window: int = checked(16, checks.positive_int)  # env steps per timed BPTT window
+    budget_s: float = checked(600.0, checks.positive)  # for the whole run: later cells are skipped
+    device: str = "cuda"  # cuda | cuda:<k> | cpu (cpu: the smoke run; cudagraphs is CUDA only)
+
+
+def policy_for(env, dtype):
+    import torch
+    from tensordict.nn import TensorDictModule
+
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Linear(env.observation_dim, 64), torch.nn.Tanh(), torch.nn.Linear(64, 64),
+                              torch.nn.Tanh(), torch.nn.Linear(64, env.action_dim), torch.nn.Tanh())
+    net = net.to(device=env.device, dtype=dtype)
+    scale = float(env.action_spec.space.high.flatten()[0])
+    return net, TensorDictModule(lambda obs: net(obs) * scale, in_keys=["observation"], out_keys=["action"])
+
+
+def workload(env, kind: str, args):
+    """The timed call of one cell and its env steps per env."""
+    import torch
+
+    if kind == "rollout":
+        def run():
+            with torch.no_grad():
+                return env.rollout(args.steps, break_when_any_done=False)
+        return run, args.steps
+    net, policy = policy_for(env, env.float_dtype)
+    start = env.reset()
+
+    def run():
+        net.zero_grad(set_to_none=True)
+        out = env.rollout(args.window, policy, auto_reset=False, tensordict=start.clone(), break_when_any_done=False)
+        (-out["next", "reward"].mean()).backward()
+        return out["next", "reward"].detach()
+    return run, args.window
+
+
+def step_diagnostics(task: str, n: int, device: str) -> dict:
+    """CUDA kernels launched and host-device synchronisations in one env step without gradient."""
+    import torch
+
+    from torchrl_diffenvs import make_env
+
+    if not device.startswith("cuda"):
+        return {"kernels_per_step": None, "syncs_per_step": None}
+    env = make_env(task, num_envs=n, seed=0, device=device)
+    td = env.rand_step(env.reset())  # warm-up
+    with torch.no_grad():
+        torch.cuda.synchronize()
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+            env.rand_step(env.reset())
+            torch.cuda.synchronize()
+        kernels = sum(e.count for e in prof.key_averages() if e.device_type == torch.autograd.DeviceType.CUDA)
+        # the reset's own kernels are counted too: subtract those of a reset alone
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+            env.reset()
+            torch.cuda.synchronize()
+        kernels -= sum(e.count for e in prof.key_averages() if e.device_type == torch.autograd.DeviceType.CUDA)
+        td = env.reset()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            torch.cuda.set_sync_debug_mode("warn")
+            try:
+                env.rand_step(td)
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+    syncs = [str(w.message).splitlines()[0] for w in caught  # not the mode's own notice that it is a prototype
+             if "synchronizing" in str(w.message) and "prototype" not in str(w.message)]
+    return {"kernels_per_step": kernels, "syncs_per_step": len(syncs), "sync_kinds": sorted(set(syncs))[:5]}
+
+
+def measure(task: str, n: int, mode: str, kind: str, args) -> dict:
+    """One cell: warm-up (compiling) call, then ``repeats`` timed calls."""
+    import torch
+
+    from torchrl_diffenvs import compile_physics, make_env
+    from torchrl_diffenvs.envs.fast_rollout import compile_report
+
+    row = {"task": task, "N": n, "mode": mode, "kind": kind}
+    if mode == "cudagraphs" and not args.device.startswith("cuda"):
+        return {**row, "error": "CUDA graphs need device=cuda"}
+    env = make_env(task, num_envs=n, seed=0, device=args.device)
+    if mode != "eager":
+        compile_physics(env, steps_per_chunk=8, **({"mode": "reduce-overhead"} if mode == "cudagraphs" else {}))
+    run, steps = workload(env, kind, args)
+    if args.device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats(args.device)
+    first, _ = C.timed(run)
+    walls = [C.timed(run)[0] for _ in range(args.repeats or (1 if args.quick else 2))]
+    row.update(steps=steps, first_call_s=first, wall_s=walls,
+               env_steps_per_s=n * steps / statistics.median(walls))
+    if args.device.startswith("cuda"):
+        row["peak_memory_gib"] = torch.cuda.max_memory_allocated(args.device) / 2**30
+    report = compile_report(env)
+    if report is not None:
+        row["fallback_reason"] = report["fallback_reason"]
+        row["first_calls"] = report["first_call_seconds"]
+    return row
+
+
+def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
+    cells = {(r["task"], r["N"], r["kind"], r["mode"]): r for r in results}
+    where = f"on {device}"
+
+    def rate(task, n, kind, mode):
+        r = cells.get((task, n, kind, mode))
+        if r is None:
+            return "-"
+        if "error" in r:
+            return r["error"]
+        return C.fmt_rate(r["env_steps_per_s"])
+
+    def first_call(task, n, kind, mode):
+        r = cells.get((task, n, kind, mode))
+        return "-" if r is None or "first_call_s" not in r else f"{r['first_call_s']:.0f}"
+
+    keys = list(dict.fromkeys((r["task"], r["N"]) for r in results))  # in the order measured
+    tables = {}
+    for kind, title in (("rollout", "Env-steps/s without gradient"), ("bptt", "Env-steps/s of BPTT windows "
+                                                                            "(forward and backward)")):
+        rows = [[task, n, *[rate(task, n, kind, m) for m in MODES],
+                 *[first_call(task, n, kind, m) for m in MODES[1:]]]
+                for task, n in keys if any((task, n, kind, m) in cells for m in MODES)]
+        if rows:
+            tables[kind] = C.data_table(f"{title}, wall clock, {where}",
+                                        ["task", "N", *MODES, "compiled: first call s", "cudagraphs: first call s"],
+                                        rows)
+    if diagnostics:
+        tables["diagnostics"] = C.data_table(
+            f"One env step without gradient {where}: CUDA kernels launched, host-device synchronisations",
+            ["task", "N", "kernels per env step", "syncs per env step"],
+            [[task, d["N"], d.get("kernels_per_step", "-"), d.get("syncs_per_step", "-")]
+             for task, d in diagnostics.items()])
+    return tables
+
+
+def main(argv=None) -> dict:
+    args = parse_cli(GPUThroughputSettings, argv, __doc__)
+    C.setup_threads(args.threads)
+    device = C.setup_device(args.device)
+    import torch
+
+    tasks = args.tasks or (["pendulum", "Hopper-v5"] if args.quick else list(DEFAULT_TASKS))
+    sizes = args.sizes or ([4] if args.quick else [1024, 4096, 16384, 65536])
+    modes, kinds = args.modes or list(MODES), args.kinds or list(KINDS)
+    for name, chosen, valid in (("modes", modes, MODES), ("kinds", kinds, KINDS)):
+        if set(chosen) - set(valid):
+            raise SystemExit(f"{name}={chosen}: valid values are {list(valid)}")
+    info = C.versions()
+    info["machine"] = C.machine_name(device)
+    C.print_header(f"throughput on {device}, wall clock", info)
+    started = time.perf_counter()
+    results, diagnostics = [], {}
+
+    def save():
+        C.write_data(args, "gpu_throughput", docs_tables(results, diagnostics, C.machine_name(device)), device)
+        C.write_json("gpu_throughput" + ("_quick" if args.quick else ""),
+                     {"benchmark": "gpu_throughput", "info": info, "diagnostics": diagnostics, "results": results},
+                     args.out)
+
+    for mode in modes:  # eager first: every task and size, before any compiling
+        for task in tasks:
+            for n in sizes:
+                for kind in kinds:
+                    if time.perf_counter() - started > args.budget_s:
+                        results.append({"task": task, "N": n, "mode": mode, "kind": kind,
+                                        "error": "skipped (budget)"})
+                        continue
+                    if mode == "eager" and task not in diagnostics:
+                        try:
+                            diagnostics[task] = {"N": n, **step_diagnostics(task, n, device)}
+                        except Exception as err:  # a diagnostic must not cost the measurements
+                            diagnostics[task] = {"N": n, "error": f"{type(err).__name__}: {err}"[:200]}
+                    try:
+                        row = measure(task, n, mode, kind, args)
+                    except torch.cuda.OutOfMemoryError:
+                        row = {"task": task, "N": n, "mode": mode, "kind": kind, "error": "out of memory"}
+                    except Exception as err:
+                        row = {"task": task, "N": n, "mode": mode, "kind": kind,
+                               "error": f"{type(err).__name__}: {err}"[:300]}
+                    if device.startswith("cuda"):
+                        torch.cuda.empty_cache()
+                    results.append(row)
+                    print({k: v for k, v in row.items() if k not in ("wall_s", "first_calls")}, flush=True)
+                    save()
+    save()
+    return {"results": results, "diagnostics": diagnostics}
+
+
+if __name__ == "__main__":
+    main()
