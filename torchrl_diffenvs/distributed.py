@@ -133,18 +133,22 @@ class World:
         what one process with all the ranks' envs would hold."""
         if self.size == 1:
             return tensor
-        tensor = tensor.detach().contiguous()
+        # through the backend's device (NCCL gathers CUDA tensors, gloo CPU ones), back on the tensor's
+        where = tensor.device
+        tensor = tensor.detach().to(self._backend_device()).contiguous()
         parts = [torch.empty_like(tensor) for _ in range(self.size)]
         self._call(dist.all_gather, parts, tensor, what="data")
-        return torch.cat(parts, 0)
+        return torch.cat(parts, 0).to(where)
+
+    def _backend_device(self) -> torch.device:
+        """Where the backend's collectives take tensors: NCCL only CUDA ones, gloo CPU ones."""
+        return torch.device("cuda", self.local_rank) if self.backend == "nccl" else torch.device("cpu")
 
     def mean(self, value: float) -> float:
         """The mean of a scalar over the ranks."""
         if self.size == 1:
             return value
-        # NCCL reduces only CUDA tensors
-        device = torch.device("cuda", self.local_rank) if self.backend == "nccl" else torch.device("cpu")
-        total = torch.tensor([float(value)], dtype=torch.float64, device=device)
+        total = torch.tensor([float(value)], dtype=torch.float64, device=self._backend_device())
         self._all_reduce(total, "a scalar")
         return total.item() / self.size
 
