@@ -81,6 +81,27 @@ def test_gpu_throughput_on_the_cpu_quick(tmp_path):
     assert {r.get("error") for r in skipped["results"]} == {"skipped (budget)"}
 
 
+def test_policy_anatomy_of_a_saved_hopper(tmp_path):
+    """The per-step parts of the reward add up (the return is reward per step x episode length) and
+    an episode ended by the torso above ``healthy_z_high`` counts as a jump: with the bound set
+    under the Hopper's start height (1.25) every episode ends at its first step, by a jump."""
+    from _train_helpers import tiny_cfg, train_script
+
+    bench = load("policy_anatomy")
+    run = train_script.run(tiny_cfg("Hopper-v5", "bptt", 1), tmp_path / "run")
+    row = bench.main([f"checkpoints=[hopper={run['checkpoint']}]", "num_envs=4", "steps=12", "data=none",
+                      f"out={tmp_path / 'a.json'}"])[0]
+    assert row["return"] == pytest.approx(row["reward_per_step"] * row["episode_length"], rel=1e-6)
+    assert row["ctrl_per_step"] > 0 and 0 <= row["saturated"] <= 1
+    assert sum(row["causes"].values()) == round(row["ended"] * 4)
+    low = train_script.run(tiny_cfg("Hopper-v5", "bptt", 1, "+env.params.healthy_z_high=1.0"), tmp_path / "low")
+    row = bench.main([f"checkpoints=[low={low['checkpoint']}]", "num_envs=4", "steps=12", "data=none",
+                      f"out={tmp_path / 'b.json'}"])[0]
+    assert row["ended"] == 1 and row["causes"] == {"jump": 4, "fall": 0, "other": 0} and row["episode_length"] == 1
+    with pytest.raises(SystemExit, match="expected \\[LABEL=PATH"):
+        bench.main([f"checkpoints=[{run['checkpoint']}]", "data=none"])
+
+
 def test_gradient_throughput_quick(tmp_path):
     payload = load("gradient_throughput").main(["quick=true", f"out={tmp_path / 'grad.json'}"])
     assert [(r["mode"], r["H"], r["N"]) for r in payload["results"]] == [("policy", 4, 2), ("open-loop", 4, 2)]
