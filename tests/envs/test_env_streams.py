@@ -168,12 +168,14 @@ def test_env_rng_state_of_a_cuda_generator_loads_on_the_cpu():
     expected = partial_reset(env, td, [0, 2])["observation"]
     draws = []
     for _ in range(2):
-        with pytest.warns(RuntimeWarning, match="16 bytes.*not one of a cpu generator's"):
+        with pytest.warns(RuntimeWarning, match="a cuda generator's \\(16 bytes\\).*streams continue exactly"):
             other.rng.set_state(cuda_state)
         assert torch.equal(other.episodes, torch.tensor([1, 1, 2, 1]))
         draws.append(torch.rand(3, generator=other.rng))
     assert torch.equal(draws[0], draws[1])
     assert torch.equal(partial_reset(other, td, [0, 2])["observation"], expected)
+    with pytest.raises(ValueError, match="neither a cpu generator's .* nor one saved on the other kind of device"):
+        other.rng.set_state(make_env("CartPole-v1", num_envs=3, seed=2).rng.get_state())  # another num_envs
 
 
 def test_a_pickled_or_copied_env_continues_the_same_start_states():

@@ -156,6 +156,13 @@ class StartDraw:
         return torch.sqrt(-2.0 * torch.log1p(-u1)) * torch.cos((2 * math.pi) * u2)
 
 
+_CUDA_STATE_BYTES = 16  # a CUDA generator's state: its Philox seed and offset, 8 bytes each
+
+
+def _cpu_state_bytes() -> int:
+    return torch.Generator().get_state().numel()
+
+
 class EnvGenerator(torch.Generator):
     """``env.rng``: a ``torch.Generator`` that also holds the env's start-state streams.
 
@@ -187,28 +194,36 @@ class EnvGenerator(torch.Generator):
                             dtype=torch.int64)
         return torch.cat([super().get_state(), counts.view(torch.uint8), tail.view(torch.uint8)])
 
-    def _set_own_state(self, own: torch.Tensor) -> None:
-        """The generator's own state; one saved on another kind of device (a CPU generator's
-        Mersenne Twister state against a CUDA generator's Philox seed and offset: a run resumed
-        on another device) cannot be loaded, and seeds this one instead (deterministically)."""
-        if own.numel() == super().get_state().numel():
+    def _set_own_state(self, own: torch.Tensor, streams: str) -> None:
+        """The generator's own state; one saved by a generator on the other kind of device (a CPU
+        generator's Mersenne Twister state against a CUDA generator's Philox seed and offset: a run
+        resumed on another device) cannot be loaded, and seeds this one instead (deterministically).
+        ``streams`` says, for the warning, what happens to the start-state streams."""
+        size, own_size = own.numel(), super().get_state().numel()
+        if size == own_size:
             super().set_state(own)
             return
-        seed = int.from_bytes(hashlib.sha256(own.numpy().tobytes()).digest()[:8], "little") >> 1
-        self.manual_seed(seed)
-        warnings.warn(f"env.rng: the saved generator state ({own.numel()} bytes) is not one of a {self.device.type} "
-                      f"generator's ({super().get_state().numel()} bytes), e.g. a run resumed on another device: the "
-                      f"random actions and noise continue from a seed derived from it (not the same numbers); the "
-                      f"envs' start-state streams continue exactly", RuntimeWarning, stacklevel=3)
+        other = {"cpu": ("cuda", _CUDA_STATE_BYTES), "cuda": ("cpu", _cpu_state_bytes())}.get(self.device.type)
+        if other is None or size != other[1]:
+            raise ValueError(f"env.rng.set_state: a generator state of {size} bytes is neither a {self.device.type} "
+                             f"generator's ({own_size} bytes) nor one saved on the other kind of device"
+                             + (f" ({other[0]}: {other[1]} bytes)" if other else "")
+                             + "; pass what env.rng.get_state() returned (for the same num_envs) or a plain generator "
+                             "state")
+        self.manual_seed(int.from_bytes(hashlib.sha256(own.numpy().tobytes()).digest()[:8], "little") >> 1)
+        warnings.warn(f"env.rng: the saved generator state is a {other[0]} generator's ({size} bytes), this one is on "
+                      f"{self.device.type} (a run resumed on another device): its random actions and noise continue "
+                      f"from a seed derived from the saved state, not the same numbers; {streams}",
+                      RuntimeWarning, stacklevel=3)
 
     def set_state(self, new_state: torch.Tensor) -> EnvGenerator:
         new_state = new_state.detach().cpu()
         n = self.episodes.numel()
         own = new_state.numel() - 8 * (n + 2)
         if own <= 0 or int(new_state[-8:].clone().view(torch.int64)) != n:  # a plain generator state
-            self._set_own_state(new_state)
+            self._set_own_state(new_state, "the start-state streams are left as they are")
             return self
-        self._set_own_state(new_state[:own].clone())
+        self._set_own_state(new_state[:own].clone(), "the start-state streams continue exactly")
         self.episodes = new_state[own:-16].clone().view(torch.int64).to(self.episodes.device)
         self.key = np.uint64(int(new_state[-16:-8].clone().view(torch.int64)) & _MASK64)
         return self
