@@ -9,7 +9,7 @@ import weakref
 from collections.abc import Callable
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from ...articulated.integrators import eager_step, stepping_with
@@ -153,8 +153,9 @@ class CompiledPhysics:
         """``torch.compile(function)``. With CUDA graphs, calls without gradient each start a new
         graph step and return copies of the outputs (the graph's own output buffers are overwritten
         by its next replay, while a rollout keeps every step's outputs and the next physics step
-        reads them); calls with gradient run the same compiled graphs without CUDA graphs: a
-        window's tensors saved for its backward must outlive many replays."""
+        reads them); calls with gradient go to a second ``torch.compile`` of ``function`` without
+        CUDA graphs (compiled at its own first call): a window's tensors saved for its backward
+        must outlive many replays."""
         fn = torch.compile(_own_code(function), **self.compile_kwargs)
         if not self.cudagraphs:
             return fn
@@ -211,7 +212,7 @@ def without_cudagraphs(compile_kwargs: dict) -> dict:
 
 def _copied(value):
     """``value`` (tensors in tuples, lists, dicts and named tuples) with every tensor cloned."""
-    if isinstance(value, torch.Tensor):
+    if isinstance(value, (torch.Tensor, TensorDictBase)):
         return value.clone()
     if isinstance(value, dict):
         return {key: _copied(item) for key, item in value.items()}
@@ -273,9 +274,9 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
     operation it cannot trace), the rollout logs the reason and runs eagerly from there on.
     ``compile_kwargs`` go to ``torch.compile`` (default ``dynamic=False``). On CUDA,
     ``mode="reduce-overhead"`` replays each compiled graph as a CUDA graph (inductor's CUDA graph
-    trees), which removes most of the kernel-launch overhead of an eager GPU step: rollouts
-    without gradient use them (each call's outputs are copied out of the graph's buffers); windows
-    with gradient run the same graphs compiled without CUDA graphs. Undo with
+    trees), to save the kernel-launch overhead of an eager GPU step: rollouts without gradient
+    use them (each call's outputs are copied out of the graph's buffers); windows with gradient
+    use a second compilation without CUDA graphs (its own compile time at its first call). Undo with
     :func:`eager_physics`. ``EnvBase.rollout`` and ``env.step`` are not affected.
     """
     if isinstance(steps_per_chunk, bool) or not isinstance(steps_per_chunk, int) or steps_per_chunk < 1:
