@@ -191,20 +191,22 @@ def data_table(title: str, headers: Sequence[str], rows: Sequence[Sequence[objec
 
 
 def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], device: str = "cpu",
-               source: str | None = None) -> Path | None:
+               source: str | None = None, measured: dict | None = None) -> Path | None:
     """Writes the tables the documentation shows (:func:`data_table` each, by key) to
     ``docs/data/<settings.data or name>.json`` with today's date (UTC), the machine and the command,
     so the next measurement replaces the one the docs show. Quick runs write nothing unless
-    ``data=`` names a file; ``data=none`` writes nothing."""
+    ``data=`` names a file; ``data=none`` writes nothing. ``measured``: ``{"date", "machine",
+    "command"}`` of a measurement made earlier or elsewhere whose results these tables render."""
     target = getattr(settings, "data", None)
     if target == "none" or (target is None and getattr(settings, "quick", False)):
         return None
     path = Path(target) if target and (target.endswith(".json") or "/" in target) else DATA_DIR / f"{target or name}.json"
     script = Path(sys.argv[0]).name if Path(sys.argv[0]).suffix == ".py" else f"{source or name}.py"
+    measured = measured or {}
     payload = {
-        "measured": datetime.now(timezone.utc).date().isoformat(),
-        "machine": machine_name(device),
-        "command": " ".join(["python", f"benchmarks/{script}", *sys.argv[1:]]),
+        "measured": measured.get("date") or datetime.now(timezone.utc).date().isoformat(),
+        "machine": measured.get("machine") or machine_name(device),
+        "command": measured.get("command") or " ".join(["python", f"benchmarks/{script}", *sys.argv[1:]]),
         "source": f"benchmarks/{source or name}.py",
         "tables": tables,
     }

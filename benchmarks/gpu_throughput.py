@@ -42,6 +42,7 @@ from torchrl_diffenvs import checks  # noqa: E402
 from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 
 MODES = ("eager", "compiled", "cudagraphs")
+NOT_APPLICABLE = "n/a: windows with gradient compile without CUDA graphs (the compiled column)"
 KINDS = ("rollout", "bptt")
 # The Ivy tasks, Gymnasium's classic control and the MuJoCo suite (the multi-agent envs roll out through
 # EnvBase.rollout, which neither compile_physics nor this benchmark's lean rollout covers)
@@ -60,6 +61,8 @@ class GPUThroughputSettings(C.BenchmarkSettings):
     window: int = checked(16, checks.positive_int)  # env steps per timed BPTT window
     budget_s: float = checked(600.0, checks.positive)  # for the whole run: later cells are skipped
     device: str = "cuda"  # cuda | cuda:<k> | cpu (cpu: the smoke run; cudagraphs is CUDA only)
+    # the raw results (out=) of an earlier run: write its data file again (tables, date, machine, command)
+    from_results: str | None = None
 
 
 def policy_for(env, dtype):
@@ -136,6 +139,8 @@ def measure(task: str, n: int, mode: str, kind: str, args) -> dict:
     from torchrl_diffenvs.envs.fast_rollout import compile_report
 
     row = {"task": task, "N": n, "mode": mode, "kind": kind}
+    if mode == "cudagraphs" and kind == "bptt":  # compile_physics compiles windows with gradient without them
+        return {**row, "error": NOT_APPLICABLE}
     if mode == "cudagraphs" and not args.device.startswith("cuda"):
         return {**row, "error": "CUDA graphs need device=cuda"}
     env = make_env(task, num_envs=n, seed=0, device=args.device)
@@ -162,11 +167,13 @@ def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
     where = f"on {device}"
 
     def rate(task, n, kind, mode):
+        if kind == "bptt" and mode == "cudagraphs":
+            return "n/a"
         r = cells.get((task, n, kind, mode))
         if r is None:
             return "-"
         if "error" in r:
-            return r["error"]
+            return r["error"].splitlines()[0][:80]
         return C.fmt_rate(r["env_steps_per_s"])
 
     def first_call(task, n, kind, mode):
@@ -196,6 +203,15 @@ def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
 def main(argv=None) -> dict:
     args = parse_cli(GPUThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
+    if args.from_results is not None:
+        import json
+
+        raw = json.loads(Path(args.from_results).read_text())
+        info = raw["info"]
+        C.write_data(args, "gpu_throughput", docs_tables(raw["results"], raw["diagnostics"], info["machine"]),
+                     measured={"date": raw.get("date"), "machine": info["machine"],
+                               "command": "python benchmarks/gpu_throughput.py " + info["command"].split(" ", 1)[1]})
+        return raw
     device = C.setup_device(args.device)
     import torch
 
@@ -214,7 +230,8 @@ def main(argv=None) -> dict:
     def save():
         C.write_data(args, "gpu_throughput", docs_tables(results, diagnostics, C.machine_name(device)), device)
         C.write_json("gpu_throughput" + ("_quick" if args.quick else ""),
-                     {"benchmark": "gpu_throughput", "info": info, "diagnostics": diagnostics, "results": results},
+                     {"benchmark": "gpu_throughput", "date": time.strftime("%Y-%m-%d", time.gmtime()), "info": info,
+                      "diagnostics": diagnostics, "results": results},
                      args.out)
 
     for mode in modes:  # eager first: every task and size, before any compiling

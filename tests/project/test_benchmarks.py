@@ -82,16 +82,31 @@ def test_gpu_throughput_on_the_cpu_quick(tmp_path):
 
 
 def test_policy_anatomy_of_a_saved_hopper(tmp_path):
-    """The per-step parts of the reward add up (the return is reward per step x episode length) and
-    an episode ended by the torso above ``healthy_z_high`` counts as a jump: with the bound set
-    under the Hopper's start height (1.25) every episode ends at its first step, by a jump."""
+    """The return is the first episode's (as ``evaluation.episode_returns`` computes it for the same
+    policy and start states) and an episode ended by the torso above ``healthy_z_high`` counts as a
+    jump: with the bound set under the Hopper's start height (1.25) every episode ends at its first
+    step, by a jump."""
+    from omegaconf import OmegaConf
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
     from _train_helpers import tiny_cfg, train_script
+    from torchrl_diffenvs.evaluation import episode_returns
+    from torchrl_diffenvs.learners import LEARNERS
+    from torchrl_diffenvs.training import load_checkpoint
+    from torchrl_diffenvs.training.config import make_env_from_config
 
     bench = load("policy_anatomy")
     run = train_script.run(tiny_cfg("Hopper-v5", "bptt", 1), tmp_path / "run")
     row = bench.main([f"checkpoints=[hopper={run['checkpoint']}]", "num_envs=4", "steps=12", "data=none",
                       f"out={tmp_path / 'a.json'}"])[0]
-    assert row["return"] == pytest.approx(row["reward_per_step"] * row["episode_length"], rel=1e-6)
+    ckpt = load_checkpoint(run["checkpoint"])
+    cfg = OmegaConf.create(ckpt["config"])
+    env = make_env_from_config(cfg, 4, seed=123)  # the benchmark's default start states
+    policy = LEARNERS["bptt"].policy_from_config(cfg.loss, env)
+    policy.load_state_dict(ckpt["policy"])
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        expected = episode_returns(env.rollout(12, policy, break_when_any_done=False)).mean()
+    assert row["return"] == pytest.approx(float(expected), rel=1e-6)
     assert row["ctrl_per_step"] > 0 and 0 <= row["saturated"] <= 1
     assert sum(row["causes"].values()) == round(row["ended"] * 4)
     low = train_script.run(tiny_cfg("Hopper-v5", "bptt", 1, "+env.params.healthy_z_high=1.0"), tmp_path / "low")

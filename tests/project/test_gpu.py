@@ -97,8 +97,8 @@ def test_train_on_cuda_resume_on_cpu_and_back(loss, tmp_path):
 
     steps = STEPS_PER_ITER[loss]
     first = train_script.run(tiny_cfg("pendulum", loss, 2, "device=cuda"), tmp_path / "cuda")
-    saved = load_checkpoint(first["checkpoint"])  # on the CPU by default: a CUDA run's checkpoint opens anywhere
-    assert all(value.device.type == "cpu" and value.isfinite().all() for value in saved["policy"].values())
+    saved = load_checkpoint(first["checkpoint"], map_location=None)  # where the run kept its tensors
+    assert all(value.device.type == "cuda" and value.isfinite().all() for value in saved["policy"].values())
     on_cpu = train_script.run(tiny_cfg("pendulum", loss, 4, "device=cpu", f"resume={first['checkpoint']}"),
                               tmp_path / "cpu")
     assert on_cpu["env_steps"] == 4 * steps
