@@ -340,3 +340,28 @@ def test_cuda_graph_modes_are_recognised_and_turned_off_for_windows_with_gradien
     assert without_cudagraphs({"mode": "max-autotune"}) == {"mode": "max-autotune-no-cudagraphs"}
     assert without_cudagraphs({"options": {"triton.cudagraphs": True, "x": 1}}) == {
         "options": {"triton.cudagraphs": False, "x": 1}}
+
+
+def test_a_cuda_graph_mode_keeps_the_eager_rollout_and_gradient():
+    """``mode="reduce-overhead"`` goes through the CUDA-graph wrapper (a new graph step and copied
+    outputs without gradient, a second compilation with gradient); on the CPU inductor runs the
+    graphs without CUDA graphs, so the values must be the eager path's to rounding (float64).
+    tests/project/test_gpu.py checks the same on CUDA."""
+    envs = [make_env("pendulum", num_envs=4, seed=0, dtype=torch.float64) for _ in range(2)]
+    compile_physics(envs[1], steps_per_chunk=4, mode="reduce-overhead")
+    outs, grads = [], []
+    for env in envs:
+        torch.manual_seed(0)
+        with torch.no_grad():
+            outs.append(env.rollout(8, break_when_any_done=False))
+        torch.manual_seed(0)
+        actor = make_actor(env, hidden=(8,)).double()
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            window = env.rollout(8, actor, auto_reset=False, tensordict=env.reset(), break_when_any_done=False)
+        grads.append(torch.autograd.grad(window["next", "reward"].sum(), list(actor.parameters())[:2]))
+    assert compile_report(envs[1])["fallback_reason"] is None
+    assert set(compile_report(envs[1])["first_call_seconds"]) == {"physics, 4 steps, without grad",
+                                                                  "policy + physics, 4 steps, with grad"}
+    torch.testing.assert_close(outs[1]["next", "observation"], outs[0]["next", "observation"], rtol=1e-10, atol=1e-12)
+    for got, want in zip(*reversed(grads)):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
