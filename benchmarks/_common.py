@@ -229,3 +229,17 @@ def write_json(name: str, payload: dict, out: str | Path | None) -> Path:
     path.write_text(json.dumps(payload, indent=1, default=str) + "\n")
     print(f"# wrote {path}")
     return path
+
+
+def tanh_mlp_policy(env, dtype, seed: int = 0):
+    """A deterministic 64-64 tanh MLP policy scaled into the action bounds (the BPTT windows the
+    compile and GPU benchmarks time), as a plain module and a TensorDictModule writing ``"action"``."""
+    import torch
+    from tensordict.nn import TensorDictModule
+
+    torch.manual_seed(seed)
+    net = torch.nn.Sequential(torch.nn.Linear(env.observation_dim, 64), torch.nn.Tanh(), torch.nn.Linear(64, 64),
+                              torch.nn.Tanh(), torch.nn.Linear(64, env.action_dim), torch.nn.Tanh())
+    net = net.to(device=env.device, dtype=dtype)
+    scale = float(env.action_spec.space.high.flatten()[0])
+    return net, TensorDictModule(lambda obs: net(obs) * scale, in_keys=["observation"], out_keys=["action"])

@@ -64,7 +64,6 @@ class CompilePhysicsSettings(C.BenchmarkSettings):
 def measure(task: str, n: int, mode: str, args) -> dict:
     """One (task, N, mode) in this process: compile time, interleaved timings, differences."""
     import torch
-    from tensordict.nn import TensorDictModule
 
     from torchrl_diffenvs import compile_physics, make_env
     from torchrl_diffenvs.envs.fast_rollout import compile_report
@@ -76,12 +75,7 @@ def measure(task: str, n: int, mode: str, args) -> dict:
     envs = {name: make_env(task, num_envs=n, seed=0, dtype=dtype) for name in ("eager", "compiled")}
     compile_physics(envs["compiled"], steps_per_chunk=args.chunk)
     start = envs["eager"].reset()
-    torch.manual_seed(0)
-    env = envs["eager"]
-    net = torch.nn.Sequential(torch.nn.Linear(env.observation_dim, 64), torch.nn.Tanh(), torch.nn.Linear(64, 64),
-                              torch.nn.Tanh(), torch.nn.Linear(64, env.action_dim), torch.nn.Tanh()).to(dtype)
-    scale = float(env.action_spec.space.high.flatten()[0])
-    policy = TensorDictModule(lambda obs: net(obs) * scale, in_keys=["observation"], out_keys=["action"])
+    net, policy = C.tanh_mlp_policy(envs["eager"], dtype)
 
     def runner(name: str, start=start):
         env = envs[name]

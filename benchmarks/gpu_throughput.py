@@ -12,7 +12,8 @@ one warm-up call, which is also the compiling call):
 
 in each of the modes ``eager``; ``compiled`` (``compile_physics(env, steps_per_chunk=8)``) and
 ``cudagraphs`` (the same with ``mode="reduce-overhead"``: inductor's CUDA graphs around each
-compiled graph). A compiled mode's warm-up time (tracing, compiling, the first run) is reported
+compiled graph; rollouts only: ``compile_physics`` compiles windows with gradient without CUDA
+graphs, so their cell is ``n/a``). A compiled mode's warm-up time (tracing, compiling, the first run) is reported
 as ``first call s``. Two diagnostics per task, at the first size: the CUDA kernels launched by
 one env step without gradient (``torch.profiler``) and the host-device synchronisations in it
 (``torch.cuda.set_sync_debug_mode``): an eager GPU step that launches thousands of small kernels is
@@ -65,18 +66,6 @@ class GPUThroughputSettings(C.BenchmarkSettings):
     from_results: str | None = None
 
 
-def policy_for(env, dtype):
-    import torch
-    from tensordict.nn import TensorDictModule
-
-    torch.manual_seed(0)
-    net = torch.nn.Sequential(torch.nn.Linear(env.observation_dim, 64), torch.nn.Tanh(), torch.nn.Linear(64, 64),
-                              torch.nn.Tanh(), torch.nn.Linear(64, env.action_dim), torch.nn.Tanh())
-    net = net.to(device=env.device, dtype=dtype)
-    scale = float(env.action_spec.space.high.flatten()[0])
-    return net, TensorDictModule(lambda obs: net(obs) * scale, in_keys=["observation"], out_keys=["action"])
-
-
 def workload(env, kind: str, args):
     """The timed call of one cell and its env steps per env."""
     import torch
@@ -86,7 +75,7 @@ def workload(env, kind: str, args):
             with torch.no_grad():
                 return env.rollout(args.steps, break_when_any_done=False)
         return run, args.steps
-    net, policy = policy_for(env, env.float_dtype)
+    net, policy = C.tanh_mlp_policy(env, env.float_dtype)
     start = env.reset()
 
     def run():
