@@ -1,0 +1,149 @@
+"""How far the analytic gradient can be trusted: per task and window length, the action gradient of
+a window's return against the zeroth-order (smoothed) gradient of the same window.
+
+Gradient learners differentiate a window of ``H`` steps. Through stiff, switching contact the
+exact gradient of a long window describes an infinitesimal neighbourhood that no update step
+stays in (Suh et al., 2022, "Do differentiable simulators give better policy gradients?"): it
+grows with ``H`` and stops pointing where the return improves. This measures where that starts.
+
+For each task: ``starts`` envs settle for ``warmup`` steps under small random actions; from each
+settled state an open-loop window of actions ``a`` ``[H, A]`` (``N(0, action_scale^2)``, clipped
+to the control range by the physics) gives the window's return ``J(a) = sum_t r_t`` (the task's
+reward, Gymnasium's; rewards after an env's first termination are dropped). Reported per ``H``
+(medians over the start states):
+
+* ``|grad|``: the norm of the analytic gradient ``dJ/da`` (float64);
+* ``cos``: its cosine with the smoothed gradient ``grad E[J(a + sigma e)]``, estimated from
+  ``samples`` antithetic Gaussian perturbations of scale ``sigma`` (the exploration scale of a
+  stochastic policy); ``ceiling``: the cosine of two independent halves of that estimate, the
+  most a perfect gradient would score against it at this sample size;
+* ``local``: the gain ``J(a + eps g/|g|) - J(a)`` over the first-order prediction ``eps |g|``,
+  ``eps = 1e-3``: 1 where the linearisation holds at all;
+* ``gain``: the return's gain from a step of norm 1 along the analytic gradient, over the gain
+  from the same step along the smoothed gradient (1: as good as the smoothed gradient for this
+  update; below 0: the gradient points downhill at the scale of an update).
+
+    OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py
+    OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py tasks=[Ant-v5] horizons=[4,8,16] data=none
+"""
+from __future__ import annotations
+
+import statistics
+import sys
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
+
+from torchrl_diffenvs import checks, make_env  # noqa: E402
+from torchrl_diffenvs.checks import checked, each, one_of, parse_cli  # noqa: E402
+
+TASKS = ["Ant-v5", "HalfCheetah-v5", "Hopper-v5", "Walker2d-v5"]
+
+
+@dataclass(frozen=True)
+class GradientHorizonSettings(C.BenchmarkSettings):
+    """tasks=[..] horizons=[2,4,8,12,16,24,32] starts=8 samples=256 sigma=0.1"""
+
+    tasks: tuple = checked(tuple(TASKS), each(one_of(TASKS)))
+    horizons: tuple = checked((2, 4, 8, 12, 16, 24, 32), each(checks.positive_int))
+    starts: int = checked(8, checks.positive_int)  # settled start states (envs)
+    samples: int = checked(256, checks.positive_int)  # perturbations per start state (even: antithetic pairs)
+    sigma: float = checked(0.1, checks.positive)  # the perturbations' scale (per action)
+    action_scale: float = checked(0.3, checks.positive)  # the window's open-loop actions: N(0, scale^2)
+    warmup: int = checked(30, checks.nonnegative_int)
+    seed: int = 0
+
+
+def window_return(env, state: dict, actions: torch.Tensor) -> torch.Tensor:
+    """``[n]``: the sum of the rewards of ``actions [H, n, A]`` from ``state``, up to each env's
+    first termination (pure physics: :meth:`transition`, no resets)."""
+    total, alive = 0.0, torch.ones(actions.shape[1], dtype=torch.bool)
+    for action in actions:
+        state, reward, terminated = env.transition(state, action, env.params)
+        total = total + reward * alive
+        if terminated is not None:
+            alive = alive & ~terminated
+    return total
+
+
+def settled_states(task: str, s: GradientHorizonSettings) -> dict:
+    env = make_env(task, num_envs=s.starts, seed=s.seed, dtype=torch.float64)
+    generator = torch.Generator().manual_seed(s.seed)
+    td = env.reset()
+    with torch.no_grad():
+        for _ in range(s.warmup):
+            td["action"] = 0.1 * (2 * torch.rand(s.starts, env.action_dim, generator=generator, dtype=torch.float64) - 1)
+            td = env.step_mdp(env.step(td))
+    return {key: value.clone() for key, value in td["state"].items()}
+
+
+def measure(task: str, horizon: int, s: GradientHorizonSettings) -> dict:
+    """The four columns of one (task, H) cell, as lists over the start states."""
+    B, M = s.starts, s.samples - s.samples % 2
+    env = make_env(task, num_envs=B, seed=s.seed, dtype=torch.float64)
+    big = make_env(task, num_envs=B * M, seed=s.seed, dtype=torch.float64)
+    state = settled_states(task, s)
+    generator = torch.Generator().manual_seed(s.seed + horizon)
+    A = env.action_dim
+    base = s.action_scale * torch.randn(horizon, B, A, generator=generator, dtype=torch.float64)
+
+    actions = base.clone().requires_grad_(True)
+    grad, = torch.autograd.grad(window_return(env, state, actions).sum(), actions)
+    grad = grad.transpose(0, 1).flatten(1)  # [B, H * A]
+
+    half = torch.randn(B, M // 2, horizon * A, generator=generator, dtype=torch.float64)
+    noise = torch.cat([half, -half], 1)  # antithetic pairs: (i, i + M/2)
+    with torch.no_grad():
+        start = window_return(env, state, base)
+        perturbed = base.transpose(0, 1).flatten(1)[:, None] + s.sigma * noise  # [B, M, H * A]
+        many = {key: value.repeat_interleave(M, 0) for key, value in state.items()}
+        returns = window_return(big, many, perturbed.reshape(B * M, horizon, A).transpose(0, 1)).reshape(B, M)
+        pair = (returns[:, :M // 2] - returns[:, M // 2:]) / (2 * s.sigma)  # [B, M/2]
+        smoothed = (pair[..., None] * half).mean(1)
+        q = M // 4
+        first, second = (pair[:, :q, None] * half[:, :q]).mean(1), (pair[:, q:, None] * half[:, q:]).mean(1)
+
+        def gain(direction, size):
+            step = size * direction / direction.norm(dim=1, keepdim=True)
+            moved = (base.transpose(0, 1).flatten(1) + step).reshape(B, horizon, A).transpose(0, 1)
+            return window_return(env, state, moved) - start
+
+        norm = grad.norm(dim=1)
+        local = gain(grad, 1e-3) / (1e-3 * norm)
+        along = gain(grad, 1.0) / gain(smoothed, 1.0).clamp(min=1e-12)
+    cos = torch.nn.functional.cosine_similarity
+    return {"norm": norm.tolist(), "cos": cos(grad, smoothed, dim=1).tolist(),
+            "ceiling": cos(first, second, dim=1).tolist(), "local": local.tolist(), "gain": along.tolist()}
+
+
+def main(argv=None):
+    s = parse_cli(GradientHorizonSettings, argv, __doc__)
+    C.setup_threads(s.threads)
+    warnings.filterwarnings("ignore")
+    if s.quick:
+        s = GradientHorizonSettings(**{**s.__dict__, "tasks": s.tasks[:1], "horizons": (2, 4), "starts": 2,
+                                       "samples": 16, "warmup": 2})
+    headers = ["task", "H", "|grad|", "cos with smoothed gradient", "ceiling", "local", "gain along it"]
+    rows = []
+    for task in s.tasks:
+        for horizon in s.horizons:
+            m = measure(task, horizon, s)
+            med = {k: statistics.median(v) for k, v in m.items()}
+            row = [task, str(horizon), f"{med['norm']:.3g}", f"{med['cos']:.2f} [{min(m['cos']):.2f}, {max(m['cos']):.2f}]",
+                   f"{med['ceiling']:.2f}", f"{med['local']:.2f}", f"{med['gain']:.2f}"]
+            rows.append(row)
+            print(" | ".join(row), flush=True)
+            C.write_data(s, "gradient_horizon", {"horizon": C.data_table(
+                f"The window's analytic action gradient against its smoothed gradient (sigma {s.sigma}, "
+                f"{s.samples} perturbations; median over {s.starts} settled start states, float64)", headers, rows)})
+    C.print_table(headers, rows)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
