@@ -25,6 +25,7 @@ reward, Gymnasium's; rewards after an env's first termination are dropped). Repo
 
     OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py
     OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py tasks=[Ant-v5] horizons=[4,8,16] data=none
+    OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py tasks=[Ant-v5] params=[friction_velocity=0.1] data=none
 """
 from __future__ import annotations
 
@@ -57,6 +58,7 @@ class GradientHorizonSettings(C.BenchmarkSettings):
     action_scale: float = checked(0.3, checks.positive)  # the window's open-loop actions: N(0, scale^2)
     warmup: int = checked(30, checks.nonnegative_int)
     seed: int = 0
+    params: list[str] | None = None  # NAME=VALUE physical parameter overrides, e.g. [friction_velocity=0.1]
 
 
 def window_return(env, state: dict, actions: torch.Tensor) -> torch.Tensor:
@@ -71,8 +73,26 @@ def window_return(env, state: dict, actions: torch.Tensor) -> torch.Tensor:
     return total
 
 
+def physical_params(s: GradientHorizonSettings) -> dict:
+    """``params=[NAME=VALUE, ...]`` as the env's ``params`` argument (checked by the env)."""
+    out = {}
+    for item in s.params or []:
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"gradient_horizon: params expects NAME=VALUE items, got {item!r}")
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise SystemExit(f"gradient_horizon: params: {name}={value!r} is not a number") from None
+    return out
+
+
+def make(task: str, n: int, s: GradientHorizonSettings):
+    return make_env(task, num_envs=n, seed=s.seed, dtype=torch.float64, params=physical_params(s))
+
+
 def settled_states(task: str, s: GradientHorizonSettings) -> dict:
-    env = make_env(task, num_envs=s.starts, seed=s.seed, dtype=torch.float64)
+    env = make(task, s.starts, s)
     generator = torch.Generator().manual_seed(s.seed)
     td = env.reset()
     with torch.no_grad():
@@ -85,8 +105,7 @@ def settled_states(task: str, s: GradientHorizonSettings) -> dict:
 def measure(task: str, horizon: int, s: GradientHorizonSettings) -> dict:
     """The four columns of one (task, H) cell, as lists over the start states."""
     B, M = s.starts, s.samples - s.samples % 2
-    env = make_env(task, num_envs=B, seed=s.seed, dtype=torch.float64)
-    big = make_env(task, num_envs=B * M, seed=s.seed, dtype=torch.float64)
+    env, big = make(task, B, s), make(task, B * M, s)
     state = settled_states(task, s)
     generator = torch.Generator().manual_seed(s.seed + horizon)
     A = env.action_dim
@@ -140,7 +159,8 @@ def main(argv=None):
             print(" | ".join(row), flush=True)
             C.write_data(s, "gradient_horizon", {"horizon": C.data_table(
                 f"The window's analytic action gradient against its smoothed gradient (sigma {s.sigma}, "
-                f"{s.samples} perturbations; median over {s.starts} settled start states, float64)", headers, rows)})
+                f"{s.samples} perturbations; median over {s.starts} settled start states, float64"
+                + (f"; params {', '.join(s.params)}" if s.params else "") + ")", headers, rows)})
     C.print_table(headers, rows)
     return rows
 
