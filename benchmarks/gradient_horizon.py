@@ -21,7 +21,9 @@ reward, Gymnasium's; rewards after an env's first termination are dropped). Repo
   ``eps = 1e-3``: 1 where the linearisation holds at all;
 * ``gain``: the return's gain from a step of norm 1 along the analytic gradient, over the gain
   from the same step along the smoothed gradient (1: as good as the smoothed gradient for this
-  update; below 0: the gradient points downhill at the scale of an update).
+  update; below 0: the gradient points downhill at the scale of an update). The ratio is only
+  read where the smoothed step gains (its gain is clamped at 1e-12): a start state where it
+  loses gives a large or negative ratio, which is why the table shows the median over start states.
 
     OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py
     OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py tasks=[Ant-v5] horizons=[4,8,16] data=none
