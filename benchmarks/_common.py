@@ -165,9 +165,9 @@ def print_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str
     return text
 
 
-def machine_name(device: str = "cpu") -> str:
+def machine_name(device: str = "cpu", threads: int | None = None) -> str:
     """The machine in words, for the data files: CPU model and count, architecture, torch threads
-    and, on CUDA, the GPU."""
+    (this process's, or ``threads``: those of the runs a summary reads) and, on CUDA, the GPU."""
     import torch
 
     model = platform.processor() or platform.machine()
@@ -178,7 +178,7 @@ def machine_name(device: str = "cpu") -> str:
                 break
     except OSError:  # not Linux: platform.processor() it is
         pass
-    threads = torch.get_num_threads()
+    threads = torch.get_num_threads() if threads is None else threads
     text = f"{os.cpu_count()}-vCPU {model} ({platform.machine()}), {threads} torch thread{'s' if threads > 1 else ''}"
     if str(device).startswith("cuda") and torch.cuda.is_available():
         text += f", {torch.cuda.get_device_name(torch.device(device))}"

@@ -244,18 +244,32 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
     return summary, table
 
 
-def write_summary_data(args, envs, seeds, table, per_env_tables=None) -> None:
+def seed_counts(runs: list[dict]) -> str:
+    """``3 seeds``, or per row where the rows differ: ``seeds: ppo 1, shac 3``."""
+    seeds: dict[str, set] = {}
+    for r in runs:
+        seeds.setdefault(run_label(r), set()).add(r["seed"])
+    counts = {label: len(s) for label, s in seeds.items()}
+    if len(set(counts.values())) == 1:
+        n = next(iter(counts.values()))
+        return f"{n} seed{'s' if n > 1 else ''}"
+    return "seeds: " + ", ".join(f"{label} {n}" for label, n in counts.items())
+
+
+def write_summary_data(args, envs, runs, table, per_env_tables=None, threads: int | None = None) -> None:
     """The docs' data file of a summary table (``data=``; see ``_common.write_data``): the table
     under ``levels``, and with several envs one table per env too (under the env's name), whose
-    PPO-relative columns name that env's own levels."""
+    PPO-relative columns name that env's own levels. Each title counts the seeds of its rows;
+    ``threads``: the torch threads of the runs (summarising earlier result files)."""
     cells = "t, env steps (seeds that reached it, speed-up against PPO)"
     tables = {"levels": C.data_table(
-        f"Time to solve: {', '.join(envs)} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''}; median [min, max]; "
-        f"{cells})", *C.table_cells(table))}
+        f"Time to solve: {', '.join(envs)} ({seed_counts(runs)}; median [min, max]; {cells})", *C.table_cells(table))}
     for env, env_table in (per_env_tables or {}).items():
-        tables[env] = C.data_table(f"{env} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''}; median [min, max]; "
-                                   f"{cells})", *C.table_cells(env_table))
-    C.write_data(args, "time_to_solve_" + "_".join(envs), tables, source="time_to_solve")
+        env_runs = [r for r in runs if r["env"] == env]
+        tables[env] = C.data_table(f"{env} ({seed_counts(env_runs)}; median [min, max]; {cells})",
+                                   *C.table_cells(env_table))
+    measured = {"machine": C.machine_name(threads=threads)} if threads is not None else None
+    C.write_data(args, "time_to_solve_" + "_".join(envs), tables, source="time_to_solve", measured=measured)
 
 
 def env_levels(items: list[str], envs: list[str]) -> dict[str, list[float]]:
@@ -293,7 +307,6 @@ def summarise_files(args) -> dict:
     if repeated:
         raise SystemExit(f"time_to_solve: summarise: these runs appear more than once: {repeated}")
     envs = list(dict.fromkeys(r["env"] for r in runs))
-    seeds = sorted({r["seed"] for r in runs})
     losses = list(dict.fromkeys(r["loss"] for r in runs))
     own_levels = env_levels(args.env_levels, envs)
     summary, table = summarise(runs, envs, losses, [*args.levels, *(own_levels[envs[0]] if len(envs) == 1 else [])])
@@ -304,7 +317,8 @@ def summarise_files(args) -> dict:
         per_env = {env: summarise([r for r in runs if r["env"] == env], [env], losses,
                                   [*args.levels, *own_levels[env]])[1]
                    for env in envs} if len(envs) > 1 else None
-        write_summary_data(args, envs, seeds, table, per_env)
+        threads = {(info or {}).get("torch_threads") for info in infos}
+        write_summary_data(args, envs, runs, table, per_env, threads=threads.pop() if len(threads) == 1 else None)
     return payload
 
 
@@ -381,7 +395,7 @@ def main(argv=None) -> dict:
         r["curve"] = [list(p) for p in r["curve"]]
     payload = {"benchmark": "time_to_solve", "info": info, "summary": summary, "runs": runs, "table": table}
     C.write_json("time_to_solve" + ("_quick" if quick else ""), payload, args.out)
-    write_summary_data(args, envs, seeds, table)
+    write_summary_data(args, envs, runs, table)
     if args.keep_runs is None:
         shutil.rmtree(runs_root, ignore_errors=True)
     return payload

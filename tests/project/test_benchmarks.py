@@ -193,7 +193,7 @@ def test_time_to_solve_merges_result_files(tmp_path):
     files = []
     for seed in range(3):
         path = tmp_path / f"seed{seed}.json"
-        path.write_text(json.dumps({"benchmark": "time_to_solve", "info": {}, "runs": [
+        path.write_text(json.dumps({"benchmark": "time_to_solve", "info": {"torch_threads": 1}, "runs": [
             _run("task", "ppo", seed, ppo[seed]), _run("task", "shac", seed, shac[seed])]}))
         files.append(str(path))
     out = tmp_path / "merged.json"
@@ -208,6 +208,14 @@ def test_time_to_solve_merges_result_files(tmp_path):
     assert json.loads(out.read_text())["merged_from"] == files
     data = json.loads((tmp_path / "data.json").read_text())
     assert "45 s, 100k steps (2/3, 2.67x)" in json.dumps(data["tables"]["levels"]["rows"])
+    # the caption names the runs' threads (not the summarising process's) and the title their seeds
+    assert data["machine"].endswith("1 torch thread") and "(3 seeds;" in data["tables"]["levels"]["title"]
+    extra = tmp_path / "sapo.json"
+    extra.write_text(json.dumps({"benchmark": "time_to_solve", "info": {"torch_threads": 1},
+                                 "runs": [_run("task", "sapo", 0, shac[0])]}))
+    tts.main([f"summarise=[{','.join(files)},{extra}]", f"out={out}", f"data={tmp_path / 'data.json'}"])
+    title = json.loads((tmp_path / "data.json").read_text())["tables"]["levels"]["title"]
+    assert "(seeds: ppo 3, shac 3, sapo 1;" in title
     with pytest.raises(SystemExit, match=r"appear more than once: \[\('task', 'ppo', 0\)"):
         tts.main([f"summarise=[{files[0]},{files[0]}]", f"out={out}"])
     with pytest.raises(SystemExit, match="no result file"):
