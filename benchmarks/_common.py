@@ -190,6 +190,11 @@ def data_table(title: str, headers: Sequence[str], rows: Sequence[Sequence[objec
     return {"title": title, "columns": [str(c) for c in headers], "rows": [[str(c) for c in row] for row in rows]}
 
 
+def today() -> str:
+    """Today's date (UTC), as the data files give it."""
+    return datetime.now(timezone.utc).date().isoformat()
+
+
 def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], device: str = "cpu",
                source: str | None = None, measured: dict | None = None) -> Path | None:
     """Writes the tables the documentation shows (:func:`data_table` each, by key) to
@@ -204,7 +209,7 @@ def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], 
     script = Path(sys.argv[0]).name if Path(sys.argv[0]).suffix == ".py" else f"{source or name}.py"
     measured = measured or {}
     payload = {
-        "measured": measured.get("date") or datetime.now(timezone.utc).date().isoformat(),
+        "measured": measured.get("date") or today(),
         "machine": measured.get("machine") or machine_name(device),
         "command": measured.get("command") or " ".join(["python", f"benchmarks/{script}", *sys.argv[1:]]),
         "source": f"benchmarks/{source or name}.py",

@@ -27,6 +27,7 @@ one physics step, reused at every step; the others a ``chunk``-step chunk.
     python benchmarks/compile_physics.py                                   # HalfCheetah-v5, N=1024
     python benchmarks/compile_physics.py tasks=[Pendulum-v1] sizes=[64] modes=[bptt] data=none
     python benchmarks/compile_physics.py quick=true                        # smoke run
+    python benchmarks/compile_physics.py from_results=[f32.json,f64.json]  # one data file from earlier runs' out=
 """
 from __future__ import annotations
 
@@ -59,6 +60,8 @@ class CompilePhysicsSettings(C.BenchmarkSettings):
     dtype: str = checked("float32", checks.one_of(("float32", "float64")))  # of the envs and the policy
     timeout: int = checked(900, checks.positive_int)  # seconds per (task, N, mode) process
     worker: str | None = None  # internal: "task,N,mode" measured in this process
+    # the raw results (out=) of earlier runs, e.g. float32 and float64: write one data file from their rows
+    from_results: list[str] | None = None
 
 
 def measure(task: str, n: int, mode: str, args) -> dict:
@@ -185,10 +188,28 @@ def docs_tables(results: list[dict]) -> dict:
         rows)}
 
 
+def render_results(args) -> dict:
+    """The data file of earlier runs' raw results (``out=`` of each), their rows in the given order,
+    with their machine, date and commands (without ``out=``/``data=``, which named local files)."""
+    raws = [json.loads(Path(path).read_text()) for path in args.from_results]
+    machines = sorted({raw["info"]["machine"] for raw in raws})
+    commands = []
+    for raw in raws:
+        words = raw["info"]["command"].split()[1:]
+        kept = [w for w in words if not w.startswith(("out=", "data="))]
+        commands.append(" ".join(["python benchmarks/compile_physics.py", *kept]))
+    results = [row for raw in raws for row in raw["results"]]
+    C.write_data(args, "compile_physics", docs_tables(results),
+                 measured={"date": raws[-1].get("date"), "machine": "; ".join(machines), "command": "; ".join(commands)})
+    return {"benchmark": "compile_physics", "results": results}
+
+
 def main(argv=None) -> dict | None:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parse_cli(CompilePhysicsSettings, argv, __doc__)
     C.setup_threads(args.threads)
+    if args.from_results:
+        return render_results(args)
     if args.worker is not None:
         task, n, mode = args.worker.split(",")
         print("RESULT " + json.dumps(measure(task, int(n), mode, args)), flush=True)
@@ -212,7 +233,7 @@ def main(argv=None) -> dict | None:
     table = tables["compile_physics"]
     C.print_table(table["columns"], table["rows"])
     C.write_data(args, "compile_physics", tables)
-    payload = {"benchmark": "compile_physics", "info": info, "results": results}
+    payload = {"benchmark": "compile_physics", "date": C.today(), "info": info, "results": results}
     C.write_json("compile_physics" + ("_quick" if args.quick else ""), payload, args.out)
     return payload
 

@@ -314,3 +314,34 @@ def test_gradient_horizon_agrees_with_finite_differences_on_a_short_window(tmp_p
     assert (task, horizon) == ("Hopper-v5", "2") and float(norm) > 0
     assert abs(float(local) - 1.0) < 0.05
     assert float(cos.split()[0]) > 0.5
+
+
+def test_compile_physics_renders_one_data_file_from_earlier_runs(tmp_path):
+    """Rows of several raw result files (e.g. float32 and float64) in the given order, the machine
+    and date they were measured on, and their commands without the local out=/data= paths."""
+    def raw(name, command, rows, date):
+        path = tmp_path / name
+        path.write_text(json.dumps({"benchmark": "compile_physics", "date": date,
+                                    "info": {"machine": "2-vCPU Test CPU (x86_64), 1 torch thread",
+                                             "command": command}, "results": rows}))
+        return str(path)
+
+    row = {"task": "Ant-v5", "N": 64, "mode": "bptt", "eager_steps_per_s": 400.0, "compiled_steps_per_s": 720.0,
+           "ratio": 1.8, "compile_s": 160.0, "granularity": "physics step", "max_abs_diff_first_step": 3.6e-15,
+           "max_abs_diff": 2.8e-11, "grad_rel_diff": 9.1e-12, "grad_rel_diff_rounding": 0.091, "dtype": "float64"}
+    failed = {"task": "HalfCheetah-v5", "N": 1024, "mode": "rollout", "error": "still compiling after 5 s"}
+    first = raw("f32.json", "compile_physics.py tasks=[HalfCheetah-v5] data=none out=/tmp/x/f32.json", [failed],
+                "2026-01-01")
+    second = raw("f64.json", "compile_physics.py tasks=[Ant-v5] dtype=float64 out=/tmp/x/f64.json", [row], "2026-01-02")
+    target = tmp_path / "data.json"
+    load("compile_physics").main([f"from_results=[{first},{second}]", f"data={target}"])
+    data = json.loads(target.read_text())
+    assert data["measured"] == "2026-01-02"
+    assert data["machine"] == "2-vCPU Test CPU (x86_64), 1 torch thread"
+    assert data["command"] == ("python benchmarks/compile_physics.py tasks=[HalfCheetah-v5]; "
+                               "python benchmarks/compile_physics.py tasks=[Ant-v5] dtype=float64")
+    rows = data["tables"]["compile_physics"]["rows"]
+    assert [r[0] for r in rows] == ["HalfCheetah-v5", "Ant-v5"]
+    assert rows[0][-2] == "still compiling after 5 s"
+    assert rows[1][3:7] == ["float64", "400", "720", "1.8x"]
+    assert rows[1][-1] == "9.1e-12 / 0.091"
