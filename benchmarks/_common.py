@@ -195,6 +195,18 @@ def today() -> str:
     return datetime.now(timezone.utc).date().isoformat()
 
 
+def measured_from_raw(raws: Sequence[dict], script: str) -> dict:
+    """``measured=`` for :func:`write_data` from earlier runs' raw results (their ``out=`` files):
+    the newest date, their machines and their commands without ``out=``/``data=`` (local files)."""
+    commands = []
+    for raw in raws:
+        words = [w for w in raw["info"]["command"].split()[1:] if not w.startswith(("out=", "data="))]
+        commands.append(" ".join([f"python benchmarks/{script}", *words]))
+    dates = [raw["date"] for raw in raws if raw.get("date")]
+    return {"date": max(dates) if dates else None, "machine": "; ".join(sorted({raw["info"]["machine"] for raw in raws})),
+            "command": "; ".join(commands)}
+
+
 def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], device: str = "cpu",
                source: str | None = None, measured: dict | None = None) -> Path | None:
     """Writes the tables the documentation shows (:func:`data_table` each, by key) to

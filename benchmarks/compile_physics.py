@@ -189,18 +189,10 @@ def docs_tables(results: list[dict]) -> dict:
 
 
 def render_results(args) -> dict:
-    """The data file of earlier runs' raw results (``out=`` of each), their rows in the given order,
-    with their machine, date and commands (without ``out=``/``data=``, which named local files)."""
+    """The data file of earlier runs' raw results (``out=`` of each), their rows in the given order."""
     raws = [json.loads(Path(path).read_text()) for path in args.from_results]
-    machines = sorted({raw["info"]["machine"] for raw in raws})
-    commands = []
-    for raw in raws:
-        words = raw["info"]["command"].split()[1:]
-        kept = [w for w in words if not w.startswith(("out=", "data="))]
-        commands.append(" ".join(["python benchmarks/compile_physics.py", *kept]))
     results = [row for raw in raws for row in raw["results"]]
-    C.write_data(args, "compile_physics", docs_tables(results),
-                 measured={"date": raws[-1].get("date"), "machine": "; ".join(machines), "command": "; ".join(commands)})
+    C.write_data(args, "compile_physics", docs_tables(results), measured=C.measured_from_raw(raws, "compile_physics.py"))
     return {"benchmark": "compile_physics", "results": results}
 
 

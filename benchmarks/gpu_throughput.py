@@ -196,10 +196,8 @@ def main(argv=None) -> dict:
         import json
 
         raw = json.loads(Path(args.from_results).read_text())
-        info = raw["info"]
-        C.write_data(args, "gpu_throughput", docs_tables(raw["results"], raw["diagnostics"], info["machine"]),
-                     measured={"date": raw.get("date"), "machine": info["machine"],
-                               "command": "python benchmarks/gpu_throughput.py " + info["command"].split(" ", 1)[1]})
+        C.write_data(args, "gpu_throughput", docs_tables(raw["results"], raw["diagnostics"], raw["info"]["machine"]),
+                     measured=C.measured_from_raw([raw], "gpu_throughput.py"))
         return raw
     device = C.setup_device(args.device)
     import torch
