@@ -146,3 +146,30 @@ def kinematics_at_qpos0(tree: RigidBodyTree) -> Kinematics:
     if tree.kin0 is None:
         tree.kin0 = forward_kinematics(tree, tree.qpos0.unsqueeze(0))
     return tree.kin0
+
+
+def body_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
+    """MuJoCo's ``body_invweight0 [N, nbody, 2]`` at ``qpos0`` for these params' masses: the mean
+    diagonal of ``J M^-1 J^T`` over the translation (``[..., 0]``) and the rotation (``[..., 1]``)
+    of each body's centre of mass, the scale of a contact's regulariser (``mj_diagApprox``).
+
+    Static bodies get 0; MuJoCo's "simple" bodies (slides only, hanging from the world) ``1 / mass``
+    and 0. Computed when MuJoCo compiles the model; here it follows the per-env params.
+    """
+    kin0 = kinematics_at_qpos0(tree)
+    inertia = _spatial_inertia(tree, kin0, params)
+    mass = _joint_space_inertia(tree, kin0.motion, inertia) + torch.diag_embed(params["armature"])
+    com = kin0.body_pos + (kin0.body_rot @ tree.body_com.unsqueeze(-1)).squeeze(-1) - kin0.origin.unsqueeze(1)
+    angular = kin0.motion[:, None, :, :3].expand(-1, tree.nbody, -1, -1)  # [1, nbody, nv, 3]
+    linear = kin0.motion[:, None, :, 3:] + torch.linalg.cross(angular, com[:, :, None, :].expand_as(angular))
+    moves = tree.body_dof_mask[None, :, :, None]  # [1, nbody, nv, 1]
+    jac = torch.cat([linear, angular], dim=-1) * moves  # [1, nbody, nv, 6]: each dof's motion of the body's com
+    solved = torch.linalg.solve_ex(mass.unsqueeze(1), jac.expand(mass.shape[0], -1, -1, -1))[0]  # [N, nbody, nv, 6]
+    diagonal = (jac * solved).sum(-2)  # [N, nbody, 6]
+    weight = torch.stack([diagonal[..., :3].mean(-1), diagonal[..., 3:].mean(-1)], dim=-1)
+    if tree.simple_dofs:
+        body = tree.simple_dof_body
+        simple = torch.stack([1.0 / params["body_mass"].index_select(1, body).clamp_min(1e-15),
+                              torch.zeros_like(params["body_mass"].index_select(1, body))], dim=-1)
+        weight = weight.index_copy(1, body, simple)
+    return weight

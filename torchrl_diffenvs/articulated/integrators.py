@@ -8,9 +8,8 @@ from typing import NamedTuple
 
 import torch
 
-from .inertia import dof_invweight0
 from .kinematics import integrate_position
-from .pipeline import accelerations
+from .pipeline import accelerations, invweight0 as constraint_scales
 from .spatial import Params
 from .tree import RigidBodyTree
 
@@ -74,14 +73,12 @@ def eager_step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float,
     (the start state for Euler and implicit, the fourth stage for RK4): after ``mj_step`` MuJoCo's derived
     quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
     observations and rewards read some of them, and the largest contact normal force there
-    (``contact_force [N]``, detached; None without contacts). ``invweight0``: :func:`dof_invweight0` of
-    ``params``, if the caller has it.
+    (``contact_force [N]``, detached; None without contacts). ``invweight0``:
+    :func:`~.pipeline.invweight0` of ``params``, if the caller has it.
     """
-    # the params are the same at every stage: the limits' regulariser scale is computed once
-    # (callers stepping several times with the same params pass it in: see MuJoCoModelEnv.simulate)
-    w0 = invweight0
-    if w0 is None and tree.limit_dof.numel():
-        w0 = dof_invweight0(tree, params)
+    # the params are the same at every stage: the constraints' regulariser scales are computed once
+    # (callers stepping several times with the same params pass them in: see MuJoCoModelEnv.simulate)
+    w0 = constraint_scales(tree, params) if invweight0 is None else invweight0
     if integrator in ("euler", "implicit"):
         qacc, largest = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt,
                                       implicit_bias=integrator == "implicit", invweight0=w0, with_contact_force=True)

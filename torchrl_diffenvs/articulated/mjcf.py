@@ -18,8 +18,10 @@ tensors. It follows MuJoCo's compiler where it matters for the dynamics:
 * ``<tendon>``: fixed tendons (a linear combination of hinge and slide coordinates) with their
   ``stiffness``, ``springlength`` and ``damping``.
 
-MuJoCo's constraint-solver settings (``<option iterations solver tolerance>``) are read and ignored:
-contact here is a smooth force, not a solved constraint. Anything else that would change the dynamics
+MuJoCo's constraint-solver settings (``<option solver iterations tolerance ls_iterations cone
+impratio>``) and the geoms' contact parameters (``margin``, ``solref``, ``solimp``, ``solmix``,
+``priority``) are read: MuJoCo's contact model (:mod:`~torchrl_diffenvs.articulated.constraint`)
+solves with them. Anything else that would change the dynamics
 (limits or springs on ball joints, tendon limits, spatial tendons, equality constraints,
 other actuators, wind and the ellipsoid fluid model, joint friction loss, ...) raises :class:`MJCFError` naming the
 element, the attribute and the file. Purely visual things (materials, textures, lights, cameras,
@@ -46,7 +48,8 @@ _VISUAL = {"name", "rgba", "material", "group", "user", "class"}
 _ORIENT = {"quat", "axisangle", "euler", "xyaxes", "zaxis"}
 _READ = {
     "compiler": {"angle", "coordinate", "inertiafromgeom", "settotalmass", "eulerseq", "autolimits"},
-    "option": {"timestep", "integrator", "gravity", "density", "viscosity"},
+    "option": {"timestep", "integrator", "gravity", "density", "viscosity", "solver", "iterations", "tolerance",
+               "ls_iterations", "cone", "impratio"},
     "body": {"pos", "childclass"} | _ORIENT,
     "inertial": {"pos", "mass", "diaginertia", "fullinertia"} | _ORIENT,
     "joint": {
@@ -64,8 +67,8 @@ _READ = {
 }
 _IGNORED_ATTRS = {
     "compiler": {"meshdir", "texturedir", "assetdir"},
-    # only read by magnetometer sensors; the settings of MuJoCo's constraint solver (no solver here)
-    "option": {"magnetic", "iterations", "solver", "tolerance", "ls_iterations"},
+    # only read by magnetometer sensors
+    "option": {"magnetic"},
     "body": {"name"},
     "geom": {"gap"},  # checked separately: only 0 is supported
 }
@@ -145,6 +148,7 @@ class _Reader:
                     "worldbody": None, "actuator": None, "tendon": None}
         self.timestep, self.integrator, self.gravity = 0.002, "euler", np.array([0.0, 0.0, -9.81])
         self.density = self.viscosity = 0.0
+        self.solver_options = {}
         for child in self.root:
             if not isinstance(child.tag, str):  # comments
                 continue
@@ -214,6 +218,20 @@ class _Reader:
         self.viscosity = float(element.get("viscosity", 0.0))
         if self.density < 0 or self.viscosity < 0:
             raise self.fail(element, "density and viscosity must be >= 0")
+        solver = element.get("solver", "Newton")
+        if solver not in ("Newton", "CG", "PGS"):
+            raise self.fail(element, f"solver {solver!r} is not supported; supported: 'Newton', 'CG', 'PGS'")
+        cone = element.get("cone", "pyramidal")
+        if cone != "pyramidal":
+            raise self.fail(element, f"cone {cone!r} is not supported; supported: 'pyramidal' (MuJoCo's default)")
+        options = dict(solver=solver.lower(), iterations=int(element.get("iterations", 100)),
+                       tolerance=float(element.get("tolerance", 1e-8)),
+                       ls_iterations=int(element.get("ls_iterations", 50)), cone=cone,
+                       impratio=float(element.get("impratio", 1.0)))
+        if options["iterations"] < 1 or options["ls_iterations"] < 1 or options["tolerance"] < 0 \
+                or options["impratio"] <= 0:
+            raise self.fail(element, "iterations and ls_iterations must be >= 1, tolerance >= 0 and impratio > 0")
+        self.solver_options = options
 
     def default(self, element, parent):
         name = element.get("class", "main")
@@ -437,7 +455,9 @@ class _Reader:
             name=a.get("name"), type=kind, body=body, pos=pos, rot=rot, size=size,
             mass=float(a["mass"]) if "mass" in a else None, density=float(a.get("density", 1000.0)),
             friction=friction, contype=int(a.get("contype", 1)), conaffinity=int(a.get("conaffinity", 1)),
-            condim=int(a.get("condim", 3)),
+            condim=int(a.get("condim", 3)), margin=float(a.get("margin", 0.0)),
+            solref=_floats(a.get("solref", "0.02 1"), 2, where), solimp=self.solimp(a.get("solimp"), where),
+            solmix=float(a.get("solmix", 1.0)), priority=int(a.get("priority", 0)),
         ))
 
     def tendon(self, element):
@@ -547,14 +567,16 @@ class _Reader:
             geom_pos=col(g, "pos", shape=(3,)), geom_rot=col(g, "rot", shape=(3, 3)),
             geom_size=col(g, "size", shape=(3,)), geom_friction=col(g, "friction", shape=(3,)),
             geom_contype=col(g, "contype", np.int64), geom_conaffinity=col(g, "conaffinity", np.int64),
-            geom_condim=col(g, "condim", np.int64),
+            geom_condim=col(g, "condim", np.int64), geom_margin=col(g, "margin"),
+            geom_solref=col(g, "solref", shape=(2,)), geom_solimp=col(g, "solimp", shape=(5,)),
+            geom_solmix=col(g, "solmix"), geom_priority=col(g, "priority", np.int64),
             actuator_names=[x["name"] for x in m], actuator_joint=col(m, "joint", np.int64),
             actuator_gear=col(m, "gear"), ctrl_limited=col(m, "ctrl_limited", bool),
             ctrl_range=col(m, "ctrl_range", shape=(2,)), force_limited=col(m, "force_limited", bool),
             force_range=col(m, "force_range", shape=(2,)),
             site_names=[x[0] for x in self.sites], site_body=np.array([x[1] for x in self.sites], dtype=np.int64),
             site_pos=np.array([x[2] for x in self.sites]).reshape(-1, 3),
-            **self.tendon_arrays(j, ndof),
+            **self.tendon_arrays(j, ndof), **self.solver_options,
         )
 
     def tendon_arrays(self, joints, ndof) -> dict:

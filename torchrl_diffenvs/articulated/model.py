@@ -92,6 +92,20 @@ class ArticulatedModel:
     tendon_stiffness: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tendon_damping: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tendon_springlength: np.ndarray = field(default_factory=lambda: np.zeros(0))  # the spring's rest length
+    # contact parameters of the geoms (MuJoCo's defaults where a file sets none) [ngeom]
+    geom_margin: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [ngeom] contacts count within it
+    geom_solref: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # [ngeom, 2]
+    geom_solimp: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))  # [ngeom, 5]
+    geom_solmix: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [ngeom] weight in a pair's mix
+    geom_priority: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # [ngeom]
+    # MuJoCo's constraint solver (``<option>``): "newton", "cg" or "pgs", its iteration count and
+    # tolerance, the line search's iteration count, the friction cone and impratio
+    solver: str = "newton"
+    iterations: int = 100
+    tolerance: float = 1e-8
+    ls_iterations: int = 50
+    cone: str = "pyramidal"
+    impratio: float = 1.0
 
     @property
     def nbody(self) -> int:

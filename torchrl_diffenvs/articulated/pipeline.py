@@ -1,20 +1,41 @@
 """The forward dynamics in the order the simulator computes them, on one screen:
-:func:`accelerations`. Each stage lives in its own module."""
+:func:`accelerations`. Each stage lives in its own module.
+
+Two contact models (:meth:`~.tree.RigidBodyTree.use_contact_model`): ``"mujoco"`` (the default), MuJoCo's own pipeline
+(collision, constraint rows, the constraint solve: :func:`_constrained_accelerations`), and
+``"smooth"``, a penalty force in the smooth forces with the joint limits solved on their own.
+"""
 from __future__ import annotations
 
 from typing import NamedTuple
 
 import torch
 
-from .contact import _contact_points_and_forces, _pair_forces, contact_force, pair_contact_force
+from .collision import collide
+from .constraint import constraint_rows, contact_frame_forces, solve
+from .contact import _contact_points_and_forces, _pair_forces, body_contact_forces, contact_force, pair_contact_force
 from .forces import actuator_force, passive_force
-from .inertia import dof_invweight0, mass_matrix_and_bias
+from .inertia import body_invweight0, dof_invweight0, mass_matrix_and_bias
 from .kinematics import forward_kinematics
 from .limits import limit_force
-from .spatial import Params, _inverse, _solve
+from .spatial import Params, _cross, _inverse, _solve
 from .tree import RigidBodyTree
 
-__all__ = ['accelerations', 'constraint_force']
+__all__ = ['accelerations', 'body_contact_wrenches', 'constraint_force', 'invweight0', 'InvWeight0']
+
+class InvWeight0(NamedTuple):
+    """MuJoCo's ``dof_invweight0 [N, nv]`` and ``body_invweight0 [N, nbody, 2]`` for a batch of
+    params: the scales of the constraint rows' regularisers, which depend on the params only."""
+
+    dof: torch.Tensor
+    body: torch.Tensor | None
+
+
+def invweight0(tree: RigidBodyTree, params: Params):
+    """What :func:`accelerations` takes as ``invweight0`` for these params (None where nothing needs it)."""
+    if tree.contact_model == "mujoco":
+        return InvWeight0(dof_invweight0(tree, params), body_invweight0(tree, params) if tree.contact_slots.count else None)
+    return dof_invweight0(tree, params) if tree.limit_dof.numel() else None
 
 
 class SmoothForces(NamedTuple):
@@ -71,6 +92,9 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     ``with_contact_force``: also return the largest contact normal force ``[N]`` (detached; None
     for a model without contacts), as ``(qacc, largest)``.
     """
+    if tree.contact_model == "mujoco":
+        return _constrained_accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt, implicit_bias,
+                                          invweight0, with_contact_force)
     implicit = implicit_damping_dt is not None
     kin = forward_kinematics(tree, qpos)
     mass, bias, *bias_jacobian = mass_matrix_and_bias(tree, kin, qvel, params,
@@ -87,6 +111,83 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
         mass = mass + implicit_damping_dt * damping
     qacc = _solve(mass, force)
     return (qacc, largest) if with_contact_force else qacc
+
+
+class _MuJoCoForward(NamedTuple):
+    kin: object
+    mass: torch.Tensor
+    smooth_force: torch.Tensor
+    contacts: object
+    rows: object
+    solution: object
+    bias_jacobian: torch.Tensor | None
+
+
+def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weights, with_bias_jacobian=False):
+    """MuJoCo's forward to the constraint solve, with its intermediates (see :func:`_constrained_accelerations`)."""
+    slots = tree.contact_slots
+    if not isinstance(weights, InvWeight0):  # None, or a smooth-contact caller's dof_invweight0
+        weights = invweight0(tree, params)
+    kin = forward_kinematics(tree, qpos)
+    mass, bias, *bias_jacobian = mass_matrix_and_bias(tree, kin, qvel, params, with_velocity_jacobian=with_bias_jacobian)
+    smooth_force = actuator_force(tree, ctrl, tree.nv) + passive_force(tree, kin, qpos, qvel, params) - bias
+    qacc_smooth = _solve(mass, smooth_force)
+    contacts = collide(slots, kin) if slots.count else None
+    rows = constraint_rows(tree, slots, kin, contacts, qpos, qvel, params, weights.dof, weights.body)
+    solution = solve(mass, qacc_smooth, rows, tree.model.iterations, tree.model.tolerance)
+    return _MuJoCoForward(kin, mass, smooth_force, contacts, rows, solution, bias_jacobian[0] if bias_jacobian else None)
+
+
+def body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, about: torch.Tensor,
+                          weights=None) -> torch.Tensor:
+    """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` at a state: the contact wrench on every body
+    (torque about ``about [N, 3]``, force; world frame), from the constraint solve's contact forces
+    (``"mujoco"``) or the smooth model's (``"smooth"``)."""
+    if tree.contact_model != "mujoco":
+        return body_contact_forces(tree, forward_kinematics(tree, qpos), qvel, params, about=about)
+    out = qvel.new_zeros(qvel.shape[0], tree.nbody, 6)
+    slots = tree.contact_slots
+    if not slots.count:
+        return out
+    f = _mujoco_forward(tree, qpos, qvel, ctrl, params, weights)
+    local = contact_frame_forces(slots, f.rows, f.solution.force, params["contact_friction"][:, slots.friction_slot])
+    force = (local.unsqueeze(-2) @ f.contacts.frame).squeeze(-2)  # world frame: sum_k f_k frame_k
+    wrench = torch.cat([_cross(f.contacts.pos - about.unsqueeze(1), force), force], dim=-1)  # on geom 2's body
+    return out.index_add(1, slots.body[:, 1], wrench).index_add(1, slots.body[:, 0], -wrench)
+
+
+def _constrained_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt,
+                               implicit_bias, weights, with_contact_force):
+    """MuJoCo's ``mj_forward`` from the smooth forces on (see :func:`accelerations`):
+
+    1. smooth dynamics: ``qacc_smooth = M^-1 (motors + passive - bias)``;
+    2. collision: the contacts of every geom pair (:func:`~.collision.collide`);
+    3. constraint rows: joint limits and contacts, their impedance and reference
+       (:func:`~.constraint.constraint_rows`);
+    4. the constraint solve (:func:`~.constraint.solve`): ``qacc``;
+    5. MuJoCo's Euler integrator then solves ``(M + h D) qacc = qfrc_smooth + qfrc_constraint``
+       (joint damping implicit), and its ``implicit`` integrator adds ``h d bias / d qvel`` to ``D``.
+    """
+    implicit = implicit_damping_dt is not None
+    f = _mujoco_forward(tree, qpos, qvel, ctrl, params, weights, with_bias_jacobian=implicit and implicit_bias)
+    slots, mass, smooth_force, rows, solution, bias_jacobian = \
+        tree.contact_slots, f.mass, f.smooth_force, f.rows, f.solution, f.bias_jacobian
+    qacc = solution.qacc
+    if implicit:
+        damping = torch.diag_embed(params["damping"])
+        if bias_jacobian is not None:
+            damping = damping + bias_jacobian
+        constraint = (rows.jacobian.transpose(-1, -2) @ solution.force.unsqueeze(-1)).squeeze(-1)
+        qacc = _solve(mass + implicit_damping_dt * damping, smooth_force + constraint)
+    if not with_contact_force:
+        return qacc
+    largest = None
+    if slots.count:
+        limits, pyramid = rows.rows_per_slot
+        normal = torch.cat([solution.force[:, limits:limits + pyramid].unflatten(1, (-1, 4)).sum(-1),
+                            solution.force[:, limits + pyramid:]], dim=1)  # each contact's normal force
+        largest = normal.detach().amax(-1)
+    return qacc, largest
 
 
 def constraint_force(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params) -> torch.Tensor:

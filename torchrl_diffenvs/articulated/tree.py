@@ -8,9 +8,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .collision import ContactSlots, contact_slots
 from .model import ArticulatedModel
 
-__all__ = ['RigidBodyTree', 'default_params']
+__all__ = ['RigidBodyTree', 'default_params', 'CONTACT_MODELS']
+
+CONTACT_MODELS = ("mujoco", "smooth")
 
 
 @dataclass
@@ -88,6 +91,21 @@ class RigidBodyTree:
     tendon_springlength: torch.Tensor  # [ntendon]
     # fluid: each body's principal axes of inertia (its inertial frame) in the body frame
     body_inertial_frame: torch.Tensor  # [nbody, 3, 3]
+    # how contact is simulated (see use_contact_model), and MuJoCo's contact slots
+    contact_model: str = "mujoco"
+    contact_slots: ContactSlots | None = None
+
+    def use_contact_model(self, contact: str) -> RigidBodyTree:
+        """Set how contacts are simulated: ``"mujoco"`` (MuJoCo's collision, constraint rows and
+        solve: :mod:`.collision`, :mod:`.constraint`; the default) or ``"smooth"`` (the penalty
+        model of :mod:`.contact`, an approximation of MuJoCo's). Returns the tree."""
+        if contact not in CONTACT_MODELS:
+            raise ValueError(f"{self.model.path}: unknown contact model {contact!r}; valid: "
+                             f"{', '.join(repr(c) for c in CONTACT_MODELS)}")
+        if contact == "mujoco" and self.contact_slots is None:
+            self.contact_slots = contact_slots(self.model, self.contact_pairs, self.body_pos.dtype, self.body_pos.device)
+        self.contact_model = contact
+        return self
 
     @property
     def has_fluid(self) -> bool:
@@ -106,7 +124,9 @@ class RigidBodyTree:
         return self.model.nbody
 
     @classmethod
-    def from_model(cls, model: ArticulatedModel, dtype=torch.float64, device="cpu") -> RigidBodyTree:
+    def from_model(cls, model: ArticulatedModel, dtype=torch.float64, device="cpu", contact: str = "mujoco") -> RigidBodyTree:
+        """The tree of ``model`` on ``device`` in ``dtype``, simulating contact with ``contact``
+        (:meth:`use_contact_model`)."""
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
         idx = lambda a: torch.as_tensor(np.asarray(a, dtype=np.int64), device=device)  # noqa: E731
         nb, nv, njnt = model.nbody, model.nv, model.njnt
@@ -245,7 +265,7 @@ class RigidBodyTree:
             root_subtree_mask=t(_root_subtree_mask(model)),
             body_inertial_frame=t(np.linalg.eigh(model.body_inertia)[1]),
         )
-        return tree
+        return tree.use_contact_model(contact)
 
 
 def _slides_along(model: ArticulatedModel, body: int, normal: np.ndarray) -> bool:

@@ -1,0 +1,318 @@
+"""MuJoCo's collision detection, batched: the contacts ``mj_collision`` finds between geoms.
+
+Every geom pair that MuJoCo's filter lets touch (:func:`colliding_pairs`) is tested by its
+primitive, as ``engine_collision_primitive.c`` does: plane-sphere and sphere-sphere give one
+contact, plane-capsule two (one per end), sphere-capsule one, capsule-capsule one (two where the
+axes are parallel). The number of contacts is fixed per pair (a slot per possible contact), and
+a slot holds a contact when MuJoCo's would: ``active`` is where its distance is below the pair's
+margin. No data-dependent shape or Python branch: the same ops run whatever touches.
+
+Each contact has MuJoCo's ``pos``, ``frame`` (normal first, pointing from geom 1 to geom 2),
+``dist`` and the pair's mixed parameters (``condim``, friction, ``solref``, ``solimp``,
+``includemargin``: :func:`_mix`, as ``mj_contactParam``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+import torch
+
+from .model import ArticulatedModel
+from .spatial import _MINVAL, _cross
+
+if TYPE_CHECKING:
+    from .kinematics import Kinematics
+
+__all__ = ["Contacts", "ContactSlots", "colliding_pairs", "contact_slots", "collide"]
+
+#: the primitives this module implements (MuJoCo's geom type order: plane < sphere < capsule), and
+#: the contacts each gives at most
+_PRIMITIVES = {("plane", "sphere"): 1, ("plane", "capsule"): 2, ("sphere", "sphere"): 1,
+               ("sphere", "capsule"): 1, ("capsule", "capsule"): 2}
+_TYPE_ORDER = ("plane", "hfield", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
+
+
+def _weld(model: ArticulatedModel, body: int) -> int:
+    """MuJoCo's ``body_weldid``: the body itself if it has joints, else its parent's (the world's is 0)."""
+    while body != 0 and not np.any(model.joint_body == body):
+        body = int(model.body_parent[body])
+    return body
+
+
+def colliding_pairs(model: ArticulatedModel) -> list[tuple[int, int]]:
+    """The geom pairs ``(g1, g2)`` MuJoCo's collision filter lets touch, ordered as MuJoCo orders
+    them (``g1``'s type first in MuJoCo's type order, so the normal points from ``g1`` to ``g2``):
+    compatible ``contype``/``conaffinity`` bits, bodies that do not move together and are not both
+    static, and (``filterparent``) not a body and its parent unless that parent is the world."""
+    out = []
+    ngeom = len(model.geom_names)
+    for g1 in range(ngeom):
+        for g2 in range(g1 + 1, ngeom):
+            if not ((model.geom_contype[g1] & model.geom_conaffinity[g2])
+                    or (model.geom_contype[g2] & model.geom_conaffinity[g1])):
+                continue
+            w1, w2 = _weld(model, int(model.geom_body[g1])), _weld(model, int(model.geom_body[g2]))
+            if w1 == w2:
+                continue
+            p1 = _weld(model, int(model.body_parent[w1])) if w1 else -1
+            p2 = _weld(model, int(model.body_parent[w2])) if w2 else -1
+            if w1 and w2 and (w1 == p2 or w2 == p1):
+                continue
+            a, b = (g1, g2) if _TYPE_ORDER.index(model.geom_type[g1]) <= _TYPE_ORDER.index(model.geom_type[g2]) \
+                else (g2, g1)
+            out.append((a, b))
+    return out
+
+
+def _mix(model: ArticulatedModel, g1: int, g2: int) -> dict:
+    """MuJoCo's ``mj_contactParam`` of one geom pair: the higher priority's parameters, or at equal
+    priority the larger condim and friction and ``solref``/``solimp`` mixed by ``solmix``."""
+    p1, p2 = model.geom_priority[g1], model.geom_priority[g2]
+    if p1 != p2:
+        g = g1 if p1 > p2 else g2
+        condim, solref, solimp, fri = (int(model.geom_condim[g]), model.geom_solref[g], model.geom_solimp[g],
+                                       model.geom_friction[g])
+    else:
+        condim = int(max(model.geom_condim[g1], model.geom_condim[g2]))
+        s1, s2 = model.geom_solmix[g1], model.geom_solmix[g2]
+        if s1 >= _MINVAL and s2 >= _MINVAL:
+            mix = s1 / (s1 + s2)
+        else:
+            mix = 0.5 if (s1 < _MINVAL and s2 < _MINVAL) else (0.0 if s1 < _MINVAL else 1.0)
+        r1, r2 = model.geom_solref[g1], model.geom_solref[g2]
+        solref = mix * r1 + (1 - mix) * r2 if (r1[0] > 0 and r2[0] > 0) else np.minimum(r1, r2)
+        solimp = mix * model.geom_solimp[g1] + (1 - mix) * model.geom_solimp[g2]
+        fri = np.maximum(model.geom_friction[g1], model.geom_friction[g2])
+    if condim not in (1, 3):
+        raise ValueError(f"{model.path}: geoms {model.geom_names[g1]!r} and {model.geom_names[g2]!r}: condim "
+                         f"{condim} is not supported by MuJoCo's contact model here; supported: 1 and 3")
+    return dict(condim=condim, friction=float(fri[0]), solref=np.array(solref, dtype=np.float64), solimp=solimp,
+                margin=float(model.geom_margin[g1] + model.geom_margin[g2]))
+
+
+class _Geoms(NamedTuple):
+    """Geoms as their bodies see them: ``body [P]`` long, ``pos [P, 3]``, ``rot [P, 3, 3]`` (body
+    frame) and ``size [P, 3]``."""
+
+    body: torch.Tensor
+    pos: torch.Tensor
+    rot: torch.Tensor
+    size: torch.Tensor
+
+
+class _PrimitiveGroup(NamedTuple):
+    kind: tuple[str, str]
+    first: int  # its first slot
+    geom1: _Geoms
+    geom2: _Geoms
+
+
+def _geoms(model: ArticulatedModel, index: list[int], dtype, device) -> _Geoms:
+    t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
+    return _Geoms(torch.as_tensor(model.geom_body[index], device=device), t(model.geom_pos[index]),
+                  t(model.geom_rot[index]), t(model.geom_size[index]))
+
+
+@dataclass
+class ContactSlots:
+    """The constant part of a model's contacts: one entry per contact slot ``[C]``, grouped by
+    primitive (``groups``: :class:`_PrimitiveGroup`, each pair giving ``_PRIMITIVES[primitive]``
+    consecutive slots)."""
+
+    groups: list[_PrimitiveGroup]
+    geom: torch.Tensor  # [C, 2] long
+    body: torch.Tensor  # [C, 2] long
+    condim: list[int]  # [C]
+    friction_slot: torch.Tensor  # [C] long: the entry of params["contact_friction"] of its geom pair
+    solref: torch.Tensor  # [C, 2]
+    solimp: torch.Tensor  # [C, 5]
+    margin: torch.Tensor  # [C] MuJoCo's includemargin (margin - gap; gap is 0 here)
+    pyramid_index: torch.Tensor  # [C3] long: the frictional slots (condim 3: four pyramid edges each)
+    normal_index: torch.Tensor  # [C1] long: the frictionless slots (condim 1: one row each)
+
+    @property
+    def count(self) -> int:
+        return len(self.condim)
+
+
+def contact_slots(model: ArticulatedModel, friction_slots: list[tuple[str, str]], dtype, device) -> ContactSlots:
+    """The :class:`ContactSlots` of a model. ``friction_slots``: the geom-name pairs of the
+    ``contact_friction`` param (``RigidBodyTree.contact_pairs``, either order)."""
+    slot_of = {frozenset(pair): i for i, pair in enumerate(friction_slots)}
+    by_primitive: dict[tuple[str, str], list[tuple[int, int]]] = {}
+    for g1, g2 in colliding_pairs(model):
+        kind = (model.geom_type[g1], model.geom_type[g2])
+        if kind not in _PRIMITIVES:
+            raise ValueError(f"{model.path}: geoms {model.geom_names[g1]!r} ({kind[0]}) and {model.geom_names[g2]!r} "
+                             f"({kind[1]}) can touch, but MuJoCo's contact model here collides only "
+                             f"{', '.join('-'.join(k) for k in _PRIMITIVES)} (use contact='smooth', or set "
+                             "contype/conaffinity to exclude the pair)")
+        by_primitive.setdefault(kind, []).append((g1, g2))
+    groups, rows = [], []
+    for kind in _PRIMITIVES:
+        pairs = by_primitive.get(kind, [])
+        if not pairs:
+            continue
+        groups.append(_PrimitiveGroup(kind, len(rows), _geoms(model, [p[0] for p in pairs], dtype, device),
+                                      _geoms(model, [p[1] for p in pairs], dtype, device)))
+        for g1, g2 in pairs:
+            key = frozenset((model.geom_names[g1], model.geom_names[g2]))
+            if key not in slot_of:
+                raise ValueError(f"{model.path}: no contact_friction entry for geoms {sorted(key)}")
+            rows += [(g1, g2, slot_of[key], _mix(model, g1, g2))] * _PRIMITIVES[kind]
+    t = lambda a, shape: torch.as_tensor(np.asarray(a, dtype=np.float64).reshape(shape), dtype=dtype, device=device)  # noqa: E731
+    idx = lambda a, shape: torch.as_tensor(np.asarray(a, dtype=np.int64).reshape(shape), device=device)  # noqa: E731
+    return ContactSlots(
+        groups=groups, geom=idx([[r[0], r[1]] for r in rows], (-1, 2)),
+        body=idx([[model.geom_body[r[0]], model.geom_body[r[1]]] for r in rows], (-1, 2)),
+        condim=[r[3]["condim"] for r in rows], friction_slot=idx([r[2] for r in rows], (-1,)),
+        solref=t([r[3]["solref"] for r in rows], (-1, 2)), solimp=t([r[3]["solimp"] for r in rows], (-1, 5)),
+        margin=t([r[3]["margin"] for r in rows], (-1,)),
+        pyramid_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 3], (-1,)),
+        normal_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 1], (-1,)))
+
+
+class Contacts(NamedTuple):
+    """The contacts at a batch of configurations, one per slot of :class:`ContactSlots`."""
+
+    dist: torch.Tensor  # [N, C] signed distance (negative: penetrating)
+    pos: torch.Tensor  # [N, C, 3] world position, midway between the surfaces
+    frame: torch.Tensor  # [N, C, 3, 3] rows: the normal (from geom 1 to geom 2), then two tangents
+    active: torch.Tensor  # [N, C] bool: MuJoCo has this contact (found, and dist < includemargin)
+
+
+def _geom_poses(kin: Kinematics, geoms: _Geoms):
+    """World position ``[N, P, 3]`` and rotation ``[N, P, 3, 3]`` of geoms (MuJoCo's geom_xpos, geom_xmat)."""
+    rot = kin.body_rot[:, geoms.body]
+    return kin.body_pos[:, geoms.body] + (rot @ geoms.pos.unsqueeze(-1)).squeeze(-1), rot @ geoms.rot
+
+
+def _dot(a, b):
+    return (a * b).sum(-1)
+
+
+def _plane_sphere(plane_pos, plane_rot, centre, radius):
+    """``(dist, pos, normal)`` of a sphere against a plane (the plane's z axis is the normal)."""
+    normal = plane_rot[..., :, 2]
+    dist = _dot(centre - plane_pos, normal) - radius
+    pos = centre - (dist / 2 + radius).unsqueeze(-1) * normal
+    return dist, pos, normal
+
+
+def _sphere_sphere(centre1, radius1, centre2, radius2, axis1, axis2):
+    """``(dist, pos, normal)`` of two spheres; coincident centres take the normal from the geoms'
+    z axes as MuJoCo does (their cross product, or x where those are parallel)."""
+    gap = centre2 - centre1
+    length = torch.sqrt(_dot(gap, gap))
+    fallback = _cross(axis1, axis2)
+    fallback_length = torch.sqrt(_dot(fallback, fallback))
+    x_axis = torch.zeros_like(gap)
+    x_axis[..., 0] = 1.0
+    fallback = torch.where((fallback_length < _MINVAL).unsqueeze(-1), x_axis,
+                           fallback / fallback_length.clamp_min(_MINVAL).unsqueeze(-1))
+    coincident = (length < _MINVAL).unsqueeze(-1)
+    normal = torch.where(coincident, fallback, gap / torch.where(coincident.squeeze(-1), 1.0, length).unsqueeze(-1))
+    dist = length - radius1 - radius2
+    return dist, centre1 + (radius1 + dist / 2).unsqueeze(-1) * normal, normal
+
+
+def _make_frame(normal, tangent):
+    """MuJoCo's ``mju_makeFrame``: rows normal, first tangent (``tangent`` made orthogonal to the
+    normal; where it is unset, y or, for normals near y, z), second tangent ``normal x first``."""
+    unset = _dot(tangent, tangent) < 0.25
+    y_axis, z_axis = torch.zeros_like(normal), torch.zeros_like(normal)
+    y_axis[..., 1], z_axis[..., 2] = 1.0, 1.0
+    default = torch.where((normal[..., 1].abs() < 0.5).unsqueeze(-1), y_axis, z_axis)
+    tangent = torch.where(unset.unsqueeze(-1), default, tangent)
+    tangent = tangent - _dot(normal, tangent).unsqueeze(-1) * normal
+    tangent = tangent / torch.sqrt(_dot(tangent, tangent)).clamp_min(_MINVAL).unsqueeze(-1)
+    return torch.stack([normal, tangent, _cross(normal, tangent)], dim=-2)
+
+
+def _capsule_capsule(pos1, axis1, radius1, pos2, axis2, radius2, margin):
+    """MuJoCo's ``mjraw_CapsuleCapsule``: ``(dist, pos, normal, found)``, each ``[N, P, 2, ...]``:
+    the closest points of the two axes, or (parallel axes) up to two of the four end-point tests."""
+    a1, a2 = axis1, axis2  # half-axes, scaled
+    dif = pos1 - pos2
+    ma, mb, mc = _dot(a1, a1), -_dot(a1, a2), _dot(a2, a2)
+    u, v = -_dot(a1, dif), _dot(a2, dif)
+    det = ma * mc - mb * mb
+    parallel = det.abs() < _MINVAL
+    safe_det = torch.where(parallel, 1.0, det)
+    x1, x2 = (mc * u - mb * v) / safe_det, (ma * v - mb * u) / safe_det
+    x2 = torch.where(x1 > 1, (v - mb) / mc, torch.where(x1 < -1, (v + mb) / mc, x2))
+    x1 = x1.clamp(-1, 1)
+    x1 = torch.where(x2 > 1, ((u - mb) / ma).clamp(-1, 1), torch.where(x2 < -1, ((u + mb) / ma).clamp(-1, 1), x1))
+    x2 = x2.clamp(-1, 1)
+    general = (pos1 + x1.unsqueeze(-1) * a1, pos2 + x2.unsqueeze(-1) * a2)
+    # parallel axes: the end points of each against the other's axis, in MuJoCo's order
+    ones = torch.ones_like(x1)
+    candidates = [(ones, ((v - mb) / mc).clamp(-1, 1)), (-ones, ((v + mb) / mc).clamp(-1, 1)),
+                  (((u - mb) / ma).clamp(-1, 1), ones), (((u + mb) / ma).clamp(-1, 1), -ones)]
+    ends1 = torch.stack([pos1 + c[0].unsqueeze(-1) * a1 for c in candidates], dim=-2)  # [N, P, 4, 3]
+    ends2 = torch.stack([pos2 + c[1].unsqueeze(-1) * a2 for c in candidates], dim=-2)
+    gap = ends2 - ends1
+    reach = (margin + radius1 + radius2).unsqueeze(-1)
+    within = _dot(gap, gap) <= reach * reach  # [N, P, 4]: the candidates MuJoCo keeps, in order
+    rank = within.long().cumsum(-1)
+    picks = []
+    for k in (1, 2):
+        chosen = (within & (rank == k)).long().argmax(-1, keepdim=True)  # first candidate of rank k
+        found = (within & (rank == k)).any(-1)
+        picks.append((ends1.gather(-2, chosen.unsqueeze(-1).expand(*chosen.shape, 3)).squeeze(-2),
+                      ends2.gather(-2, chosen.unsqueeze(-1).expand(*chosen.shape, 3)).squeeze(-2), found))
+    p = parallel.unsqueeze(-1)
+    first1 = torch.where(p, picks[0][0], general[0])
+    first2 = torch.where(p, picks[0][1], general[1])
+    centres1 = torch.stack([first1, picks[1][0]], dim=-2)
+    centres2 = torch.stack([first2, picks[1][1]], dim=-2)
+    found = torch.stack([torch.ones_like(parallel), parallel & picks[1][2]], dim=-1)
+    return centres1, centres2, found
+
+
+def collide(slots: ContactSlots, kin: Kinematics) -> Contacts:
+    """The contacts of every slot at these configurations (:class:`Contacts`)."""
+    dists, poss, frames, founds = [], [], [], []
+    for kind, first, g1, g2 in slots.groups:
+        pos1, rot1 = _geom_poses(kin, g1)
+        pos2, rot2 = _geom_poses(kin, g2)
+        size1, size2 = g1.size, g2.size
+        zero = torch.zeros_like(pos2)
+        if kind == ("plane", "sphere"):
+            dist, pos, normal = _plane_sphere(pos1, rot1, pos2, size2[:, 0])
+            dist, pos, normal, tangent = dist[..., None], pos[..., None, :], normal[..., None, :], zero[..., None, :]
+        elif kind == ("plane", "capsule"):
+            axis = rot2[..., :, 2]
+            half = size2[:, 1, None] * axis
+            ends = torch.stack([pos2 + half, pos2 - half], dim=-2)  # MuJoCo: the +axis end first
+            dist, pos, normal = _plane_sphere(pos1.unsqueeze(-2), rot1.unsqueeze(-3), ends, size2[:, 0, None])
+            normal, tangent = normal.expand_as(pos), axis.unsqueeze(-2).expand_as(pos)
+        elif kind == ("sphere", "sphere"):
+            dist, pos, normal = _sphere_sphere(pos1, size1[:, 0], pos2, size2[:, 0], rot1[..., :, 2], rot2[..., :, 2])
+            dist, pos, normal, tangent = dist[..., None], pos[..., None, :], normal[..., None, :], zero[..., None, :]
+        elif kind == ("sphere", "capsule"):
+            axis = rot2[..., :, 2]
+            along = _dot(axis, pos1 - pos2).clamp(-size2[:, 1], size2[:, 1])
+            nearest = pos2 + along.unsqueeze(-1) * axis
+            dist, pos, normal = _sphere_sphere(pos1, size1[:, 0], nearest, size2[:, 0], rot1[..., :, 2], axis)
+            dist, pos, normal, tangent = dist[..., None], pos[..., None, :], normal[..., None, :], zero[..., None, :]
+        else:  # capsule-capsule
+            pair_margin = slots.margin[first:first + 2 * g1.body.numel():2]
+            centres1, centres2, found = _capsule_capsule(
+                pos1, size1[:, 1, None] * rot1[..., :, 2], size1[:, 0], pos2, size2[:, 1, None] * rot2[..., :, 2],
+                size2[:, 0], pair_margin)
+            r1, r2 = size1[:, 0, None].expand(-1, 2), size2[:, 0, None].expand(-1, 2)
+            z1, z2 = rot1[..., :, 2].unsqueeze(-2).expand_as(centres1), rot2[..., :, 2].unsqueeze(-2).expand_as(centres2)
+            dist, pos, normal = _sphere_sphere(centres1, r1, centres2, r2, z1, z2)
+            tangent = torch.zeros_like(pos)
+            founds.append(found.flatten(1))
+        if kind != ("capsule", "capsule"):
+            founds.append(torch.ones_like(dist, dtype=torch.bool).flatten(1))
+        dists.append(dist.flatten(1))
+        poss.append(pos.flatten(1, 2))
+        frames.append(_make_frame(normal, tangent).flatten(1, 2))
+    dist = torch.cat(dists, dim=1)
+    return Contacts(dist, torch.cat(poss, dim=1), torch.cat(frames, dim=1),
+                    torch.cat(founds, dim=1) & (dist < slots.margin))

@@ -1,0 +1,305 @@
+"""MuJoCo's constraint stage, batched: the rows of joint limits and contacts in one problem
+(``mj_makeConstraint``), their impedance, reference acceleration and regulariser
+(``mj_makeImpedance``, ``mj_referenceConstraint``), and the solve (``mj_fwdConstraint``).
+
+Rows are laid out at fixed positions: every limit side, then four pyramid edges per frictional
+contact slot, then one row per frictionless slot. A row MuJoCo would not create (a limit not
+within its margin, a contact slot without a contact) is kept with ``exists = False`` and no force:
+the shapes never depend on the state.
+
+The solve minimises MuJoCo's convex primal over ``qacc``,
+``1/2 (qacc - qacc_smooth)' M (qacc - qacc_smooth) + sum_i 1/2 D_i min(0, J_i qacc - aref_i)^2``,
+whose unique minimiser is what MuJoCo's Newton solver converges to. :func:`solve` finds it by
+Newton's method with an exact line search (the cost is piecewise quadratic along a line, so the
+search sorts the rows' breakpoints) without autograd, then takes one differentiable solve with
+the active set it found: the value is the minimiser, and the gradient is the implicit gradient of
+the solution (exact wherever the active set does not change).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from .collision import Contacts, ContactSlots
+from .kinematics import Kinematics
+from .limits import _impedance
+from .spatial import _MINVAL, Params, _cross
+from .tree import RigidBodyTree
+
+__all__ = ["ConstraintRows", "constraint_rows", "contact_frame_forces", "solve", "SolverResult"]
+
+
+class ConstraintRows(NamedTuple):
+    """MuJoCo's ``efc_*`` arrays at fixed row positions ``[N, R]`` (see the module docstring)."""
+
+    jacobian: torch.Tensor  # [N, R, nv] efc_J
+    pos: torch.Tensor  # [N, R] efc_pos: the distance (a limit's, or the contact's for all its edges)
+    margin: torch.Tensor  # [R] efc_margin
+    aref: torch.Tensor  # [N, R] efc_aref
+    regulariser: torch.Tensor  # [N, R] efc_R
+    exists: torch.Tensor  # [N, R] bool: MuJoCo has this row
+    rows_per_slot: tuple[int, int]  # (limit rows, pyramid rows): where the contact rows start, and the frictionless
+
+    @property
+    def weight(self) -> torch.Tensor:
+        """``efc_D = 1 / efc_R`` where the row exists, 0 elsewhere ``[N, R]``."""
+        return torch.where(self.exists, 1.0 / self.regulariser, torch.zeros_like(self.regulariser))
+
+
+_MINIMP, _MAXIMP = 0.0001, 0.9999  # MuJoCo's mjMINIMP, mjMAXIMP
+
+
+def _reference(pos, margin, velocity, solref, solimp, timestep: float):
+    """``(aref, imp)`` of rows: MuJoCo's ``aref = -B v - K imp (pos - margin)`` with ``K, B`` from
+    ``solref`` (its time constant at least two timesteps: ``refsafe``) and the impedance ``imp``
+    from ``solimp`` (:func:`~.limits._impedance`), clamped as MuJoCo's ``getsolparam`` does."""
+    dmin, dmax, width, mid, power = solimp.unbind(-1)
+    solimp = torch.stack([dmin.clamp(_MINIMP, _MAXIMP), dmax.clamp(_MINIMP, _MAXIMP), width.clamp_min(0.0),
+                          mid.clamp(_MINIMP, _MAXIMP), power.clamp_min(1.0)], dim=-1)
+    imp = _impedance(solimp, pos - margin)
+    timeconst, dampratio = solref.unbind(-1)
+    dmax = solimp[..., 1]
+    standard = timeconst > 0
+    timeconst = torch.where(standard, timeconst.clamp_min(2 * timestep), timeconst)
+    stiffness = torch.where(standard, 1 / (dmax * dmax * timeconst * timeconst * dampratio * dampratio).clamp_min(_MINVAL),
+                            -timeconst / (dmax * dmax).clamp_min(_MINVAL))
+    damping = torch.where(dampratio > 0, 2 / (dmax * timeconst).clamp_min(_MINVAL), -dampratio / dmax.clamp_min(_MINVAL))
+    return -damping * velocity - stiffness * imp * (pos - margin), imp
+
+
+def _point_jacobian(tree: RigidBodyTree, kin: Kinematics, body: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
+    """``[N, C, nv, 3]`` each dof's velocity of the material point ``point [N, C, 3]`` (world) of ``body [C]``."""
+    motion = kin.motion.unsqueeze(1)  # [N, 1, nv, 6]
+    lever = (point - kin.origin.unsqueeze(1)).unsqueeze(2)  # [N, C, 1, 3]
+    velocity = motion[..., 3:] + _cross(motion[..., :3].expand(*lever.shape[:2], -1, -1), lever.expand(-1, -1, tree.nv, -1))
+    return velocity * tree.body_dof_mask[body].unsqueeze(-1)
+
+
+def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, contacts: Contacts, qpos, qvel,
+                    params: Params, dof_weight: torch.Tensor, body_weight: torch.Tensor) -> ConstraintRows:
+    """The constraint rows at a state: joint limits, then contacts (pyramidal cones).
+
+    ``dof_weight [N, nv]`` and ``body_weight [N, nbody, 2]``: MuJoCo's ``dof_invweight0`` and
+    ``body_invweight0`` for these params (:func:`~.inertia.dof_invweight0`,
+    :func:`~.inertia.body_invweight0`), the scales of the regularisers (``mj_diagApprox``).
+    """
+    timestep = tree.model.timestep
+    n, nv = qpos.shape[0], tree.nv
+    dtype = qpos.dtype
+    jac, pos, margin, aref, reg, exists = [], [], [], [], [], []
+    # joint limits: one row per side, J = +-1 on its dof
+    if tree.limit_dof.numel():
+        dof, sign = tree.limit_dof, tree.limit_sign
+        dist = sign * (qpos[:, tree.dof_qpos[dof]] - tree.limit_value)
+        velocity = sign * qvel[:, dof]
+        row_aref, imp = _reference(dist, tree.limit_margin, velocity, tree.limit_solref, tree.limit_solimp, timestep)
+        jac.append((sign[:, None] * torch.nn.functional.one_hot(dof, nv).to(dtype)).expand(n, -1, -1))
+        pos.append(dist)
+        margin.append(tree.limit_margin)
+        aref.append(row_aref)
+        reg.append(((1 - imp) * dof_weight[:, dof] / imp).clamp_min(_MINVAL))
+        exists.append(dist < tree.limit_margin)
+    limit_rows = sum(p.shape[-1] for p in pos)
+    pyramid_rows = 0
+    if slots.count:
+        body1, body2 = slots.body[:, 0], slots.body[:, 1]
+        diff = _point_jacobian(tree, kin, body2, contacts.pos) - _point_jacobian(tree, kin, body1, contacts.pos)
+        in_frame = contacts.frame @ diff.transpose(-1, -2)  # [N, C, 3, nv]: normal, tangents
+        translation = body_weight[:, body1, 0] + body_weight[:, body2, 0]  # [N, C]
+        mu = params["contact_friction"][:, slots.friction_slot]  # [N, C]
+        for frictional, index in ((True, slots.pyramid_index), (False, slots.normal_index)):
+            if not index.numel():
+                continue
+            c = in_frame[:, index]
+            dist, cmargin = contacts.dist[:, index], slots.margin[index]
+            if frictional:
+                m = mu[:, index, None, None]
+                normal, tangents = c[:, :, :1], c[:, :, 1:]
+                edges = torch.stack([normal + m * tangents, normal - m * tangents], dim=3).flatten(2, 3)  # +t1 -t1 +t2 -t2
+                rows = 4
+                # diagApprox of the first edge, R from it, and MuJoCo's common pyramid R = 2 mu^2 R / impratio
+                diag = translation[:, index] * (1 + mu[:, index] ** 2)
+            else:
+                edges, rows = c[:, :, :1], 1
+                diag = translation[:, index]
+            velocity = (edges @ qvel[:, None, :, None]).squeeze(-1)  # [N, S, rows]
+            row_aref, imp = _reference(dist.unsqueeze(-1), cmargin[:, None], velocity, slots.solref[index, None],
+                                       slots.solimp[index, None], timestep)
+            r = ((1 - imp[..., 0]) * diag / imp[..., 0]).clamp_min(_MINVAL)
+            if frictional:
+                r = 2 * mu[:, index] ** 2 * r / tree.model.impratio
+            jac.append(edges.flatten(1, 2))
+            pos.append(dist.repeat_interleave(rows, dim=1))
+            margin.append(cmargin.repeat_interleave(rows))
+            aref.append(row_aref.flatten(1))
+            reg.append(r.repeat_interleave(rows, dim=1))
+            exists.append(contacts.active[:, index].repeat_interleave(rows, dim=1))
+            if frictional:
+                pyramid_rows = 4 * index.numel()
+    if not jac:
+        empty = qvel.new_zeros(n, 0)
+        return ConstraintRows(qvel.new_zeros(n, 0, nv), empty, qvel.new_zeros(0), empty, empty,
+                              empty.bool(), (0, 0))
+    return ConstraintRows(torch.cat(jac, 1), torch.cat(pos, 1), torch.cat(margin), torch.cat(aref, 1),
+                          torch.cat(reg, 1), torch.cat(exists, 1), (limit_rows, pyramid_rows))
+
+
+class SolverResult(NamedTuple):
+    qacc: torch.Tensor  # [N, nv]
+    force: torch.Tensor  # [N, R] efc_force
+    active: torch.Tensor  # [N, R] bool: the rows pushing at the solution
+    iterations: torch.Tensor  # [N] Newton iterations until the active set settled
+    converged: torch.Tensor  # [N] bool
+
+
+def _line_search(jar, jd, weight, slope0, curvature0):
+    """The exact minimiser ``alpha >= 0`` of the cost along a direction: ``f'(alpha) = slope0 +
+    alpha curvature0 + sum_i w_i jd_i min(0, jar_i + alpha jd_i)``, piecewise linear and
+    increasing. Rows switch at ``t_i = -jar_i / jd_i``; sorted, their running sums give the
+    slope's coefficients on each piece, and the root lies on the first piece whose end is uphill."""
+    inside = jar < 0
+    switching = (jar * jd < 0) | ((jar == 0) & (jd != 0))  # rows whose sign changes at some alpha > 0
+    t = torch.where(switching, -jar / torch.where(jd == 0, 1.0, jd), torch.full_like(jar, torch.inf))
+    # at alpha = 0+: the rows inside, or on the boundary moving in
+    active0 = inside | ((jar == 0) & (jd < 0))
+    c1 = curvature0 + (weight * jd * jd * active0).sum(-1)  # f' = c0 + alpha c1 on the first piece
+    c0 = slope0 + (weight * jd * jar * active0).sum(-1)
+    order = t.argsort(-1)
+    t_sorted = t.gather(-1, order)
+    # a switching row enters (moving in) or leaves (moving out) at its t
+    enter = torch.where(jd < 0, 1.0, -1.0) * switching
+    d1 = (enter * weight * jd * jd).gather(-1, order).cumsum(-1)
+    d0 = (enter * weight * jd * jar).gather(-1, order).cumsum(-1)
+    before1 = torch.cat([c1.unsqueeze(-1), c1.unsqueeze(-1) + d1[..., :-1]], -1)  # the piece ending at t_sorted[k]
+    before0 = torch.cat([c0.unsqueeze(-1), c0.unsqueeze(-1) + d0[..., :-1]], -1)
+    uphill = torch.isfinite(t_sorted) & (before0 + t_sorted * before1 >= 0)
+    k = torch.where(uphill.any(-1), uphill.long().argmax(-1), torch.isfinite(t_sorted).sum(-1))
+    last1 = torch.cat([before1, (c1 + d1[..., -1]).unsqueeze(-1)], -1) if jar.shape[-1] else c1.unsqueeze(-1)
+    last0 = torch.cat([before0, (c0 + d0[..., -1]).unsqueeze(-1)], -1) if jar.shape[-1] else c0.unsqueeze(-1)
+    a1, a0 = last1.gather(-1, k.unsqueeze(-1)).squeeze(-1), last0.gather(-1, k.unsqueeze(-1)).squeeze(-1)
+    return (-a0 / a1.clamp_min(_MINVAL)).clamp_min(0.0)
+
+
+def _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance: float):
+    """One Newton step with the exact line search on the primal: ``(new qacc, converged)``.
+    Converged: the cost's gradient at the new point is below ``tolerance`` relative to the size of
+    its two terms (MuJoCo's test is on a scaled gradient; float32 rounding sets a floor)."""
+    jt = j.transpose(-1, -2)
+    jar = (j @ qacc.unsqueeze(-1)).squeeze(-1) - aref
+    aw = w * ((jar < 0) & exists)
+    gradient = (m @ (qacc - smooth).unsqueeze(-1)).squeeze(-1) + (jt @ (aw * jar).unsqueeze(-1)).squeeze(-1)
+    direction = -torch.linalg.solve_ex(m + jt @ (aw.unsqueeze(-1) * j), gradient)[0]
+    jd = (j @ direction.unsqueeze(-1)).squeeze(-1)
+    md = (m @ direction.unsqueeze(-1)).squeeze(-1)
+    alpha = _line_search(jar, jd, w, (md * (qacc - smooth)).sum(-1), (md * direction).sum(-1))
+    new = qacc + alpha.unsqueeze(-1) * direction
+    jar = (j @ new.unsqueeze(-1)).squeeze(-1) - aref
+    inertial = (m @ (new - smooth).unsqueeze(-1)).squeeze(-1)
+    constraint = (jt @ (w * ((jar < 0) & exists) * jar).unsqueeze(-1)).squeeze(-1)
+    size = inertial.norm(dim=-1) + constraint.norm(dim=-1) + _MINVAL
+    finite = torch.isfinite(new).all(-1)
+    settled = ((inertial + constraint).norm(dim=-1) <= tolerance * size) | ~finite
+    return torch.where(finite.unsqueeze(-1), new, qacc), settled
+
+
+def _newton(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
+    """Newton's method on the primal (no autograd), a fixed number of rounds with converged envs
+    held (a mask: no host-device synchronisation): ``(qacc [N, nv], iterations [N], converged [N])``."""
+    qacc = smooth
+    converged = torch.zeros(qacc.shape[0], dtype=torch.bool, device=qacc.device)
+    used = torch.zeros(qacc.shape[0], dtype=torch.long, device=qacc.device)
+    for _ in range(iterations):
+        new, settled = _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance)
+        qacc = torch.where(converged.unsqueeze(-1), qacc, new)
+        used = used + (~converged).long()
+        converged = converged | settled
+    return qacc, used, converged
+
+
+def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
+    """:func:`_newton` on the CPU, where reading the data costs nothing: envs without rows keep
+    ``qacc_smooth``, the others iterate on their existing rows only (the batch's largest count of
+    them), each round on the envs that have not converged yet."""
+    n = smooth.shape[0]
+    count = exists.sum(-1)
+    envs = (count > 0).nonzero().squeeze(-1)
+    qacc, used = smooth.clone(), torch.zeros(n, dtype=torch.long, device=smooth.device)
+    converged = torch.ones(n, dtype=torch.bool, device=smooth.device)
+    if envs.numel() == 0:
+        return qacc, used, converged
+    order = torch.argsort((~exists[envs]).to(torch.int8), dim=-1, stable=True)[:, :int(count.max())]
+    rows_of = lambda x: x[envs].gather(1, order)  # noqa: E731  (existing rows first)
+    args = (m[envs], smooth[envs], j[envs].gather(1, order.unsqueeze(-1).expand(-1, -1, j.shape[-1])),
+            rows_of(w), rows_of(aref), rows_of(exists))
+    q, left = args[1].clone(), torch.arange(envs.numel(), device=smooth.device)
+    used_c, converged_c = torch.zeros_like(left), torch.zeros_like(left, dtype=torch.bool)
+    for _ in range(iterations):
+        new, settled = _newton_round(q[left], *(a[left] for a in args), tolerance)
+        q[left] = new
+        used_c[left] += 1
+        converged_c[left] = settled
+        left = left[~settled]
+        if not left.numel():
+            break
+    return qacc.index_copy(0, envs, q), used.index_copy(0, envs, used_c), converged.index_copy(0, envs, converged_c)
+
+
+def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, iterations: int,
+          tolerance: float = 1e-8) -> SolverResult:
+    """The constrained acceleration (see the module docstring): at most ``iterations`` Newton
+    steps find the active set; a differentiable solve with it gives ``qacc``.
+
+    An env has converged once its cost's gradient is below ``tolerance`` relative to the size of
+    its terms (at least ``1000 eps`` of the dtype). On the CPU outside ``torch.compile`` the
+    iterations stop once every env has; elsewhere all ``iterations`` run (no host-device
+    synchronisation), converged envs unchanged (a mask).
+    """
+    tolerance = max(tolerance, 1000 * torch.finfo(mass.dtype).eps)
+    if rows.jacobian.shape[1] == 0:
+        empty = qacc_smooth.new_zeros(qacc_smooth.shape[0], 0)
+        done = torch.ones(qacc_smooth.shape[0], dtype=torch.bool, device=qacc_smooth.device)
+        return SolverResult(qacc_smooth, empty, empty.bool(), torch.zeros_like(done, dtype=torch.long), done)
+    weight = rows.weight
+    jacobian, aref, exists = rows.jacobian, rows.aref, rows.exists
+    if qacc_smooth.device.type == "cpu" and not torch.compiler.is_compiling():
+        # on the CPU the rows that exist nowhere in the batch are dropped (a host read costs nothing there)
+        keep = exists.any(0).nonzero().squeeze(-1)
+        jacobian, aref, exists, weight = jacobian[:, keep], aref[:, keep], exists[:, keep], weight[:, keep]
+    with torch.no_grad():
+        j, w, ar = jacobian.detach(), weight.detach(), aref.detach()
+        if qacc_smooth.device.type == "cpu" and not torch.compiler.is_compiling():
+            qacc, used, converged = _newton_compacted(mass.detach(), qacc_smooth.detach(), j, w, ar, exists,
+                                                      iterations, tolerance)
+        else:
+            qacc, used, converged = _newton(mass.detach(), qacc_smooth.detach(), j, w, ar, exists, iterations, tolerance)
+        active = (((j @ qacc.unsqueeze(-1)).squeeze(-1) - ar) < 0) & exists
+    # one differentiable step with the active set: (M + J' D J) qacc = M qacc_smooth + J' D aref
+    aw = weight * active
+    jt = jacobian.transpose(-1, -2)
+    hessian = mass + jt @ (aw.unsqueeze(-1) * jacobian)
+    rhs = (mass @ qacc_smooth.unsqueeze(-1)).squeeze(-1) + (jt @ (aw * aref).unsqueeze(-1)).squeeze(-1)
+    qacc = torch.linalg.solve_ex(hessian, rhs)[0]
+    force = -aw * ((jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - aref)
+    if jacobian.shape[1] != rows.jacobian.shape[1]:  # back to the fixed row positions
+        force = force.new_zeros(rows.aref.shape).index_copy(1, keep, force)
+        active = active.new_zeros(rows.aref.shape).index_copy(1, keep, active)
+    return SolverResult(qacc, force, active, used, converged)
+
+
+def contact_frame_forces(slots: ContactSlots, rows: ConstraintRows, force: torch.Tensor, friction: torch.Tensor) -> torch.Tensor:
+    """``[N, C, 3]`` each contact slot's force in its frame (normal, two tangents), MuJoCo's
+    ``mj_contactForce``: a pyramid's normal force is the sum of its edges', its friction along
+    tangent ``k`` is ``mu (f_{+k} - f_{-k})``. ``friction [N, C]``: each slot's ``mu``."""
+    limits, pyramid = rows.rows_per_slot
+    out = force.new_zeros(force.shape[0], slots.count, 3)
+    if slots.pyramid_index.numel():
+        edges = force[:, limits:limits + pyramid].unflatten(1, (-1, 2, 2))  # [N, S, tangent, +-]
+        mu = friction[:, slots.pyramid_index, None]
+        local = torch.cat([edges.sum((-1, -2)).unsqueeze(-1), mu * (edges[..., 0] - edges[..., 1])], dim=-1)
+        out = out.index_copy(1, slots.pyramid_index, local)
+    if slots.normal_index.numel():
+        normal = force[:, limits + pyramid:]
+        out = out.index_copy(1, slots.normal_index, torch.stack([normal, torch.zeros_like(normal),
+                                                                   torch.zeros_like(normal)], dim=-1))
+    return out
