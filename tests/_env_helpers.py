@@ -154,3 +154,18 @@ def assert_same_tensordict(got, ref, path="root", exact=True):
                 torch.testing.assert_close(x, y, rtol=1e-10, atol=1e-12, msg=where)
         else:
             assert_same_tensordict(x, y, where, exact)
+
+
+def with_smooth_contact(make):
+    """``make_env`` for the tests written for the smooth contact option: MuJoCo tasks get
+    ``contact="smooth"`` unless a test names a contact model (MuJoCo's own is tested in
+    tests/simulator/test_mujoco_contact.py)."""
+    from torchrl_diffenvs.envs.mujoco.base import MuJoCoModelEnv
+    from torchrl_diffenvs.envs.registry import env_class
+
+    def build(name, *args, **kwargs):
+        if issubclass(env_class(name), MuJoCoModelEnv):
+            kwargs.setdefault("contact", "smooth")
+        return make(name, *args, **kwargs)
+
+    return build

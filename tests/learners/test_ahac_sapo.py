@@ -24,6 +24,10 @@ from torchrl_diffenvs.learners import LEARNERS, AHACConfig, AHACLearner, SAPOCon
 from torchrl_diffenvs.learners.sapo import make_sapo_actor
 from torchrl_diffenvs.modules import LeanModule, make_actor, make_critic
 from torchrl_diffenvs.objectives import AHACLoss, AdaptiveHorizon, SAPOLoss, TwinCritic
+from _env_helpers import with_smooth_contact  # noqa: E402
+
+# written for the smooth contact option (MuJoCo's own: tests/simulator/test_mujoco_contact.py)
+make_env = with_smooth_contact(make_env)
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"

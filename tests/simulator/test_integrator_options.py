@@ -10,6 +10,10 @@ import torch
 from torchrl_diffenvs import make_env
 from torchrl_diffenvs.articulated import forward_kinematics, gymnasium_asset
 from torchrl_diffenvs.articulated.dynamics import dof_invweight0, step
+from _env_helpers import with_smooth_contact  # noqa: E402
+
+# written for the smooth contact option (MuJoCo's own: tests/simulator/test_mujoco_contact.py)
+make_env = with_smooth_contact(make_env)
 
 mujoco = pytest.importorskip("mujoco")
 

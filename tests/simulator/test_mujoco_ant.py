@@ -10,6 +10,10 @@ import torch
 
 from torchrl_diffenvs.articulated.dynamics import contact_force, forward_kinematics
 from torchrl_diffenvs.envs import make_env
+from _env_helpers import with_smooth_contact  # noqa: E402
+
+# written for the smooth contact option (MuJoCo's own: tests/simulator/test_mujoco_contact.py)
+make_env = with_smooth_contact(make_env)
 
 gym = pytest.importorskip("gymnasium")
 pytest.importorskip("mujoco")
@@ -74,7 +78,7 @@ def test_ant_contact_forces_are_the_floors_wrench_on_each_body():
     state, params = td["state"], env.params
     # the stored wrench belongs to the last physics stage: recompute it at the final state to compare
     qpos, qvel = state["qpos"], state["qvel"]
-    wrench = env.contact_wrenches(qpos, qvel, params)
+    wrench = env.contact_wrenches(qpos, qvel, td["action"], params)
     kin = forward_kinematics(env.tree, qpos)
     generalised = contact_force(env.tree, kin, qvel, params)
     total = wrench.sum(1)

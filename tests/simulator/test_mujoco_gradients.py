@@ -6,6 +6,10 @@ import pytest
 import torch
 
 from torchrl_diffenvs.envs import make_env
+from _env_helpers import with_smooth_contact  # noqa: E402
+
+# written for the smooth contact option (MuJoCo's own: tests/simulator/test_mujoco_contact.py)
+make_env = with_smooth_contact(make_env)
 
 MUJOCO_TASKS = ["InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5", "Swimmer-v5", "HalfCheetah-v5",
                 "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "HumanoidStandup-v5", "Pusher-v5"]

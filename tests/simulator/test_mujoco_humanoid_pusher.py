@@ -16,6 +16,10 @@ from torchrl_diffenvs.articulated.dynamics import default_params  # noqa: E402
 from torchrl_diffenvs.articulated.forces import passive_force  # noqa: E402
 from torchrl_diffenvs.articulated.mjcf import MJCFError  # noqa: E402
 from torchrl_diffenvs.envs import make_env  # noqa: E402
+from _env_helpers import with_smooth_contact  # noqa: E402
+
+# written for the smooth contact option (MuJoCo's own: tests/simulator/test_mujoco_contact.py)
+make_env = with_smooth_contact(make_env)
 
 CONTACT = {"contact_stiffness": 5e4, "contact_damping": 1000.0, "contact_width": 0.002, "friction_velocity": 0.01}
 

@@ -8,8 +8,9 @@ One module per stage of the simulator, in the order a physics step runs them:
 * :mod:`.kinematics`: body poses and dof motion axes, sums along the tree, ``mj_integratePos``;
 * :mod:`.inertia`: the mass matrix and bias forces;
 * :mod:`.forces`: motors, springs, dampers and the fluid model;
-* :mod:`.contact`: smooth ground contact and its velocity damping;
-* :mod:`.limits`: joint limits as MuJoCo's soft constraints;
+* :mod:`.collision`: MuJoCo's collision detection (contacts between geoms);
+* :mod:`.constraint`: MuJoCo's constraint rows (joint limits, contacts) and their solve;
+* :mod:`.contact` and :mod:`.limits`: the smooth contact option's penalty contact and its joint limits;
 * :mod:`.pipeline`: :func:`accelerations`, the forward dynamics on one screen;
 * :mod:`.integrators`: :func:`step` with semi-implicit Euler or RK4.
 

@@ -14,7 +14,7 @@ Each contact has MuJoCo's ``pos``, ``frame`` (normal first, pointing from geom 1
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -22,10 +22,7 @@ import torch
 from .model import ArticulatedModel
 from .spatial import _MINVAL, _cross
 
-if TYPE_CHECKING:
-    from .kinematics import Kinematics
-
-__all__ = ["Contacts", "ContactSlots", "colliding_pairs", "contact_slots", "collide"]
+__all__ = ["Contacts", "ContactSlots", "colliding_pairs", "contact_slots", "collide", "unsupported_pairs"]
 
 #: the primitives this module implements (MuJoCo's geom type order: plane < sphere < capsule), and
 #: the contacts each gives at most
@@ -137,6 +134,13 @@ class ContactSlots:
         return len(self.condim)
 
 
+def unsupported_pairs(model: ArticulatedModel) -> list[tuple[str, str]]:
+    """The colliding geom pairs (names) whose types have no primitive here (empty: MuJoCo's
+    contact model covers the model)."""
+    return [(model.geom_names[g1], model.geom_names[g2]) for g1, g2 in colliding_pairs(model)
+            if (model.geom_type[g1], model.geom_type[g2]) not in _PRIMITIVES]
+
+
 def contact_slots(model: ArticulatedModel, friction_slots: list[tuple[str, str]], dtype, device) -> ContactSlots:
     """The :class:`ContactSlots` of a model. ``friction_slots``: the geom-name pairs of the
     ``contact_friction`` param (``RigidBodyTree.contact_pairs``, either order)."""
@@ -183,7 +187,7 @@ class Contacts(NamedTuple):
     active: torch.Tensor  # [N, C] bool: MuJoCo has this contact (found, and dist < includemargin)
 
 
-def _geom_poses(kin: Kinematics, geoms: _Geoms):
+def _geom_poses(kin, geoms: _Geoms):
     """World position ``[N, P, 3]`` and rotation ``[N, P, 3, 3]`` of geoms (MuJoCo's geom_xpos, geom_xmat)."""
     rot = kin.body_rot[:, geoms.body]
     return kin.body_pos[:, geoms.body] + (rot @ geoms.pos.unsqueeze(-1)).squeeze(-1), rot @ geoms.rot
@@ -272,8 +276,10 @@ def _capsule_capsule(pos1, axis1, radius1, pos2, axis2, radius2, margin):
     return centres1, centres2, found
 
 
-def collide(slots: ContactSlots, kin: Kinematics) -> Contacts:
-    """The contacts of every slot at these configurations (:class:`Contacts`)."""
+def collide(slots: ContactSlots, kin) -> Contacts:
+    """The contacts of every slot at the configurations of ``kin`` (a
+    :class:`~.kinematics.Kinematics`; not imported here: the kinematics import the tree, which
+    imports this module): :class:`Contacts`."""
     dists, poss, frames, founds = [], [], [], []
     for kind, first, g1, g2 in slots.groups:
         pos1, rot1 = _geom_poses(kin, g1)

@@ -5,7 +5,8 @@
 Rows are laid out at fixed positions: every limit side, then four pyramid edges per frictional
 contact slot, then one row per frictionless slot. A row MuJoCo would not create (a limit not
 within its margin, a contact slot without a contact) is kept with ``exists = False`` and no force:
-the shapes never depend on the state.
+the shapes never depend on the state (on the CPU the solve drops the rows that exist in no env of
+the batch, a host read that costs nothing there).
 
 The solve minimises MuJoCo's convex primal over ``qacc``,
 ``1/2 (qacc - qacc_smooth)' M (qacc - qacc_smooth) + sum_i 1/2 D_i min(0, J_i qacc - aref_i)^2``,
@@ -13,7 +14,10 @@ whose unique minimiser is what MuJoCo's Newton solver converges to. :func:`solve
 Newton's method with an exact line search (the cost is piecewise quadratic along a line, so the
 search sorts the rows' breakpoints) without autograd, then takes one differentiable solve with
 the active set it found: the value is the minimiser, and the gradient is the implicit gradient of
-the solution (exact wherever the active set does not change).
+the solution (exact wherever the active set does not change). Differentiating through the
+iterations instead would cost a backward pass per iteration and carry the line search's
+breakpoints into the gradient; at the solution, one solve gives the same gradient. Under
+``torch.compile`` the Newton search runs eagerly (a graph break).
 """
 from __future__ import annotations
 
@@ -199,7 +203,9 @@ def _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance: float):
     constraint = (jt @ (w * ((jar < 0) & exists) * jar).unsqueeze(-1)).squeeze(-1)
     size = inertial.norm(dim=-1) + constraint.norm(dim=-1) + _MINVAL
     finite = torch.isfinite(new).all(-1)
-    settled = ((inertial + constraint).norm(dim=-1) <= tolerance * size) | ~finite
+    # or: the step is down to rounding (float32 can stall above the gradient test's floor)
+    stalled = (new - qacc).norm(dim=-1) <= 100 * torch.finfo(qacc.dtype).eps * (qacc.norm(dim=-1) + 1)
+    settled = ((inertial + constraint).norm(dim=-1) <= tolerance * size) | stalled | ~finite
     return torch.where(finite.unsqueeze(-1), new, qacc), settled
 
 
@@ -245,15 +251,30 @@ def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance:
     return qacc.index_copy(0, envs, q), used.index_copy(0, envs, used_c), converged.index_copy(0, envs, converged_c)
 
 
+@torch.compiler.disable
+@torch.no_grad()
+def _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations: int, tolerance: float):
+    """The Newton search (no autograd): ``(qacc, iterations, converged, active rows)``.
+
+    It runs eagerly under ``torch.compile`` (a graph break: the unrolled iterations would make the
+    graph of a step hundreds of times larger); on the CPU on the compacted rows and envs
+    (:func:`_newton_compacted`), elsewhere the fixed, masked rounds (:func:`_newton`)."""
+    m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
+    newton = _newton_compacted if smooth.device.type == "cpu" else _newton
+    qacc, used, converged = newton(m, smooth, j, w, ar, exists, iterations, tolerance)
+    active = (((j @ qacc.unsqueeze(-1)).squeeze(-1) - ar) < 0) & exists
+    return qacc, used, converged, active
+
+
 def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, iterations: int,
           tolerance: float = 1e-8) -> SolverResult:
     """The constrained acceleration (see the module docstring): at most ``iterations`` Newton
     steps find the active set; a differentiable solve with it gives ``qacc``.
 
     An env has converged once its cost's gradient is below ``tolerance`` relative to the size of
-    its terms (at least ``1000 eps`` of the dtype). On the CPU outside ``torch.compile`` the
-    iterations stop once every env has; elsewhere all ``iterations`` run (no host-device
-    synchronisation), converged envs unchanged (a mask).
+    its terms (at least ``1000 eps`` of the dtype). On the CPU the iterations stop once every env
+    has; on other devices all ``iterations`` run (no host-device synchronisation), converged envs
+    unchanged (a mask).
     """
     tolerance = max(tolerance, 1000 * torch.finfo(mass.dtype).eps)
     if rows.jacobian.shape[1] == 0:
@@ -266,14 +287,8 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
         # on the CPU the rows that exist nowhere in the batch are dropped (a host read costs nothing there)
         keep = exists.any(0).nonzero().squeeze(-1)
         jacobian, aref, exists, weight = jacobian[:, keep], aref[:, keep], exists[:, keep], weight[:, keep]
-    with torch.no_grad():
-        j, w, ar = jacobian.detach(), weight.detach(), aref.detach()
-        if qacc_smooth.device.type == "cpu" and not torch.compiler.is_compiling():
-            qacc, used, converged = _newton_compacted(mass.detach(), qacc_smooth.detach(), j, w, ar, exists,
-                                                      iterations, tolerance)
-        else:
-            qacc, used, converged = _newton(mass.detach(), qacc_smooth.detach(), j, w, ar, exists, iterations, tolerance)
-        active = (((j @ qacc.unsqueeze(-1)).squeeze(-1) - ar) < 0) & exists
+    qacc, used, converged, active = _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations,
+                                                tolerance)
     # one differentiable step with the active set: (M + J' D J) qacc = M qacc_smooth + J' D aref
     aw = weight * active
     jt = jacobian.transpose(-1, -2)

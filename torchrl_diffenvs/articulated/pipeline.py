@@ -153,7 +153,8 @@ def body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params,
     local = contact_frame_forces(slots, f.rows, f.solution.force, params["contact_friction"][:, slots.friction_slot])
     force = (local.unsqueeze(-2) @ f.contacts.frame).squeeze(-2)  # world frame: sum_k f_k frame_k
     wrench = torch.cat([_cross(f.contacts.pos - about.unsqueeze(1), force), force], dim=-1)  # on geom 2's body
-    return out.index_add(1, slots.body[:, 1], wrench).index_add(1, slots.body[:, 0], -wrench)
+    out = out.index_add(1, slots.body[:, 1], wrench).index_add(1, slots.body[:, 0], -wrench)
+    return torch.cat([torch.zeros_like(out[:, :1]), out[:, 1:]], dim=1)  # MuJoCo keeps none on the world
 
 
 def _constrained_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt,

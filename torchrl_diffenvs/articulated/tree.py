@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .collision import ContactSlots, contact_slots
+from .collision import ContactSlots, contact_slots, unsupported_pairs
 from .model import ArticulatedModel
 
 __all__ = ['RigidBodyTree', 'default_params', 'CONTACT_MODELS']
@@ -124,9 +124,11 @@ class RigidBodyTree:
         return self.model.nbody
 
     @classmethod
-    def from_model(cls, model: ArticulatedModel, dtype=torch.float64, device="cpu", contact: str = "mujoco") -> RigidBodyTree:
+    def from_model(cls, model: ArticulatedModel, dtype=torch.float64, device="cpu", contact: str | None = None
+                   ) -> RigidBodyTree:
         """The tree of ``model`` on ``device`` in ``dtype``, simulating contact with ``contact``
-        (:meth:`use_contact_model`)."""
+        (:meth:`use_contact_model`; ``None``: ``"mujoco"`` where MuJoCo's collision here covers
+        every geom pair of the model that can touch, else ``"smooth"``)."""
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
         idx = lambda a: torch.as_tensor(np.asarray(a, dtype=np.int64), device=device)  # noqa: E731
         nb, nv, njnt = model.nbody, model.nv, model.njnt
@@ -265,6 +267,8 @@ class RigidBodyTree:
             root_subtree_mask=t(_root_subtree_mask(model)),
             body_inertial_frame=t(np.linalg.eigh(model.body_inertia)[1]),
         )
+        if contact is None:
+            contact = "smooth" if unsupported_pairs(model) else "mujoco"
         return tree.use_contact_model(contact)
 
 

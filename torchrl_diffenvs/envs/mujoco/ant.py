@@ -1,8 +1,9 @@
-"""Gymnasium's ``Ant-v5`` (ant.xml): a four-legged robot on a free joint, with smooth ground contact."""
+"""Gymnasium's ``Ant-v5`` (ant.xml): a four-legged robot on a free joint, with ground contact."""
 import torch
 
 from ...articulated.com import root_subtree_com
-from ...articulated.dynamics import body_contact_forces, forward_kinematics
+from ...articulated.kinematics import forward_kinematics
+from ...articulated.pipeline import body_contact_wrenches
 from ..registry import register_env
 from .base import MuJoCoModelEnv
 from .healthy import HealthySurrogate
@@ -23,9 +24,9 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     quaternion too, unnormalised, as Gymnasium's), ``qvel ~ 0.1 N(0, 1)``.
 
     ``cfrc_ext`` is MuJoCo's per-body external contact wrench (torque about the Ant's centre of
-    mass, force; world frame), here from the smooth contact model instead of MuJoCo's solver, so
-    its values and the trajectories differ from Gymnasium's once a leg touches the ground (the
-    contact-free dynamics equal MuJoCo's, see the docs). As Gymnasium does, the torso position
+    mass, force; world frame), from the constraint solve's contact forces (from the smooth
+    contact model's with ``contact="smooth"``, whose values and trajectories differ from
+    Gymnasium's once a leg touches the ground). As Gymnasium does, the torso position
     and ``cfrc_ext`` are read where ``mj_step`` leaves them (the start of the last implicit or Euler step, or the
     last RK4 stage): they travel as
     ``("state", "torso_xy")`` and ``("state", "cfrc_ext")``; ``cfrc_ext`` is 0 after a reset.
@@ -34,18 +35,18 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     bonus at the torso height's bounds; ``posture_gradient_scale``: the gradient of dense height
     and uprightness terms (both straight-through: rewards stay Gymnasium's;
     :class:`~.healthy.HealthySurrogate`). ``cfrc_ext_gradient=False``: the observation's
-    ``cfrc_ext`` features keep their values but carry no gradient (their derivatives are the
-    contact stiffness and the stick-slip friction slope, which dominate the actor's gradient).
+    ``cfrc_ext`` features keep their values but carry no gradient (their derivatives through
+    contact are stiff, and can dominate the actor's gradient).
     """
 
     name = "Ant-v5"
     model_file = "ant.xml"
-    # MuJoCo's implicit integrator: the file's RK4 gives 10^2-10^4x larger actor gradients, and semi-implicit
-    # Euler's explicit Coriolis forces blew up Ants spun fast in the air by resonant full-range square waves
-    # (benchmarks/stress.py, docs/simulator.md)
-    default_integrator = "implicit"
+    # with the smooth contact, MuJoCo's implicit integrator: the file's RK4 gave 10^2-10^4x larger actor gradients,
+    # and semi-implicit Euler's explicit Coriolis forces blew up Ants spun fast in the air by resonant full-range
+    # square waves (benchmarks/stress.py, docs/simulator.md)
+    smooth_integrator = "implicit"
     frame_skip = 5
-    # the Ant weighs 0.9 kg (HalfCheetah 14): a softer, less damped floor than theirs
+    # contact="smooth": the Ant weighs 0.9 kg (HalfCheetah 14): a softer, less damped floor than theirs
     contact_params = {"contact_stiffness": 2e3, "contact_damping": 20.0, "contact_width": 0.002,
                       "friction_velocity": 0.01}
     task_params = {
@@ -75,11 +76,11 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
         """``torso_xy`` of the given ``qpos`` (for a state reset)."""
         return {"torso_xy": state["qpos"][:, :2]}
 
-    def contact_wrenches(self, qpos, qvel, params):
-        """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` from the smooth contact: about the centre of mass."""
+    def contact_wrenches(self, qpos, qvel, ctrl, params):
+        """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` at a state: about the centre of mass."""
         kin = forward_kinematics(self.tree, qpos)  # once per env step, at the state mj_step leaves behind
         centre = root_subtree_com(self.tree, kin, params)[:, 1]  # every body's root is the torso
-        return body_contact_forces(self.tree, kin, qvel, params, about=centre)
+        return body_contact_wrenches(self.tree, qpos, qvel, ctrl, params, about=centre)
 
     def initial_state(self, params, n):
         noise = params["reset_noise_scale"].unsqueeze(-1)
@@ -96,7 +97,7 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     def transition(self, state, action, params):
         result = self.simulate(state, action, params)
         torso_xy = result.eval_qpos[:, :2]  # the free joint's coordinates are the torso's world position
-        cfrc_ext = self.contact_wrenches(result.eval_qpos, result.eval_qvel, params)
+        cfrc_ext = self.contact_wrenches(result.eval_qpos, result.eval_qvel, action, params)
         next_state = {"qpos": result.qpos, "qvel": result.qvel, "torso_xy": torso_xy, "cfrc_ext": cfrc_ext,
                       **self.contact_state(result, torso_xy.shape[0])}
         x_velocity = (torso_xy[:, 0] - state["torso_xy"][:, 0]) / self.dt

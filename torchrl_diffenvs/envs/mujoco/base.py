@@ -2,15 +2,17 @@
 
 A task names its model file (one that ships with gymnasium, or a path), its ``frame_skip`` and its
 task constants, and writes its reset noise, reward, termination and observation like Gymnasium's
-v5 class; the model's physics (:mod:`torchrl_diffenvs.articulated`) and every TorchRL concern
+v5 class. By default the physics is MuJoCo's own (its collision, constraint solve and the model
+file's integrator: ``contact="mujoco"``); ``contact="smooth"`` swaps in a smooth penalty contact,
+an approximation. the model's physics (:mod:`torchrl_diffenvs.articulated`) and every TorchRL concern
 (:class:`~torchrl_diffenvs.envs.base.DiffEnv`) live elsewhere.
 
 State: MuJoCo's coordinates ``("state", "qpos")`` and ``("state", "qvel")`` ``[N, nq]``, plus
 task extras. Params (per env, float or ``[num_envs, ...]``): the model's ``body_mass [nbody]``,
 ``body_inertia [nbody, 3, 3]``, ``gravity [3]``, ``damping``/``armature``/``stiffness [nv]``; for
-models with ground contact ``contact_stiffness``, ``contact_damping``, ``contact_width``,
-``friction_velocity`` and ``contact_friction [ncontact]`` (one per geom-plane pair, MuJoCo's
-sliding friction by default); for models in a fluid (``<option density/viscosity>``, Swimmer)
+models with contact ``contact_friction [ncontact]`` (one per geom pair, MuJoCo's sliding friction
+by default), and with ``contact="smooth"`` ``contact_stiffness``, ``contact_damping``,
+``contact_width`` and ``friction_velocity``; for models in a fluid (``<option density/viscosity>``, Swimmer)
 ``fluid_density`` and ``fluid_viscosity``; and the task's constants (reward weights, healthy
 ranges, reset noise). Truncation follows Gymnasium's ``TimeLimit`` (as the classic Gymnasium tasks).
 """
@@ -23,9 +25,11 @@ import torch
 
 from ...articulated import RigidBodyTree, load_mjcf, step
 from ...articulated.contact import has_contacts
-from ...articulated.dynamics import StepResult, default_params, dof_invweight0
+from ...articulated.dynamics import StepResult, default_params
 from ...articulated.inertia import kinematics_at_qpos0
 from ...articulated.mjcf import ArticulatedModel, gymnasium_asset
+from ...articulated.pipeline import invweight0
+from ...articulated.tree import CONTACT_MODELS
 from ..gym_classic import GymnasiumClassicEnv
 
 __all__ = ["MuJoCoModelEnv"]
@@ -38,7 +42,7 @@ def load_model(model_file: str) -> ArticulatedModel:
     return load_mjcf(path if path.is_file() else gymnasium_asset(model_file))
 
 
-#: Smooth ground-contact defaults (see ``articulated.dynamics.contact_force``); a task may override.
+#: Smooth ground-contact defaults (``contact="smooth"``, see ``articulated.contact.contact_force``); a task may override.
 CONTACT_DEFAULTS = {"contact_stiffness": 2e4, "contact_damping": 500.0, "contact_width": 0.002,
                     "friction_velocity": 0.01}
 
@@ -53,23 +57,28 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
 
     Args:
         num_envs, device, dtype, seed, max_episode_steps, params: as :class:`DiffEnv`.
-        integrator: ``"model"`` (the model file's own, as MuJoCo and Gymnasium run it),
-            ``"euler"`` (MuJoCo's semi-implicit Euler, with the joint damping and here the smooth
-            contact's velocity damping treated implicitly), ``"implicit"`` (MuJoCo's: Euler with
-            the Coriolis and centrifugal forces implicit too) or ``"rk4"``; ``None`` (default): the
-            task's ``default_integrator``. The choice changes how well the step's Jacobian is
-            conditioned while a foot sticks (the regularised friction is a stiff damper: RK4's
-            stability bound is exceeded there, implicit Euler has none), not the task: HalfCheetah,
-            Hopper and Walker2d default to ``"euler"`` (closed-loop actor gradients 1000x smaller on
-            Walker2d, 3-4x cheaper steps, the same fidelity to MuJoCo), the Ant to ``"implicit"``
-            (with Euler, Ants spun fast in the air by resonant full-range actions diverged); the
-            docs list each option's numbers.
+        contact: ``"mujoco"`` (the default): MuJoCo's own contact dynamics (its collision, the
+            constraint rows of contacts and joint limits, and the solve, as ``mj_step``), with the
+            model file's integrator: the task is Gymnasium's. ``"smooth"``: a smooth penalty
+            contact force instead (:mod:`~torchrl_diffenvs.articulated.contact`), an approximation
+            whose trajectories differ from MuJoCo's once a body touches; ``None``: the task's
+            ``default_contact``.
+        integrator: ``None`` (default): the model file's with ``contact="mujoco"``, the task's
+            ``smooth_integrator`` with ``contact="smooth"``; else ``"model"`` (the model file's own, as MuJoCo and Gymnasium run it),
+            ``"euler"`` (MuJoCo's semi-implicit Euler, with the joint damping and, with the smooth
+            contact, its velocity damping treated implicitly), ``"implicit"`` (MuJoCo's: Euler with
+            the Coriolis and centrifugal forces implicit too) or ``"rk4"``. An integrator other
+            than the file's changes the forward: the task is then no longer MuJoCo's. With the
+            smooth contact the choice changes how well the step's Jacobian is conditioned while a
+            foot sticks (its regularised friction is a stiff damper): HalfCheetah, Hopper and
+            Walker2d use ``"euler"`` there, the Ant ``"implicit"``; the docs list each option's numbers.
         substeps: ``k >= 1`` physics steps of ``timestep / k`` for each of MuJoCo's steps (the
             env step ``dt`` is unchanged).
     """
 
     INTEGRATORS = ("model", "euler", "implicit", "rk4")
-    default_integrator = "model"  # the planar contact tasks and the humanoids: "euler"; the Ant: "implicit"
+    default_contact = "mujoco"  # the Pusher: "smooth" (MuJoCo's capsule-cylinder collision is not here yet)
+    smooth_integrator = "model"  # with contact="smooth": the planar contact tasks and the humanoids "euler", the Ant "implicit"
 
     model_file: str = ""
     frame_skip: int = 1
@@ -77,10 +86,17 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
     contact_params: dict = CONTACT_DEFAULTS
     default_max_episode_steps = 1000
 
-    def __init__(self, num_envs: int = 1, *, integrator: str | None = None, substeps: int = 1, **kwargs):
+    def __init__(self, num_envs: int = 1, *, contact: str | None = None, integrator: str | None = None,
+                 substeps: int = 1, **kwargs):
         model = load_model(self.model_file)
         self.model = model
-        integrator = self.default_integrator if integrator is None else integrator
+        contact = self.default_contact if contact is None else contact
+        if contact not in CONTACT_MODELS:
+            raise ValueError(f"{self.name}: unknown contact model {contact!r}; valid: "
+                             f"{', '.join(repr(c) for c in CONTACT_MODELS)}")
+        self.contact = contact
+        if integrator is None:
+            integrator = "model" if contact == "mujoco" else self.smooth_integrator
         if integrator not in self.INTEGRATORS:
             raise ValueError(f"{self.name}: unknown integrator {integrator!r}; valid: "
                              f"{', '.join(repr(i) for i in self.INTEGRATORS)} ('model': the file's {model.integrator!r})")
@@ -101,13 +117,14 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         self.dt = model.timestep * self.frame_skip  # one env step, as Gymnasium's env.dt
         dtype = kwargs.get("dtype", torch.float32)
         device = torch.device(kwargs.get("device") or "cpu")
-        self.tree = RigidBodyTree.from_model(model, dtype=dtype, device=device)
+        self.tree = RigidBodyTree.from_model(model, dtype=dtype, device=device, contact=contact)
         if has_contacts(self.tree):
             self.reading_state_keys = ("contact_force",)  # see reports_contact_force
         kinematics_at_qpos0(self.tree)  # kept on the tree: computed here, not inside a compiled step
         defaults = dict(default_params(model))
         if has_contacts(self.tree):
-            defaults.update(self.contact_params)
+            if contact == "smooth":
+                defaults.update(self.contact_params)
             defaults["contact_friction"] = torch.as_tensor(self.tree.contact_pair_friction)
         defaults.update(self.task_params)
         self.default_params = defaults
@@ -145,12 +162,12 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         its ``contact_force`` is the largest contact normal force over all the physics steps.
         """
         qpos, qvel = state["qpos"], state["qvel"]
-        # the joint limits' regulariser depends on the params only: once per env step, not per physics step
-        invweight0 = dof_invweight0(self.tree, params) if self.tree.limit_dof.numel() else None
+        # the constraints' regulariser scales depend on the params only: once per env step, not per physics step
+        weights = invweight0(self.tree, params)
         largest = None
         for _ in range(self.frame_skip * self.substeps):
             result = step(self.tree, qpos, qvel, action, params, self.model.timestep / self.substeps,
-                          self.integrator, invweight0)
+                          self.integrator, weights)
             qpos, qvel = result.qpos, result.qvel
             if result.contact_force is not None:
                 largest = result.contact_force if largest is None else torch.maximum(largest, result.contact_force)

@@ -20,7 +20,7 @@ class HopperV5Env(PlanarLocomotionEnv):
 
     name = "Hopper-v5"
     model_file = "hopper.xml"
-    default_integrator = "euler"  # the file's RK4: integrator="model" (see MuJoCoModelEnv)
+    smooth_integrator = "euler"  # with contact="smooth" (see MuJoCoModelEnv)
     frame_skip = 4
     clip_velocity = 10.0
     healthy_ranges = {"state": "state", "z": "z", "angle": "angle"}

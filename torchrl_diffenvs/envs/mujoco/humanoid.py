@@ -3,7 +3,7 @@ a 3-D humanoid on a free joint, with smooth contact against the floor and betwee
 import torch
 
 from ...articulated.com import com_inertia, com_velocity, mass_center, root_subtree_com
-from ...articulated.contact import body_contact_forces
+from ...articulated.pipeline import body_contact_wrenches
 from ...articulated.forces import actuator_force
 from ...articulated.kinematics import forward_kinematics
 from ..registry import register_env
@@ -27,7 +27,7 @@ class _HumanoidBase(MuJoCoModelEnv):
     frame_skip = 5
     # semi-implicit Euler: the regularised friction of a planted foot is a stiff damper that the
     # file's explicit RK4 at 3 ms cannot integrate stably; Euler treats it implicitly
-    default_integrator = "euler"
+    smooth_integrator = "euler"  # with contact="smooth" (see MuJoCoModelEnv)
     # a 40 kg robot: a stiffer floor than the default keeps the feet within a centimetre of it
     contact_params = {"contact_stiffness": 5e4, "contact_damping": 1000.0, "contact_width": 0.002,
                       "friction_velocity": 0.01}
@@ -49,22 +49,24 @@ class _HumanoidBase(MuJoCoModelEnv):
         derived = self.derived(state["qpos"], state["qvel"], params)
         return {key: derived[key] for key in ("mass_center_xy", "cinert", "cvel")}
 
-    def derived(self, qpos, qvel, params) -> dict:
+    def derived(self, qpos, qvel, params, ctrl=None) -> dict:
         """The quantities MuJoCo derives from a state that the task reads: ``mass_center_xy``,
-        ``cinert``, ``cvel`` and ``cfrc_ext`` (about the subtree centre of mass)."""
+        ``cinert``, ``cvel`` and, given the ``ctrl`` of the step, ``cfrc_ext`` (about the subtree
+        centre of mass; 0 without ``ctrl``, as after a reset)."""
         kin = forward_kinematics(self.tree, qpos)
         centre = root_subtree_com(self.tree, kin, params)[:, 1]  # the torso's subtree: the whole humanoid
+        cfrc_ext = qpos.new_zeros(qpos.shape[0], self.model.nbody, 6) if ctrl is None else \
+            body_contact_wrenches(self.tree, qpos, qvel, ctrl, params, about=centre)
         return {"mass_center_xy": mass_center(self.tree, kin, params)[:, :2],
                 "cinert": com_inertia(self.tree, kin, params), "cvel": com_velocity(self.tree, kin, qvel, params),
-                "cfrc_ext": body_contact_forces(self.tree, kin, qvel, params, about=centre)}
+                "cfrc_ext": cfrc_ext}
 
     def initial_state(self, params, n):
         noise = params["reset_noise_scale"].unsqueeze(-1)
         qpos = self.init_qpos(n) + (2 * self.uniform(0.0, 1.0, n, self.model.nq) - 1) * noise
         qvel = (2 * self.uniform(0.0, 1.0, n, self.model.nv) - 1) * noise
         state = {"qpos": qpos, "qvel": qvel, **self.derived(qpos, qvel, params)}
-        # after a reset MuJoCo has not run the post-constraint pass (cfrc_ext) and ctrl is 0
-        state["cfrc_ext"] = torch.zeros_like(state["cfrc_ext"])
+        # after a reset MuJoCo has not run the post-constraint pass: cfrc_ext is 0 (derived without ctrl)
         state["qfrc_actuator"] = qpos.new_zeros(n, self.model.nv - 6)
         return {**state, **self.contact_state(None, n)}
 
@@ -73,7 +75,7 @@ class _HumanoidBase(MuJoCoModelEnv):
         result = self.simulate(state, action, params)
         qfrc_actuator = actuator_force(self.tree, action, self.model.nv)[:, 6:]
         next_state = {"qpos": result.qpos, "qvel": result.qvel, "qfrc_actuator": qfrc_actuator,
-                      **self.derived(result.eval_qpos, result.eval_qvel, params),
+                      **self.derived(result.eval_qpos, result.eval_qvel, params, action),
                       **self.contact_state(result, action.shape[0])}
         return next_state, result
 

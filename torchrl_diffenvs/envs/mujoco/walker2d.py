@@ -17,7 +17,7 @@ class Walker2dV5Env(PlanarLocomotionEnv):
 
     name = "Walker2d-v5"
     model_file = "walker2d_v5.xml"
-    default_integrator = "euler"  # the file's RK4: integrator="model" (see MuJoCoModelEnv)
+    smooth_integrator = "euler"  # with contact="smooth" (see MuJoCoModelEnv)
     frame_skip = 4
     clip_velocity = 10.0
     healthy_ranges = {"z": "z", "angle": "angle"}

@@ -1,0 +1,355 @@
+"""MuJoCo's contact pipeline (the default ``contact="mujoco"``) stage by stage against mjData.
+
+Oracles: MuJoCo's own ``mj_forward`` and ``mj_step`` at the same states (float64): the contacts of
+``mj_collision`` (``d.contact``), the constraint rows (``efc_J``, ``efc_pos``, ``efc_R``,
+``efc_aref``), the solve (``efc_force``, ``qfrc_constraint``, ``qacc``), ``body_invweight0``, and
+full steps along random-action trajectories of MuJoCo's own; finite differences in float64 for
+the gradients.
+"""
+import numpy as np
+import pytest
+import torch
+
+mujoco = pytest.importorskip("mujoco")
+
+from torchrl_diffenvs.articulated import RigidBodyTree, default_params, forward_kinematics, gymnasium_asset, load_mjcf, step  # noqa: E402
+from torchrl_diffenvs.articulated.collision import collide  # noqa: E402
+from torchrl_diffenvs.articulated.constraint import constraint_rows, solve  # noqa: E402
+from torchrl_diffenvs.articulated.inertia import body_invweight0, mass_matrix_and_bias  # noqa: E402
+from torchrl_diffenvs.articulated.pipeline import accelerations, body_contact_wrenches, invweight0  # noqa: E402
+from torchrl_diffenvs.envs import make_env  # noqa: E402
+
+CONTACT_ASSETS = ["half_cheetah.xml", "hopper.xml", "walker2d_v5.xml", "ant.xml", "humanoid.xml", "humanoidstandup.xml"]
+# the files without a free joint: their full MuJoCo step is matched (see test_step_matches_mj_step)
+PLANAR = ["half_cheetah.xml", "hopper.xml", "walker2d_v5.xml"]
+
+
+def setup(filename):
+    model = load_mjcf(gymnasium_asset(filename))
+    mm = mujoco.MjModel.from_xml_path(str(gymnasium_asset(filename)))
+    tree = RigidBodyTree.from_model(model)
+    params = {k: v.unsqueeze(0) for k, v in default_params(model).items()}
+    params["contact_friction"] = torch.as_tensor(tree.contact_pair_friction).unsqueeze(0)
+    return model, mm, mujoco.MjData(mm), tree, params
+
+
+def trajectory_states(mm, data, steps, seed, every=1):
+    """``(qpos, qvel, ctrl)`` along a random-action trajectory of MuJoCo's own (from a perturbed qpos0)."""
+    rng = np.random.default_rng(seed)
+    mujoco.mj_resetData(mm, data)
+    data.qpos[:] += rng.uniform(-0.1, 0.1, mm.nq)
+    mujoco.mj_normalizeQuat(mm, data.qpos)
+    out = []
+    for t in range(steps):
+        data.ctrl[:] = rng.uniform(mm.actuator_ctrlrange[:, 0], mm.actuator_ctrlrange[:, 1])
+        if t % every == 0:
+            out.append((data.qpos.copy(), data.qvel.copy(), data.ctrl.copy()))
+        mujoco.mj_step(mm, data)
+    return out
+
+
+def forward(mm, data, qpos, qvel, ctrl):
+    data.qpos[:], data.qvel[:], data.ctrl[:] = qpos, qvel, ctrl
+    data.qacc_warmstart[:] = 0
+    mujoco.mj_forward(mm, data)
+
+
+def t64(*arrays):
+    return [torch.as_tensor(np.asarray(a, dtype=np.float64)).unsqueeze(0) for a in arrays]
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("filename", CONTACT_ASSETS)
+def test_body_invweight0_matches_mujoco(filename):
+    _, mm, _, tree, params = setup(filename)
+    np.testing.assert_allclose(body_invweight0(tree, params)[0].numpy(), mm.body_invweight0, rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("filename", CONTACT_ASSETS)
+def test_contacts_match_mj_collision(filename):
+    """The same contacts per geom pair (count, pos, frame, dist, includemargin) at random
+    configurations pressed into the floor and along a trajectory."""
+    model, mm, data, tree, params = setup(filename)
+    rng = np.random.default_rng(1)
+    states = [s[0] for s in trajectory_states(mm, data, 200, seed=2, every=10)]
+    for _ in range(40):  # random configurations, some deep in the floor
+        q = model.qpos0 + rng.normal(0.0, 0.3, model.nq)
+        if model.joint_type[0] == "free":
+            q[2] = rng.uniform(-0.1, 0.6)
+            q[3:7] /= np.linalg.norm(q[3:7])
+        else:
+            q[1] += rng.uniform(-1.2, 0.0)
+        states.append(q)
+    slots, compared = tree.contact_slots, 0
+    for q in states:
+        forward(mm, data, q, np.zeros(mm.nv), np.zeros(mm.nu))
+        (qpos,) = t64(q)
+        c = collide(slots, forward_kinematics(tree, qpos))
+        ours = sorted((tuple(slots.geom[i].tolist()), c.dist[0, i].item(), i) for i in np.flatnonzero(c.active[0].numpy()))
+        theirs = sorted((tuple(map(int, data.contact.geom[i])), data.contact.dist[i], i)
+                        for i in range(data.ncon) if not data.contact.exclude[i])
+        assert [o[0] for o in ours] == [t[0] for t in theirs]
+        for (_, dist, i), (_, mj_dist, j) in zip(ours, theirs):
+            assert dist == pytest.approx(mj_dist, abs=1e-12)
+            np.testing.assert_allclose(c.pos[0, i].numpy(), data.contact.pos[j], atol=1e-12)
+            np.testing.assert_allclose(c.frame[0, i].numpy().ravel(), data.contact.frame[j], atol=1e-12)
+            assert slots.margin[i].item() == pytest.approx(data.contact.includemargin[j], abs=1e-15)
+            assert slots.condim[i] == data.contact.dim[j]
+        compared += len(ours)
+    assert compared > 20
+
+
+def _mujoco_rows(mm, data):
+    """MuJoCo's rows as ``{(kind, key): (J [k, nv], pos, R [k], aref [k], force [k])}``: limits keyed by
+    their order, contacts by (geom pair, rounded position)."""
+    rows, nv = {}, mm.nv
+    jac = data.efc_J.reshape(data.nefc, nv)
+    i, limit = 0, 0
+    while i < data.nefc:
+        kind = data.efc_type[i]
+        if kind == mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT:
+            rows[("limit", int(data.efc_id[i]), float(np.sign(jac[i][jac[i] != 0][0])))] = \
+                (jac[i:i + 1], data.efc_pos[i], data.efc_R[i:i + 1], data.efc_aref[i:i + 1], data.efc_force[i:i + 1])
+            i, limit = i + 1, limit + 1
+            continue
+        con = data.contact[int(data.efc_id[i])]
+        k = 1 if kind == mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS else 2 * (con.dim - 1)
+        key = ("contact", tuple(map(int, con.geom)), tuple(np.round(con.pos, 9)))
+        rows[key] = (jac[i:i + k], data.efc_pos[i], data.efc_R[i:i + k], data.efc_aref[i:i + k], data.efc_force[i:i + k])
+        i += k
+    return rows
+
+
+def _our_rows(model, tree, slots, contacts, rows, force):
+    out = {}
+    limits, pyramid = rows.rows_per_slot
+    for r in range(limits):
+        if rows.exists[0, r]:
+            joint = int(model.dof_joint[tree.limit_dof[r]])
+            out[("limit", joint, float(tree.limit_sign[r]))] = slice(r, r + 1)
+    for n, s in enumerate(slots.pyramid_index.tolist()):
+        if contacts.active[0, s]:
+            out[("contact", tuple(slots.geom[s].tolist()), tuple(np.round(contacts.pos[0, s].numpy(), 9)))] = \
+                slice(limits + 4 * n, limits + 4 * n + 4)
+    for n, s in enumerate(slots.normal_index.tolist()):
+        if contacts.active[0, s]:
+            out[("contact", tuple(slots.geom[s].tolist()), tuple(np.round(contacts.pos[0, s].numpy(), 9)))] = \
+                slice(limits + pyramid + n, limits + pyramid + n + 1)
+    return out
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("filename", CONTACT_ASSETS)
+def test_constraint_rows_force_and_qacc_match_mjdata(filename):
+    """efc_J, efc_pos, efc_R (hence efc_D), efc_aref, efc_force, qfrc_constraint and qacc at states
+    of a trajectory (feet sliding and sticking, limits hit), where MuJoCo's Newton converged."""
+    model, mm, data, tree, params = setup(filename)
+    mm.opt.solver, mm.opt.iterations = mujoco.mjtSolver.mjSOL_NEWTON, 100  # the humanoids' files ask for PGS
+    weights = invweight0(tree, params)
+    slots, checked = tree.contact_slots, 0
+    for q, v, u in trajectory_states(mm, data, 300, seed=3, every=10 if "humanoid" in filename else 3):
+        forward(mm, data, q, v, u)
+        qpos, qvel, ctrl = t64(q, v, u)
+        kin = forward_kinematics(tree, qpos)
+        contacts = collide(slots, kin)
+        rows = constraint_rows(tree, slots, kin, contacts, qpos, qvel, params, weights.dof, weights.body)
+        mass, _ = mass_matrix_and_bias(tree, kin, qvel, params)
+        solution = solve(mass, torch.as_tensor(data.qacc_smooth).unsqueeze(0), rows, mm.opt.iterations)
+        theirs, ours = _mujoco_rows(mm, data), _our_rows(model, tree, slots, contacts, rows, solution.force)
+        assert set(ours) == set(theirs)
+        for key, index in ours.items():
+            jac, pos, reg, aref, force = theirs[key]
+            np.testing.assert_allclose(rows.jacobian[0, index].numpy(), jac, atol=1e-10)
+            np.testing.assert_allclose(rows.pos[0, index].numpy(), pos, atol=1e-12)
+            np.testing.assert_allclose(rows.regulariser[0, index].numpy(), reg, rtol=1e-9)
+            np.testing.assert_allclose(rows.aref[0, index].numpy(), aref, rtol=1e-8, atol=1e-8)
+            np.testing.assert_allclose(solution.force[0, index].numpy(), force, rtol=1e-6, atol=1e-6)
+        constraint = (rows.jacobian.transpose(-1, -2) @ solution.force.unsqueeze(-1)).squeeze(-1)
+        np.testing.assert_allclose(constraint[0].numpy(), data.qfrc_constraint, rtol=1e-6, atol=1e-6)
+        qacc = accelerations(tree, qpos, qvel, ctrl, params, invweight0=weights)
+        np.testing.assert_allclose(qacc[0].numpy(), data.qacc, rtol=1e-6, atol=1e-6)
+        checked += len(ours)
+    assert checked > 50
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("filename", PLANAR)
+def test_step_matches_mj_step(filename):
+    """One physics step from MuJoCo's own state along a 1000-step random-action trajectory lands on
+    mj_step's next state: 1e-6 in qpos and 1e-5 in qvel (measured: ~1e-13). The 1000 start states
+    are stepped here as one batch."""
+    model, mm, data, tree, params = setup(filename)
+    rng = np.random.default_rng(4)
+    mujoco.mj_resetData(mm, data)
+    data.qpos[:] += rng.uniform(-0.1, 0.1, mm.nq)
+    starts, ends, touching = [], [], 0
+    for _ in range(1000):
+        data.ctrl[:] = rng.uniform(-1.0, 1.0, mm.nu)
+        starts.append((data.qpos.copy(), data.qvel.copy(), data.ctrl.copy()))
+        mujoco.mj_step(mm, data)
+        touching += data.ncon > 0
+        ends.append((data.qpos.copy(), data.qvel.copy()))
+    qpos, qvel, ctrl = (torch.as_tensor(np.stack([s[i] for s in starts])) for i in range(3))
+    batch = {k: v.expand(len(starts), *v.shape[1:]) for k, v in params.items()}
+    result = step(tree, qpos, qvel, ctrl, batch, mm.opt.timestep, model.integrator, invweight0(tree, batch))
+    worst_q = np.abs(result.qpos.numpy() - np.stack([e[0] for e in ends])).max()
+    worst_v = np.abs(result.qvel.numpy() - np.stack([e[1] for e in ends])).max()
+    assert touching > 300
+    assert worst_q < 1e-6 and worst_v < 1e-5, (worst_q, worst_v)
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("filename", ["ant.xml", "humanoid.xml"])
+def test_free_body_step_matches_mujoco_rk4_stages(filename):
+    """The Ant's and the humanoid's RK4 step equals RK4 assembled from MuJoCo's own stages
+    (``mj_forward`` at each stage state, ``mj_integratePos``) to 1e-9. MuJoCo 4's ``mj_step``
+    itself differs from that assembly for free joints by up to ~1e-6 (without contact) and, through
+    stiff contact, ~1e-3 in qvel: reported in the docs, not asserted here."""
+    model, mm, data, tree, params = setup(filename)
+    mm.opt.solver, mm.opt.iterations = mujoco.mjtSolver.mjSOL_NEWTON, 100
+    h = mm.opt.timestep
+    stage = mujoco.MjData(mm)
+
+    def qacc(q, v, u):
+        forward(mm, stage, q, v, u)
+        return stage.qacc.copy()
+
+    def moved(q, v, dt):
+        q = q.copy()
+        mujoco.mj_integratePos(mm, q, v, dt)
+        return q
+
+    starts, ends, touching = trajectory_states(mm, data, 400, seed=5, every=2), [], 0
+    for q0, v0, u in starts:
+        a1 = qacc(q0, v0, u)
+        v2, q2 = v0 + 0.5 * h * a1, moved(q0, v0, 0.5 * h)
+        a2 = qacc(q2, v2, u)
+        v3, q3 = v0 + 0.5 * h * a2, moved(q0, v2, 0.5 * h)
+        a3 = qacc(q3, v3, u)
+        v4, q4 = v0 + h * a3, moved(q0, v3, h)
+        a4 = qacc(q4, v4, u)
+        touching += stage.ncon > 0
+        ends.append((moved(q0, (v0 + 2 * v2 + 2 * v3 + v4) / 6, h), v0 + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)))
+    qpos, qvel, ctrl = (torch.as_tensor(np.stack([s[i] for s in starts])) for i in range(3))
+    batch = {k: v.expand(len(starts), *v.shape[1:]) for k, v in params.items()}
+    result = step(tree, qpos, qvel, ctrl, batch, h, "rk4", invweight0(tree, batch))
+    np.testing.assert_allclose(result.qpos.numpy(), np.stack([e[0] for e in ends]), atol=1e-9)
+    np.testing.assert_allclose(result.qvel.numpy(), np.stack([e[1] for e in ends]), atol=1e-7)
+    assert touching > 10
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_deep_penetration_matches_mjdata():
+    """HalfCheetah pressed 5-15 cm into the floor, feet moving: qacc as MuJoCo's."""
+    model, mm, data, tree, params = setup("half_cheetah.xml")
+    rng = np.random.default_rng(6)
+    for depth in (0.05, 0.1, 0.15):
+        q = model.qpos0 + rng.normal(0.0, 0.2, model.nq)
+        q[1] = -depth
+        v = rng.normal(0.0, 2.0, model.nv)
+        u = rng.uniform(-1, 1, model.nu)
+        forward(mm, data, q, v, u)
+        assert data.ncon >= 1
+        ours = accelerations(tree, *t64(q, v, u), params)
+        np.testing.assert_allclose(ours[0].numpy(), data.qacc, rtol=1e-7, atol=1e-6)
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_ant_cfrc_ext_matches_mujoco():
+    """The Ant env's ``cfrc_ext`` (MuJoCo's contact wrenches) at trajectory states with contact."""
+    model, mm, data, tree, params = setup("ant.xml")
+    from torchrl_diffenvs.articulated.com import root_subtree_com
+    checked = 0
+    for q, v, u in trajectory_states(mm, data, 300, seed=7, every=5):
+        forward(mm, data, q, v, u)
+        if data.ncon == 0:
+            continue
+        mujoco.mj_rnePostConstraint(mm, data)
+        qpos, qvel, ctrl = t64(q, v, u)
+        centre = root_subtree_com(tree, forward_kinematics(tree, qpos), params)[:, 1]
+        ours = body_contact_wrenches(tree, qpos, qvel, ctrl, params, about=centre)
+        np.testing.assert_allclose(ours[0].numpy(), data.cfrc_ext, rtol=1e-6, atol=1e-6)
+        checked += 1
+    assert checked > 5
+
+
+# ------------------------------------------------------------------ gradients through contact
+def _cheetah_on_the_floor():
+    env = make_env("HalfCheetah-v5", num_envs=1, dtype=torch.float64)
+    assert env.contact == "mujoco" and env.integrator == "euler"
+    td = env.reset()
+    # run it into contact with fixed actions
+    for _ in range(20):
+        td = env.step(td.set("action", torch.full((1, 6), 0.5, dtype=torch.float64)))["next"]
+    return env, td["state"]
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_one_step_gradcheck_with_contacts_active():
+    env, state = _cheetah_on_the_floor()
+    tree, params = env.tree, {k: v for k, v in env.params.items()}
+    qpos, qvel = state["qpos"].detach(), state["qvel"].detach()
+    weights = invweight0(tree, params)
+    kin = forward_kinematics(tree, qpos)
+    assert collide(tree.contact_slots, kin).active.any()
+    ctrl = torch.full((1, 6), 0.3, dtype=torch.float64, requires_grad=True)
+    qp, qv = qpos.clone().requires_grad_(True), qvel.clone().requires_grad_(True)
+
+    def one_step(ctrl, qpos, qvel):
+        result = step(tree, qpos, qvel, ctrl, params, tree.model.timestep, "euler", weights)
+        return result.qpos, result.qvel
+
+    assert torch.autograd.gradcheck(one_step, (ctrl, qp, qv), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("wrt", ["actions", "start", "friction", "mass"])
+def test_multi_step_return_gradient_matches_finite_differences_through_contact(wrt):
+    """d(return of 5 env steps in contact)/d(actions, start qvel, friction, a body mass) against
+    central differences in float64."""
+    env, state = _cheetah_on_the_floor()
+    base = {k: v.detach().clone() for k, v in env.params.items()}
+    actions0 = torch.linspace(-0.8, 0.8, 5 * 6, dtype=torch.float64).reshape(5, 1, 6)
+
+    def rollout(x):
+        params, actions, qvel = dict(base), actions0, state["qvel"].detach()
+        if wrt == "actions":
+            actions = x.reshape(5, 1, 6)
+        elif wrt == "start":
+            qvel = x.reshape(1, -1)
+        elif wrt == "friction":
+            params["contact_friction"] = x.reshape(1, -1)
+        else:
+            params["body_mass"] = torch.cat([base["body_mass"][:, :4], x.reshape(1, 1), base["body_mass"][:, 5:]], 1)
+        s = {**{k: v.detach() for k, v in state.items()}, "qvel": qvel}
+        total = 0.0
+        for a in actions:
+            s, reward, _ = env.transition(s, a, params)
+            total = total + reward.sum()
+        return total
+
+    x0 = {"actions": actions0.flatten(), "start": state["qvel"].detach().flatten(),
+          "friction": base["contact_friction"].flatten(), "mass": base["body_mass"][0, 4:5]}[wrt].clone()
+    x = x0.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(rollout(x), x)
+    eps = 1e-6
+    fd = torch.stack([(rollout(x0 + eps * e) - rollout(x0 - eps * e)) / (2 * eps) for e in torch.eye(x0.numel(), dtype=x0.dtype)])
+    assert grad.abs().max() > 1e-3
+    torch.testing.assert_close(grad, fd, rtol=1e-4, atol=1e-5 * fd.abs().max().item())
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_contact_option_defaults_and_errors():
+    """MuJoCo's contact and the file's integrator by default; the smooth model on request, with its
+    own integrators and params; bad values name what is valid."""
+    hopper = make_env("Hopper-v5")
+    assert hopper.contact == "mujoco" and hopper.integrator == "rk4" and "contact_stiffness" not in hopper.params.keys()
+    smooth = make_env("Hopper-v5", contact="smooth")
+    assert smooth.integrator == "euler" and "contact_stiffness" in smooth.params.keys()
+    assert make_env("Ant-v5", contact="smooth").integrator == "implicit"
+    assert make_env("Pusher-v5").contact == "smooth"
+    with pytest.raises(ValueError, match=r"unknown contact model 'soft'; valid: 'mujoco', 'smooth'"):
+        make_env("Hopper-v5", contact="soft")
+    with pytest.raises(ValueError, match=r"'table' \(plane\).*cylinder.*contact='smooth'"):
+        make_env("Pusher-v5", contact="mujoco")
