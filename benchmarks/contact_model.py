@@ -1,0 +1,248 @@
+"""MuJoCo's contact dynamics (``contact="mujoco"``, the default) against the smooth penalty model
+(``contact="smooth"``): parity with ``mj_step``, speed, ops per step and the compiled step.
+
+* **parity** (float64): one physics step from MuJoCo's own state along a random-action trajectory
+  of ``steps`` steps, against ``mj_step``'s next state: the worst ``|dqpos|`` and ``|dqvel|`` of
+  each contact model (with each its default integrator), and the share of steps with contact.
+  The Ant's and the humanoids' files (RK4 with a free joint) are also compared with RK4 assembled
+  from MuJoCo's own stages (``mj_forward`` at each stage, ``mj_integratePos``; warm start off).
+* **speed** (one thread, interleaved rounds, CPU time): env-steps/s at ``N`` envs of the env step
+  (no gradient) and of a 4-step BPTT window (forward + backward), and the ratio mujoco / smooth.
+* **ops**: aten ops per env step (``torch.profiler`` on the CPU, no gradient), the CPU proxy of
+  CUDA kernels per step; and whether ``torch.compile(fullgraph=True)`` of one physics step
+  succeeds (a graph break: the data-dependent parts, reported with their reason).
+
+Needs ``pip install "torchrl_diffenvs[mujoco]"``.
+
+    OMP_NUM_THREADS=1 python benchmarks/contact_model.py
+"""
+from __future__ import annotations
+
+import sys
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
+
+from torchrl_diffenvs import make_env  # noqa: E402
+from torchrl_diffenvs.articulated import step  # noqa: E402
+from torchrl_diffenvs.articulated.pipeline import invweight0  # noqa: E402
+
+PARITY_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "HumanoidStandup-v5"]
+SPEED_TASKS = ["HalfCheetah-v5", "Ant-v5"]
+
+
+def _trajectory(mm, steps: int, seed: int, warmstart: bool = True):
+    """MuJoCo's own random-action trajectory: ``(qpos, qvel, ctrl)`` starts and mj_step's next states."""
+    import mujoco
+
+    data = mujoco.MjData(mm)
+    if not warmstart:
+        mm.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_WARMSTART
+    rng = np.random.default_rng(seed)
+    data.qpos[:] += rng.uniform(-0.1, 0.1, mm.nq)
+    mujoco.mj_normalizeQuat(mm, data.qpos)
+    starts, ends, touching = [], [], 0
+    for _ in range(steps):
+        data.ctrl[:] = rng.uniform(mm.actuator_ctrlrange[:, 0], mm.actuator_ctrlrange[:, 1])
+        starts.append((data.qpos.copy(), data.qvel.copy(), data.ctrl.copy()))
+        mujoco.mj_step(mm, data)
+        touching += data.ncon > 0
+        ends.append((data.qpos.copy(), data.qvel.copy()))
+    return starts, ends, touching / steps
+
+
+def _rk4_from_mujoco_stages(mm, starts):
+    """RK4 assembled from MuJoCo's own stages (cold-started solves), per start state."""
+    import mujoco
+
+    stage, h, out = mujoco.MjData(mm), mm.opt.timestep, []
+
+    def qacc(q, v, u):
+        stage.qpos[:], stage.qvel[:], stage.ctrl[:] = q, v, u
+        stage.qacc_warmstart[:] = 0
+        mujoco.mj_forward(mm, stage)
+        return stage.qacc.copy()
+
+    def moved(q, v, dt):
+        q = q.copy()
+        mujoco.mj_integratePos(mm, q, v, dt)
+        return q
+
+    for q0, v0, u in starts:
+        a1 = qacc(q0, v0, u)
+        v2, q2 = v0 + 0.5 * h * a1, moved(q0, v0, 0.5 * h)
+        a2 = qacc(q2, v2, u)
+        v3, q3 = v0 + 0.5 * h * a2, moved(q0, v2, 0.5 * h)
+        a3 = qacc(q3, v3, u)
+        v4, q4 = v0 + h * a3, moved(q0, v3, h)
+        a4 = qacc(q4, v4, u)
+        out.append((moved(q0, (v0 + 2 * v2 + 2 * v3 + v4) / 6, h), v0 + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)))
+    return out
+
+
+def _one_step_gap(env, starts, ends):
+    """Worst ``(|dqpos|, |dqvel|)`` of one physics step of ``env``'s simulator from each start."""
+    n = len(starts)
+    qpos, qvel, ctrl = (torch.as_tensor(np.stack([s[i] for s in starts])) for i in range(3))
+    params = {k: v[:1].expand(n, *v.shape[1:]) for k, v in env.params.items()}
+    result = step(env.tree, qpos, qvel, ctrl, params, env.model.timestep, env.integrator, invweight0(env.tree, params))
+    return (float(np.abs(result.qpos.numpy() - np.stack([e[0] for e in ends])).max()),
+            float(np.abs(result.qvel.numpy() - np.stack([e[1] for e in ends])).max()))
+
+
+def parity(task: str, steps: int) -> dict:
+    import mujoco
+
+    env = make_env(task, num_envs=1, dtype=torch.float64)
+    mm = mujoco.MjModel.from_xml_path(env.model.path)
+    starts, ends, touching = _trajectory(mm, steps, seed=0)
+    out = {"task": task, "steps": steps, "contact_share": touching, "integrator": env.integrator,
+           "solver": env.model.solver}
+    out["mujoco"] = _one_step_gap(env, starts, ends)
+    out["smooth"] = _one_step_gap(make_env(task, num_envs=1, dtype=torch.float64, contact="smooth"), starts, ends)
+    if env.integrator == "rk4" and any(t == "free" for t in env.model.joint_type):
+        reference = mujoco.MjModel.from_xml_path(env.model.path)
+        reference.opt.solver, reference.opt.iterations = mujoco.mjtSolver.mjSOL_NEWTON, 100
+        out["mujoco_vs_stages"] = _one_step_gap(env, starts, _rk4_from_mujoco_stages(reference, starts))
+    return out
+
+
+def _aten_ops_per_step(env, td) -> int:
+    from torch.profiler import ProfilerActivity, profile
+
+    with torch.no_grad(), profile(activities=[ProfilerActivity.CPU]) as prof:
+        env.step(td)
+    return sum(e.count for e in prof.key_averages() if e.key.startswith("aten::"))
+
+
+def _compiles_fullgraph(env) -> str:
+    """``"yes"`` or the first line of the reason ``torch.compile(fullgraph=True)`` of one physics step fails."""
+    tree, params = env.tree, {k: v for k, v in env.params.items()}
+    weights = invweight0(tree, params)
+    state = env.reset()["state"]
+    action = torch.zeros(env.batch_size[0], env.action_dim, dtype=env.float_dtype)
+
+    def one(qpos, qvel, ctrl):
+        return step(tree, qpos, qvel, ctrl, params, env.model.timestep, env.integrator, weights).qvel
+
+    try:
+        torch._dynamo.reset()
+        torch.compile(one, fullgraph=True, dynamic=False)(state["qpos"], state["qvel"], action)
+        return "yes"
+    except Exception as error:  # a graph break: report why
+        return f"no: {str(error).strip().splitlines()[0][:160]}"
+
+
+def _yes_no(outcome: str | None) -> str:
+    """A table cell for a compile outcome (the reason stays in the raw JSON)."""
+    return "-" if outcome is None else ("yes" if outcome == "yes" else "no (graph break)")
+
+
+def speed(task: str, n: int, rounds: int) -> dict:
+    envs = {contact: make_env(task, num_envs=n, contact=contact) for contact in ("mujoco", "smooth")}
+    tds = {contact: env.reset() for contact, env in envs.items()}
+    gen = torch.Generator().manual_seed(0)
+    actions = (torch.rand(8, n, envs["mujoco"].action_dim, generator=gen) * 2 - 1)
+    for contact, env in envs.items():  # into contact before timing
+        for a in actions:
+            tds[contact] = env.step(tds[contact].set("action", a))["next"]
+
+    def forward(contact):
+        def run():
+            td = tds[contact]
+            with torch.no_grad():
+                for a in actions[:2]:
+                    td = envs[contact].step(td.set("action", a))["next"]
+        return run
+
+    def window(contact):
+        def run():
+            td, total = tds[contact].clone(), 0.0
+            for a in actions[:4]:
+                td = envs[contact].step(td.set("action", a.clone().requires_grad_(True)))["next"]
+                total = total + td["reward"].sum()
+            total.backward()
+        return run
+
+    fns = {f"{c} {kind}": (forward(c) if kind == "step" else window(c)) for c in envs for kind in ("step", "window")}
+    times = C.interleaved(fns, rounds)
+    steps = {"step": 2 * n, "window": 4 * n}
+    rates = {name: C.spread([steps[name.split()[1]] / c for c in t["cpu"]]) for name, t in times.items()}
+    ratio = {kind: C.median_ratio([c / steps[kind] for c in times[f"smooth {kind}"]["cpu"]],
+                                  [c / steps[kind] for c in times[f"mujoco {kind}"]["cpu"]]) for kind in steps}
+    ops = {c: _aten_ops_per_step(env, tds[c].set("action", actions[0])) for c, env in envs.items()}
+    return {"task": task, "N": n, "rates_cpu": rates, "ratio_mujoco_over_smooth": ratio, "aten_ops_per_env_step": ops,
+            "integrators": {c: env.integrator for c, env in envs.items()}}
+
+
+@dataclass(frozen=True)
+class ContactModelSettings(C.BenchmarkSettings):
+    parity_tasks: list[str] = field(default_factory=lambda: list(PARITY_TASKS))
+    speed_tasks: list[str] = field(default_factory=lambda: list(SPEED_TASKS))
+    steps: int = 1000  # trajectory length of the parity check
+    size: int = 1024  # N of the speed check
+    compile: bool = True  # also try torch.compile(fullgraph=True) of one physics step
+
+
+def main(argv=None) -> dict:
+    from torchrl_diffenvs.checks import parse_cli
+
+    args = parse_cli(ContactModelSettings, argv, __doc__)
+    C.setup_threads(args.threads)
+    warnings.filterwarnings("ignore")
+    steps = 50 if args.quick else args.steps
+    n = 16 if args.quick else args.size
+    rounds = args.repeats or (2 if args.quick else 3)
+    info = C.versions()
+    C.print_header("MuJoCo's contact model against the smooth model", info)
+    g = lambda x: f"{x:.1e}"  # noqa: E731
+    parity_rows, parities = [], []
+    for task in args.parity_tasks:
+        p = parity(task, steps)
+        parities.append(p)
+        stages = p.get("mujoco_vs_stages")
+        parity_rows.append([task, f"{p['integrator']}, {p['solver']}", f"{100 * p['contact_share']:.0f}%",
+                            g(p["mujoco"][0]), g(p["mujoco"][1]), "-" if stages is None else g(stages[1]),
+                            g(p["smooth"][0]), g(p["smooth"][1])])
+        print(f"# {task}: {parity_rows[-1]}", flush=True)
+    parity_headers = ["task", "integrator, file's solver", "steps in contact", "mujoco |dqpos|", "mujoco |dqvel|",
+                      "mujoco |dqvel| vs MuJoCo's stages", "smooth |dqpos|", "smooth |dqvel|"]
+    C.print_table(parity_headers, parity_rows)
+    speed_rows, speeds = [], []
+    for task in args.speed_tasks:
+        s = speed(task, n, rounds)
+        if args.compile:
+            s["fullgraph_compile"] = {c: _compiles_fullgraph(make_env(task, num_envs=8, contact=c))
+                                      for c in ("mujoco", "smooth")}
+        speeds.append(s)
+        r, ops = s["rates_cpu"], s["aten_ops_per_env_step"]
+        compiled = s.get("fullgraph_compile", {})
+        speed_rows.append([task, n, f"{s['integrators']['mujoco']} / {s['integrators']['smooth']}",
+                           C.fmt_rate(r["mujoco step"]["median"]), C.fmt_rate(r["smooth step"]["median"]),
+                           C.fmt_ratio(s["ratio_mujoco_over_smooth"]["step"]),
+                           C.fmt_rate(r["mujoco window"]["median"]), C.fmt_rate(r["smooth window"]["median"]),
+                           C.fmt_ratio(s["ratio_mujoco_over_smooth"]["window"]), f"{ops['mujoco']} / {ops['smooth']}",
+                           " / ".join(_yes_no(compiled.get(c)) for c in ("mujoco", "smooth"))])
+        print(f"# {task}: {speed_rows[-1]}", flush=True)
+    speed_headers = ["task", "N", "integrator (mujoco / smooth)", "mujoco step/s", "smooth step/s", "mujoco / smooth",
+                     "mujoco fwd+bwd", "smooth fwd+bwd", "mujoco / smooth (fwd+bwd)", "aten ops per env step",
+                     "fullgraph compile"]
+    C.print_table(speed_headers, speed_rows)
+    payload = {"benchmark": "contact_model", "info": info, "parity": parities, "speed": speeds}
+    C.write_json("contact_model", payload, args.out)
+    C.write_data(args, "contact_model", {
+        "parity": C.data_table(f"One physics step from MuJoCo's state against mj_step, float64, worst over a "
+                               f"{steps}-step random-action trajectory", parity_headers, parity_rows),
+        "speed": C.data_table(f"Env-steps/s at N={n}, one thread, from CPU time (fwd+bwd: a 4-step BPTT window)",
+                              speed_headers, speed_rows)})
+    return payload
+
+
+if __name__ == "__main__":
+    main()
