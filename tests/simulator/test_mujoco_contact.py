@@ -18,6 +18,7 @@ from torchrl_diffenvs.articulated.constraint import constraint_rows, solve  # no
 from torchrl_diffenvs.articulated.inertia import body_invweight0, mass_matrix_and_bias  # noqa: E402
 from torchrl_diffenvs.articulated.pipeline import accelerations, body_contact_wrenches, invweight0  # noqa: E402
 from torchrl_diffenvs.envs import make_env  # noqa: E402
+from _env_helpers import REPO, load_script  # noqa: E402
 
 CONTACT_ASSETS = ["half_cheetah.xml", "hopper.xml", "walker2d_v5.xml", "ant.xml", "humanoid.xml", "humanoidstandup.xml"]
 # the files without a free joint: their full MuJoCo step is matched (see test_step_matches_mj_step)
@@ -209,34 +210,15 @@ def test_free_body_step_matches_mujoco_rk4_stages(filename):
     model, mm, data, tree, params = setup(filename)
     mm.opt.solver, mm.opt.iterations = mujoco.mjtSolver.mjSOL_NEWTON, 100
     h = mm.opt.timestep
-    stage = mujoco.MjData(mm)
-
-    def qacc(q, v, u):
-        forward(mm, stage, q, v, u)
-        return stage.qacc.copy()
-
-    def moved(q, v, dt):
-        q = q.copy()
-        mujoco.mj_integratePos(mm, q, v, dt)
-        return q
-
-    starts, ends, touching = trajectory_states(mm, data, 400, seed=5, every=2), [], 0
-    for q0, v0, u in starts:
-        a1 = qacc(q0, v0, u)
-        v2, q2 = v0 + 0.5 * h * a1, moved(q0, v0, 0.5 * h)
-        a2 = qacc(q2, v2, u)
-        v3, q3 = v0 + 0.5 * h * a2, moved(q0, v2, 0.5 * h)
-        a3 = qacc(q3, v3, u)
-        v4, q4 = v0 + h * a3, moved(q0, v3, h)
-        a4 = qacc(q4, v4, u)
-        touching += stage.ncon > 0
-        ends.append((moved(q0, (v0 + 2 * v2 + 2 * v3 + v4) / 6, h), v0 + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)))
+    starts = trajectory_states(mm, data, 400, seed=5, every=2)
+    bench = load_script("benchmark_contact_model", REPO / "benchmarks" / "contact_model.py")
+    ends = bench._rk4_from_mujoco_stages(mm, starts)  # RK4 of mj_forward stages and mj_integratePos
     qpos, qvel, ctrl = (torch.as_tensor(np.stack([s[i] for s in starts])) for i in range(3))
     batch = {k: v.expand(len(starts), *v.shape[1:]) for k, v in params.items()}
     result = step(tree, qpos, qvel, ctrl, batch, h, "rk4", invweight0(tree, batch))
     np.testing.assert_allclose(result.qpos.numpy(), np.stack([e[0] for e in ends]), atol=1e-9)
     np.testing.assert_allclose(result.qvel.numpy(), np.stack([e[1] for e in ends]), atol=1e-7)
-    assert touching > 10
+    assert collide(tree.contact_slots, forward_kinematics(tree, qpos)).active.any(-1).sum() > 10  # through contact
 
 
 @pytest.mark.filterwarnings("ignore")

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .collision import ContactSlots, contact_slots, unsupported_pairs
+from .collision import ContactSlots, _weld, colliding_pairs, contact_slots, unsupported_pairs
 from .model import ArticulatedModel
 
 __all__ = ['RigidBodyTree', 'default_params', 'CONTACT_MODELS']
@@ -301,38 +301,18 @@ def _root_subtree_mask(model: ArticulatedModel) -> np.ndarray:
                      for b in range(len(parent))])
 
 
-def _weld(model: ArticulatedModel, body: int) -> int:
-    """The body a body moves with (MuJoCo's ``body_weldid``): itself if it has joints, else its
-    parent's weld (the world is its own)."""
-    while body != 0 and not np.any(model.joint_body == body):
-        body = int(model.body_parent[body])
-    return body
-
-
 def _colliding_geom_pairs(model: ArticulatedModel) -> list[tuple[int, int]]:
-    """The geom pairs (neither a plane) that MuJoCo's collision filter lets touch: compatible
-    ``contype``/``conaffinity`` bits, on bodies that do not move together, and (MuJoCo's
-    ``filterparent``) not on a body and its parent, unless that parent is the world."""
+    """The geom pairs (neither a plane; lower index first) that MuJoCo's collision filter lets
+    touch (:func:`~.collision.colliding_pairs`), for the smooth model's body-body contacts."""
     out = []
-    ngeom = len(model.geom_names)
-    for g1 in range(ngeom):
-        for g2 in range(g1 + 1, ngeom):
-            if "plane" in (model.geom_type[g1], model.geom_type[g2]):
-                continue
-            if not ((model.geom_contype[g1] & model.geom_conaffinity[g2])
-                    or (model.geom_contype[g2] & model.geom_conaffinity[g1])):
-                continue
-            w1, w2 = _weld(model, int(model.geom_body[g1])), _weld(model, int(model.geom_body[g2]))
-            if w1 == w2:
-                continue
-            p1, p2 = _weld(model, int(model.body_parent[w1])) if w1 else -1, _weld(model, int(model.body_parent[w2])) if w2 else -1
-            if (p1 == w2 and w2 != 0) or (p2 == w1 and w1 != 0):
-                continue
-            if 0 in (w1, w2):
-                raise ValueError(f"{model.path}: geoms {model.geom_names[g1]!r} and {model.geom_names[g2]!r}: contact "
-                                 "with a static geom other than a plane is not modelled (set contype/conaffinity "
-                                 "to exclude it)")
-            out.append((g1, g2))
+    for g1, g2 in sorted(tuple(sorted(pair)) for pair in colliding_pairs(model)):
+        if "plane" in (model.geom_type[g1], model.geom_type[g2]):
+            continue
+        if 0 in (_weld(model, int(model.geom_body[g1])), _weld(model, int(model.geom_body[g2]))):
+            raise ValueError(f"{model.path}: geoms {model.geom_names[g1]!r} and {model.geom_names[g2]!r}: contact "
+                             "with a static geom other than a plane is not modelled (set contype/conaffinity "
+                             "to exclude it)")
+        out.append((g1, g2))
     return out
 
 
