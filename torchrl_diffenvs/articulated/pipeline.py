@@ -74,21 +74,27 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
                   implicit_bias=False, invweight0=None, with_contact_force=False):
     """``qacc [N, nv]`` of MuJoCo's forward dynamics: the simulator's pipeline, stage by stage.
 
+    With the tree's ``"mujoco"`` contact model (the default), MuJoCo's own
+    (:func:`_constrained_accelerations`):
+
     1. kinematics: body poses and dof motion axes (:mod:`.kinematics`);
     2. inertia and bias: ``M`` and Coriolis, centrifugal and gravity forces (:mod:`.inertia`);
-    3. smooth forces: motors, springs, dampers, fluid (:mod:`.forces`) and ground contact
-       (:mod:`.contact`);
-    4. joint limits: MuJoCo's soft constraints on the unconstrained acceleration (:mod:`.limits`);
-    5. solve ``M qacc = force`` (``M + h D`` for the implicit Euler integrator).
+    3. smooth forces: motors, springs, dampers, fluid (:mod:`.forces`), and ``qacc_smooth``;
+    4. collision (:mod:`.collision`), constraint rows of joint limits and contacts, and their
+       solve (:mod:`.constraint`).
+
+    With ``"smooth"``: stages 1-2, the smooth forces with a penalty ground contact
+    (:mod:`.contact`), the joint limits solved on their own (:mod:`.limits`), then
+    ``M qacc = force``.
 
     ``implicit_damping_dt = h`` gives the acceleration of MuJoCo's Euler integrator, which solves
-    with ``M + h D``: joint damping treated implicitly (MuJoCo), and here the contact's velocity
-    damping too (explicit contact friction and damping at MuJoCo's 0.01 s steps would be unstable).
+    with ``M + h D``: joint damping treated implicitly (MuJoCo), and with the smooth contact its
+    velocity damping too (explicit contact friction and damping at 0.01 s steps would be unstable).
     ``implicit_bias=True`` (with ``implicit_damping_dt``): MuJoCo's ``implicit`` integrator, which
     also treats the Coriolis and centrifugal forces implicitly, ``M + h (D + d bias / d qvel)``
     (:func:`~.inertia.bias_velocity_jacobian`): stable where a light body spins fast, where the
     explicit velocity-product forces pump energy into it.
-    ``invweight0``: :func:`dof_invweight0` of ``params`` when the caller has it (computed if not).
+    ``invweight0``: :func:`invweight0` of ``params`` when the caller has it (computed if not).
     ``with_contact_force``: also return the largest contact normal force ``[N]`` (detached; None
     for a model without contacts), as ``(qacc, largest)``.
     """
