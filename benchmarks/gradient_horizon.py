@@ -27,7 +27,11 @@ reward, Gymnasium's; rewards after an env's first termination are dropped). Repo
 
     OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py
     OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py tasks=[Ant-v5] horizons=[4,8,16] data=none
-    OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py tasks=[Ant-v5] params=[friction_velocity=0.1] data=none
+    OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py tasks=[Hopper-v5] modes=[exact,cfd] data=none
+
+Each row is one contact gradient mode (``contact_gradient``: ``exact``, ``cfd``, ``smooth``; see
+the simulator docs): the forward, hence the window's returns and the smoothed gradient, is the
+same in every mode, so the modes are compared against one smoothed estimate.
 """
 from __future__ import annotations
 
@@ -60,7 +64,8 @@ class GradientHorizonSettings(C.BenchmarkSettings):
     action_scale: float = checked(0.3, checks.positive)  # the window's open-loop actions: N(0, scale^2)
     warmup: int = checked(30, checks.nonnegative_int)
     seed: int = 0
-    params: list[str] | None = None  # NAME=VALUE physical parameter overrides, e.g. [friction_velocity=0.1]
+    params: list[str] | None = None  # NAME=VALUE physical parameter overrides, e.g. [body_mass=...]
+    modes: tuple = checked(("exact", "cfd", "smooth"), each(one_of(("exact", "cfd", "smooth"))))
 
 
 def window_return(env, state: dict, actions: torch.Tensor) -> torch.Tensor:
@@ -89,8 +94,9 @@ def physical_params(s: GradientHorizonSettings) -> dict:
     return out
 
 
-def make(task: str, n: int, s: GradientHorizonSettings):
-    return make_env(task, num_envs=n, seed=s.seed, dtype=torch.float64, params=physical_params(s))
+def make(task: str, n: int, s: GradientHorizonSettings, mode: str = "exact"):
+    return make_env(task, num_envs=n, seed=s.seed, dtype=torch.float64, params=physical_params(s),
+                    contact_gradient=mode)
 
 
 def settled_states(task: str, s: GradientHorizonSettings) -> dict:
@@ -105,17 +111,14 @@ def settled_states(task: str, s: GradientHorizonSettings) -> dict:
 
 
 def measure(task: str, horizon: int, s: GradientHorizonSettings) -> dict:
-    """The four columns of one (task, H) cell, as lists over the start states."""
+    """The columns of one (task, H) cell for each contact gradient mode: ``{mode: {column: list over
+    the start states}}``."""
     B, M = s.starts, s.samples - s.samples % 2
     env, big = make(task, B, s), make(task, B * M, s)
     state = settled_states(task, s)
     generator = torch.Generator().manual_seed(s.seed + horizon)
     A = env.action_dim
     base = s.action_scale * torch.randn(horizon, B, A, generator=generator, dtype=torch.float64)
-
-    actions = base.clone().requires_grad_(True)
-    grad, = torch.autograd.grad(window_return(env, state, actions).sum(), actions)
-    grad = grad.transpose(0, 1).flatten(1)  # [B, H * A]
 
     half = torch.randn(B, M // 2, horizon * A, generator=generator, dtype=torch.float64)
     noise = torch.cat([half, -half], 1)  # antithetic pairs: (i, i + M/2)
@@ -129,17 +132,25 @@ def measure(task: str, horizon: int, s: GradientHorizonSettings) -> dict:
         q = M // 4
         first, second = (pair[:, :q, None] * half[:, :q]).mean(1), (pair[:, q:, None] * half[:, q:]).mean(1)
 
-        def gain(direction, size):
+    def gain(direction, size):
+        with torch.no_grad():
             step = size * direction / direction.norm(dim=1, keepdim=True)
             moved = (base.transpose(0, 1).flatten(1) + step).reshape(B, horizon, A).transpose(0, 1)
             return window_return(env, state, moved) - start
 
-        norm = grad.norm(dim=1)
-        local = gain(grad, 1e-3) / (1e-3 * norm)
-        along = gain(grad, 1.0) / gain(smoothed, 1.0).clamp(min=1e-12)
     cos = torch.nn.functional.cosine_similarity
-    return {"norm": norm.tolist(), "cos": cos(grad, smoothed, dim=1).tolist(),
-            "ceiling": cos(first, second, dim=1).tolist(), "local": local.tolist(), "gain": along.tolist()}
+    ceiling = cos(first, second, dim=1).tolist()
+    smoothed_gain = gain(smoothed, 1.0).clamp(min=1e-12)
+    out = {}
+    for mode in s.modes:
+        actions = base.clone().requires_grad_(True)
+        grad, = torch.autograd.grad(window_return(make(task, B, s, mode), state, actions).sum(), actions)
+        grad = grad.transpose(0, 1).flatten(1)  # [B, H * A]
+        norm = grad.norm(dim=1)
+        out[mode] = {"norm": norm.tolist(), "cos": cos(grad, smoothed, dim=1).tolist(), "ceiling": ceiling,
+                     "local": (gain(grad, 1e-3) / (1e-3 * norm)).tolist(),
+                     "gain": (gain(grad, 1.0) / smoothed_gain).tolist()}
+    return out
 
 
 def main(argv=None):
@@ -149,16 +160,18 @@ def main(argv=None):
     if s.quick:
         s = GradientHorizonSettings(**{**s.__dict__, "tasks": s.tasks[:1], "horizons": (2, 4), "starts": 2,
                                        "samples": 16, "warmup": 2})
-    headers = ["task", "H", "|grad|", "cos with smoothed gradient", "ceiling", "local", "gain along it"]
+    headers = ["task", "H", "contact gradient", "|grad|", "cos with smoothed gradient", "ceiling", "local",
+               "gain along it"]
     rows = []
     for task in s.tasks:
         for horizon in s.horizons:
-            m = measure(task, horizon, s)
-            med = {k: statistics.median(v) for k, v in m.items()}
-            row = [task, str(horizon), f"{med['norm']:.3g}", f"{med['cos']:.2f} [{min(m['cos']):.2f}, {max(m['cos']):.2f}]",
-                   f"{med['ceiling']:.2f}", f"{med['local']:.2f}", f"{med['gain']:.2f}"]
-            rows.append(row)
-            print(" | ".join(row), flush=True)
+            for mode, m in measure(task, horizon, s).items():
+                med = {k: statistics.median(v) for k, v in m.items()}
+                row = [task, str(horizon), mode, f"{med['norm']:.3g}",
+                       f"{med['cos']:.2f} [{min(m['cos']):.2f}, {max(m['cos']):.2f}]",
+                       f"{med['ceiling']:.2f}", f"{med['local']:.2f}", f"{med['gain']:.2f}"]
+                rows.append(row)
+                print(" | ".join(row), flush=True)
             C.write_data(s, "gradient_horizon", {"horizon": C.data_table(
                 f"The window's analytic action gradient against its smoothed gradient (sigma {s.sigma}, "
                 f"{s.samples} perturbations; median over {s.starts} settled start states, float64"

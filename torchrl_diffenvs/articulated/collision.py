@@ -185,6 +185,7 @@ class Contacts(NamedTuple):
     pos: torch.Tensor  # [N, C, 3] world position, midway between the surfaces
     frame: torch.Tensor  # [N, C, 3, 3] rows: the normal (from geom 1 to geom 2), then two tangents
     active: torch.Tensor  # [N, C] bool: MuJoCo has this contact (found, and dist < includemargin)
+    found: torch.Tensor  # [N, C] bool: the slot's points exist at any distance (capsule-capsule's second: parallel axes)
 
 
 def _geom_poses(kin, geoms: _Geoms):
@@ -319,6 +320,5 @@ def collide(slots: ContactSlots, kin) -> Contacts:
         dists.append(dist.flatten(1))
         poss.append(pos.flatten(1, 2))
         frames.append(_make_frame(normal, tangent).flatten(1, 2))
-    dist = torch.cat(dists, dim=1)
-    return Contacts(dist, torch.cat(poss, dim=1), torch.cat(frames, dim=1),
-                    torch.cat(founds, dim=1) & (dist < slots.margin))
+    dist, found = torch.cat(dists, dim=1), torch.cat(founds, dim=1)
+    return Contacts(dist, torch.cat(poss, dim=1), torch.cat(frames, dim=1), found & (dist < slots.margin), found)

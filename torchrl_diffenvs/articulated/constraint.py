@@ -26,6 +26,7 @@ from typing import NamedTuple
 import torch
 
 from .collision import Contacts, ContactSlots
+from .contact_gradient import ContactGradient
 from .kinematics import Kinematics
 from .limits import _impedance
 from .spatial import _MINVAL, Params, _cross
@@ -43,6 +44,7 @@ class ConstraintRows(NamedTuple):
     aref: torch.Tensor  # [N, R] efc_aref
     regulariser: torch.Tensor  # [N, R] efc_R
     exists: torch.Tensor  # [N, R] bool: MuJoCo has this row
+    found: torch.Tensor  # [N, R] bool: a contact row whose contact is there at any distance (limits: False)
     rows_per_slot: tuple[int, int]  # (limit rows, pyramid rows): where the contact rows start, and the frictionless
 
     @property
@@ -91,7 +93,7 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
     timestep = tree.model.timestep
     n, nv = qpos.shape[0], tree.nv
     dtype = qpos.dtype
-    jac, pos, margin, aref, reg, exists = [], [], [], [], [], []
+    jac, pos, margin, aref, reg, exists, found = [], [], [], [], [], [], []
     # joint limits: one row per side, J = +-1 on its dof
     if tree.limit_dof.numel():
         dof, sign = tree.limit_dof, tree.limit_sign
@@ -104,6 +106,7 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
         aref.append(row_aref)
         reg.append(((1 - imp) * dof_weight[:, dof] / imp).clamp_min(_MINVAL))
         exists.append(dist < tree.limit_margin)
+        found.append(torch.zeros_like(exists[-1]))
     limit_rows = sum(p.shape[-1] for p in pos)
     pyramid_rows = 0
     if slots.count:
@@ -139,14 +142,15 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
             aref.append(row_aref.flatten(1))
             reg.append(r.repeat_interleave(rows, dim=1))
             exists.append(contacts.active[:, index].repeat_interleave(rows, dim=1))
+            found.append(contacts.found[:, index].repeat_interleave(rows, dim=1))
             if frictional:
                 pyramid_rows = 4 * index.numel()
     if not jac:
         empty = qvel.new_zeros(n, 0)
         return ConstraintRows(qvel.new_zeros(n, 0, nv), empty, qvel.new_zeros(0), empty, empty,
-                              empty.bool(), (0, 0))
+                              empty.bool(), empty.bool(), (0, 0))
     return ConstraintRows(torch.cat(jac, 1), torch.cat(pos, 1), torch.cat(margin), torch.cat(aref, 1),
-                          torch.cat(reg, 1), torch.cat(exists, 1), (limit_rows, pyramid_rows))
+                          torch.cat(reg, 1), torch.cat(exists, 1), torch.cat(found, 1), (limit_rows, pyramid_rows))
 
 
 class SolverResult(NamedTuple):
@@ -266,39 +270,84 @@ def _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations: i
     return qacc, used, converged, active
 
 
+def _surrogate_share(gradient: ContactGradient, jacobian, aref, exists, found, pos, margin, regulariser, active, qacc):
+    """The share ``[N, R]`` in ``[0, 1]`` of each row's weight ``1 / R`` in the surrogate solve of a
+    gradient mode (detached: the weights keep their own gradient, as the exact solve's do)."""
+    with torch.no_grad():
+        if gradient.mode == "cfd":
+            beyond = (pos - margin) / gradient.distance
+            near = found & ~exists & (beyond < 1)
+            fade = torch.where(exists, torch.ones_like(beyond), (1 - beyond).clamp(0, 1))
+            return fade * (active | near)
+        residual = (jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - aref  # J qacc - aref at the solution
+        hypothetical = torch.where(exists, -residual / regulariser, torch.zeros_like(residual))  # the force if active
+        largest = hypothetical.abs().amax(-1, keepdim=True) if hypothetical.shape[-1] else hypothetical.new_ones(1)
+        scale = largest.clamp_min(_MINVAL) * gradient.softness
+        return exists * torch.sigmoid(hypothetical / scale)
+
+
+def _solve_with(mass, qacc_smooth, jacobian, aref, row_weight):
+    """The solve with fixed row weights: ``(M + J' W J) qacc = M qacc_smooth + J' W aref``, and the
+    rows' forces ``-W (J qacc - aref)``."""
+    jt = jacobian.transpose(-1, -2)
+    hessian = mass + jt @ (row_weight.unsqueeze(-1) * jacobian)
+    rhs = (mass @ qacc_smooth.unsqueeze(-1)).squeeze(-1) + (jt @ (row_weight * aref).unsqueeze(-1)).squeeze(-1)
+    qacc = torch.linalg.solve_ex(hessian, rhs)[0]
+    return qacc, -row_weight * ((jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - aref)
+
+
 def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, iterations: int,
-          tolerance: float = 1e-8) -> SolverResult:
+          tolerance: float = 1e-8, gradient: ContactGradient = ContactGradient()) -> SolverResult:
     """The constrained acceleration (see the module docstring): at most ``iterations`` Newton
     steps find the active set; a differentiable solve with it gives ``qacc``.
 
     An env has converged once its cost's gradient is below ``tolerance`` relative to the size of
     its terms (at least ``1000 eps`` of the dtype). On the CPU the iterations stop once every env
     has; on other devices all ``iterations`` run (no host-device synchronisation), converged envs
-    unchanged (a mask).
+    unchanged (a mask). ``gradient``: how the backward differentiates the solve
+    (:class:`ContactGradient`; the values are the same in every mode).
     """
     tolerance = max(tolerance, 1000 * torch.finfo(mass.dtype).eps)
     if rows.jacobian.shape[1] == 0:
         empty = qacc_smooth.new_zeros(qacc_smooth.shape[0], 0)
         done = torch.ones(qacc_smooth.shape[0], dtype=torch.bool, device=qacc_smooth.device)
         return SolverResult(qacc_smooth, empty, empty.bool(), torch.zeros_like(done, dtype=torch.long), done)
-    weight = rows.weight
-    jacobian, aref, exists = rows.jacobian, rows.aref, rows.exists
-    if qacc_smooth.device.type == "cpu" and not torch.compiler.is_compiling():
-        # on the CPU the rows that exist nowhere in the batch are dropped (a host read costs nothing there)
-        keep = exists.any(0).nonzero().squeeze(-1)
-        jacobian, aref, exists, weight = jacobian[:, keep], aref[:, keep], exists[:, keep], weight[:, keep]
+    compact = qacc_smooth.device.type == "cpu" and not torch.compiler.is_compiling()
+
+    def rows_where(needed):
+        """The rows' arrays, on the CPU without the rows needed in no env of the batch (a host read
+        costs nothing there), and the kept positions (None: all)."""
+        arrays = (rows.jacobian, rows.aref, rows.exists, rows.weight, rows.found, rows.pos,
+                  rows.margin.expand_as(rows.pos), rows.regulariser)
+        if not compact:
+            return arrays, None
+        keep = needed.any(0).nonzero().squeeze(-1)
+        return tuple(a[:, keep] for a in arrays), keep
+
+    def full(x, keep):  # back to the fixed row positions
+        return x if keep is None else x.new_zeros(rows.aref.shape).index_copy(1, keep, x)
+
+    (jacobian, aref, exists, weight, *_), keep = rows_where(rows.exists)
     qacc, used, converged, active = _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations,
                                                 tolerance)
-    # one differentiable step with the active set: (M + J' D J) qacc = M qacc_smooth + J' D aref
+    # one differentiable solve with the active set: the value, and in the exact mode the gradient
     aw = weight * active
-    jt = jacobian.transpose(-1, -2)
-    hessian = mass + jt @ (aw.unsqueeze(-1) * jacobian)
-    rhs = (mass @ qacc_smooth.unsqueeze(-1)).squeeze(-1) + (jt @ (aw * aref).unsqueeze(-1)).squeeze(-1)
-    qacc = torch.linalg.solve_ex(hessian, rhs)[0]
-    force = -aw * ((jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - aref)
-    if jacobian.shape[1] != rows.jacobian.shape[1]:  # back to the fixed row positions
-        force = force.new_zeros(rows.aref.shape).index_copy(1, keep, force)
-        active = active.new_zeros(rows.aref.shape).index_copy(1, keep, active)
+    if gradient.mode == "exact":
+        qacc, force = _solve_with(mass, qacc_smooth, jacobian, aref, aw)
+        return SolverResult(qacc, full(force, keep), full(active, keep), used, converged)
+    with torch.no_grad():
+        qacc, force = _solve_with(mass, qacc_smooth, jacobian, aref, aw)
+    force, active = full(force, keep), full(active, keep)
+    # the surrogate, on the rows its mode needs: the exact solve's value with its gradient (straight through)
+    needed = rows.exists
+    if gradient.mode == "cfd":
+        needed = rows.exists | (rows.found & (rows.pos - rows.margin < gradient.distance))
+    (jacobian, aref, exists, _, found, pos, margin, reg), keep = rows_where(needed)
+    share = _surrogate_share(gradient, jacobian, aref, exists, found, pos, margin, reg,
+                             active if keep is None else active[:, keep], qacc)
+    qacc_s, force_s = _solve_with(mass, qacc_smooth, jacobian, aref, share / reg)
+    qacc = qacc + (qacc_s - qacc_s.detach())
+    force = force + full(force_s - force_s.detach(), keep)
     return SolverResult(qacc, force, active, used, converged)
 
 

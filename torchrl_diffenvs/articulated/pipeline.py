@@ -140,7 +140,8 @@ def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weigh
     qacc_smooth = _solve(mass, smooth_force)
     contacts = collide(slots, kin) if slots.count else None
     rows = constraint_rows(tree, slots, kin, contacts, qpos, qvel, params, weights.dof, weights.body)
-    solution = solve(mass, qacc_smooth, rows, tree.model.iterations, tree.model.tolerance)
+    solution = solve(mass, qacc_smooth, rows, tree.model.iterations, tree.model.tolerance,
+                     tree.contact_gradient)
     return _MuJoCoForward(kin, mass, smooth_force, contacts, rows, solution, bias_jacobian[0] if bias_jacobian else None)
 
 

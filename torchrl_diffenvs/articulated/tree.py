@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from .collision import ContactSlots, _weld, colliding_pairs, contact_slots, unsupported_pairs
+from .contact_gradient import ContactGradient
 from .model import ArticulatedModel
 
 __all__ = ['RigidBodyTree', 'default_params', 'CONTACT_MODELS']
@@ -94,6 +95,8 @@ class RigidBodyTree:
     # how contact is simulated (see use_contact_model), and MuJoCo's contact slots
     contact_model: str = "mujoco"
     contact_slots: ContactSlots | None = None
+    # how the backward differentiates MuJoCo's constraint solve (see use_contact_gradient)
+    contact_gradient: ContactGradient = ContactGradient()
 
     def use_contact_model(self, contact: str) -> RigidBodyTree:
         """Set how contacts are simulated: ``"mujoco"`` (MuJoCo's collision, constraint rows and
@@ -105,6 +108,18 @@ class RigidBodyTree:
         if contact == "mujoco" and self.contact_slots is None:
             self.contact_slots = contact_slots(self.model, self.contact_pairs, self.body_pos.dtype, self.body_pos.device)
         self.contact_model = contact
+        return self
+
+    def use_contact_gradient(self, gradient) -> RigidBodyTree:
+        """Set how the backward differentiates MuJoCo's constraint solve: ``"exact"``, ``"cfd"``,
+        ``"smooth"``, a mapping of :class:`~.contact_gradient.ContactGradient`'s fields or one (the forward
+        values are MuJoCo's in every mode). Only the ``"mujoco"`` contact model has the solve.
+        Returns the tree."""
+        gradient = ContactGradient.parse(gradient)
+        if gradient.mode != "exact" and self.contact_model != "mujoco":
+            raise ValueError(f"contact_gradient={gradient.mode!r} shapes the gradient of MuJoCo's constraint solve; "
+                             f"this tree uses the {self.contact_model!r} contact model (valid there: 'exact')")
+        self.contact_gradient = gradient
         return self
 
     @property

@@ -74,6 +74,14 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             Walker2d use ``"euler"`` there, the Ant ``"implicit"``; the docs list each option's numbers.
         substeps: ``k >= 1`` physics steps of ``timestep / k`` for each of MuJoCo's steps (the
             env step ``dt`` is unchanged).
+        contact_gradient: how the backward differentiates MuJoCo's constraint solve, with
+            ``contact="mujoco"``; the forward values are the same in every mode.
+            ``"exact"`` (default): the implicit gradient of the solution. ``"cfd"`` (contacts
+            from distance): contacts within ``distance`` beyond touching contribute a backward-only
+            force, so a foot about to land has a gradient. ``"smooth"``: a soft active set in the
+            backward. A mapping sets the fields of
+            :class:`~torchrl_diffenvs.articulated.contact_gradient.ContactGradient`, e.g.
+            ``{"mode": "cfd", "distance": 0.05}``.
     """
 
     INTEGRATORS = ("model", "euler", "implicit", "rk4")
@@ -87,7 +95,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
     default_max_episode_steps = 1000
 
     def __init__(self, num_envs: int = 1, *, contact: str | None = None, integrator: str | None = None,
-                 substeps: int = 1, **kwargs):
+                 substeps: int = 1, contact_gradient="exact", **kwargs):
         model = load_model(self.model_file)
         self.model = model
         contact = self.default_contact if contact is None else contact
@@ -118,6 +126,11 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         dtype = kwargs.get("dtype", torch.float32)
         device = torch.device(kwargs.get("device") or "cpu")
         self.tree = RigidBodyTree.from_model(model, dtype=dtype, device=device, contact=contact)
+        try:
+            self.tree.use_contact_gradient(contact_gradient)
+        except ValueError as err:
+            raise ValueError(f"{self.name}: {err}") from None
+        self.contact_gradient = self.tree.contact_gradient
         if has_contacts(self.tree):
             self.reading_state_keys = ("contact_force",)  # see reports_contact_force
         kinematics_at_qpos0(self.tree)  # kept on the tree: computed here, not inside a compiled step

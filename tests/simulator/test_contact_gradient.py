@@ -1,0 +1,101 @@
+"""The contact gradient modes (``contact_gradient``): every mode leaves MuJoCo's forward values
+unchanged, bit for bit; CFD gives a foot just above the floor a gradient that the exact solve
+cannot (zero beyond its distance); the smoothed active set tends to the exact gradient as its
+softness goes to 0."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchrl_diffenvs.articulated import step
+from torchrl_diffenvs.articulated.collision import collide
+from torchrl_diffenvs.articulated.contact_gradient import ContactGradient
+from torchrl_diffenvs.articulated.kinematics import forward_kinematics
+from torchrl_diffenvs.articulated.pipeline import invweight0
+from torchrl_diffenvs.envs import make_env
+
+
+def _rollout(task, mode, steps=12, seed=3):
+    """``steps`` env steps from a reset under fixed random actions: the observations and rewards,
+    and the gradient of their sum with respect to the actions."""
+    env = make_env(task, num_envs=2, seed=seed, dtype=torch.float64, contact_gradient=mode)
+    actions = torch.rand(steps, 2, env.action_dim, dtype=torch.float64,
+                         generator=torch.Generator().manual_seed(seed)) * 2 - 1
+    actions.requires_grad_(True)
+    td = env.reset()
+    observations, rewards = [], []
+    for a in actions:
+        td["action"] = a
+        td = env.step(td)
+        observations.append(td["next", "observation"])
+        rewards.append(td["next", "reward"])
+        td = env.step_mdp(td)
+    obs, rew = torch.stack(observations), torch.stack(rewards)
+    (grad,) = torch.autograd.grad(rew.sum() + obs.sum(), actions)
+    return obs.detach(), rew.detach(), grad
+
+
+@pytest.mark.parametrize("task", ["Hopper-v5", "HalfCheetah-v5"])
+def test_every_mode_keeps_mujocos_forward_values(task):
+    exact_obs, exact_rew, exact_grad = _rollout(task, "exact")
+    for mode in ("cfd", "smooth"):
+        obs, rew, grad = _rollout(task, mode)
+        assert torch.equal(obs, exact_obs) and torch.equal(rew, exact_rew), mode
+        assert torch.isfinite(grad).all()
+        assert not torch.equal(grad, exact_grad), f"{mode}: the gradient should differ once feet touch"
+
+
+def _hopper_foot_above_floor(height: float):
+    """The Hopper upright, falling at 0.5 m/s, its lowest point ``height`` above the floor."""
+    env = make_env("Hopper-v5", num_envs=1, dtype=torch.float64)
+    tree = env.tree
+    qpos = tree.qpos0.unsqueeze(0).clone()
+    dist = collide(tree.contact_slots, forward_kinematics(tree, qpos)).dist
+    floor = tree.contact_slots.body[:, 0] == 0  # slots against the world's plane
+    qpos[0, 1] -= dist[0, floor].min() - height
+    qvel = torch.zeros(1, tree.nv, dtype=torch.float64)
+    qvel[0, 1] = -0.5
+    return env, qpos, qvel
+
+
+def _height_gradient(mode, height: float) -> float:
+    """``d qvel'_z / d qpos_z`` of one physics step (no contact exists at these heights)."""
+    env, qpos, qvel = _hopper_foot_above_floor(height)
+    tree = env.tree.use_contact_gradient(mode)
+    params = dict(env.params.items())
+    qpos.requires_grad_(True)
+    ctrl = torch.zeros(1, tree.model.nu, dtype=torch.float64)
+    result = step(tree, qpos, qvel, ctrl, params, tree.model.timestep, "euler", invweight0(tree, params))
+    (grad,) = torch.autograd.grad(result.qvel[0, 1], qpos)
+    return grad[0, 1].item()
+
+
+def test_cfd_gives_a_gradient_just_above_the_floor_and_none_beyond_its_distance():
+    margin = 0.002  # the Hopper's contact margin (geom margins summed)
+    near = margin + 0.005
+    assert _height_gradient("exact", near) == 0.0  # free fall: the exact gradient cannot see the floor
+    cfd = _height_gradient(ContactGradient("cfd", distance=0.02), near)
+    assert cfd < 0, "lower is pushed up harder: d qvel_z / d z must be negative"
+    assert _height_gradient(ContactGradient("cfd", distance=0.02), margin + 0.03) == 0.0  # beyond the distance
+    # a larger distance reaches it
+    assert _height_gradient(ContactGradient("cfd", distance=0.05), margin + 0.03) < 0
+
+
+def test_smooth_mode_tends_to_the_exact_gradient():
+    _, _, exact = _rollout("Hopper-v5", "exact", steps=10)
+    _, _, soft = _rollout("Hopper-v5", ContactGradient("smooth", softness=1e-14), steps=10)
+    torch.testing.assert_close(soft, exact, rtol=1e-7, atol=1e-9)
+    _, _, smooth = _rollout("Hopper-v5", ContactGradient("smooth", softness=0.3), steps=10)
+    assert (smooth - exact).norm() > 1e-6 * exact.norm()
+
+
+def test_contact_gradient_option_errors_name_what_is_valid():
+    with pytest.raises(ValueError, match="unknown mode 'soft'.*'exact', 'cfd', 'smooth'"):
+        make_env("Hopper-v5", contact_gradient="soft")
+    with pytest.raises(ValueError, match="unknown keys \\['width'\\]"):
+        make_env("Hopper-v5", contact_gradient={"mode": "cfd", "width": 0.1})
+    with pytest.raises(ValueError, match="distance must be a number > 0"):
+        make_env("Hopper-v5", contact_gradient={"mode": "cfd", "distance": -1})
+    with pytest.raises(ValueError, match="'smooth' contact model"):
+        make_env("Hopper-v5", contact="smooth", contact_gradient="cfd")
+    assert make_env("Hopper-v5", contact_gradient={"mode": "cfd", "distance": 0.05}).contact_gradient.distance == 0.05
