@@ -11,6 +11,7 @@ over its agents of their returns.
 """
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 
 import torch
@@ -21,9 +22,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from .envs.multi_agent import reward_per_env
 
 __all__ = [
-    "episode_returns", "evaluate", "evaluate_random", "first_episode_ends", "first_episode_mask", "record_video",
-    "uniform_random_policy",
+    "episode_returns", "evaluate", "evaluate_in_gymnasium", "evaluate_random", "first_episode_ends", "first_episode_mask",
+    "gymnasium_kwargs", "record_video", "uniform_random_policy",
 ]
+
+#: Options of our tasks that choose how the physics is simulated or how the backward is shaped, not
+#: what the task is: Gymnasium's env has none of them (it is MuJoCo's own forward, without gradients).
+NOT_TASK_OPTIONS = frozenset({"contact", "integrator", "substeps", "contact_gradient", "cfrc_ext_gradient",
+                              "healthy_gradient_width", "healthy_gradient_scale", "posture_gradient_scale"})
 
 
 def first_episode_mask(rollout: TensorDictBase) -> torch.Tensor:
@@ -107,6 +113,83 @@ def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, 
         end = rollout.get("next")[torch.arange(rollout.shape[0]), last]
         scores["win_rate"] = env.player_wins(end.get("state"), end.get("params")).double().mean().item()
     return scores
+
+
+def gymnasium_kwargs(env_id: str, options: dict | None = None) -> dict:
+    """The keyword arguments of ``gymnasium.make(env_id, ...)`` that give Gymnasium's env the task
+    of our env made with ``options``: the options Gymnasium's env class takes, by name. The
+    options of the simulator and of the backward (``NOT_TASK_OPTIONS``: ``contact``,
+    ``integrator``, ``contact_gradient``, the ``*_gradient*`` shaping options...) are dropped:
+    Gymnasium's env is MuJoCo's forward. Any other option raises, naming those it takes."""
+    import gymnasium
+
+    spec = gymnasium.spec(env_id)
+    entry = spec.entry_point
+    if isinstance(entry, str):
+        module, _, name = entry.partition(":")
+        import importlib
+
+        entry = getattr(importlib.import_module(module), name)
+    accepted = set(inspect.signature(entry.__init__).parameters) - {"self", "kwargs"}
+    out = {}
+    for key, value in (options or {}).items():
+        if key in NOT_TASK_OPTIONS:
+            continue
+        if key not in accepted:
+            raise ValueError(f"{env_id}: option {key!r} has no counterpart in Gymnasium's env, which takes "
+                             f"{sorted(accepted)}; drop it to score the policy in Gymnasium's own task")
+        out[key] = value
+    return out
+
+
+def evaluate_in_gymnasium(policy, env_id: str, episodes: int = 16, seed: int = 0, steps: int | None = None, *,
+                          options: dict | None = None, dtype: torch.dtype = torch.float32, device="cpu",
+                          observation_key: NestedKey = "observation", action_key: NestedKey = "action",
+                          exploration_type: ExplorationType = ExplorationType.DETERMINISTIC) -> dict:
+    """Scores ``policy`` in Gymnasium's own env ``env_id`` (for a MuJoCo task: MuJoCo itself; needs
+    the ``mujoco`` extra): ``episodes`` full episodes, episode ``i`` reset with seed ``seed + i``,
+    each played to its termination or to its time limit (``steps``, else the env's).
+
+    The policy reads ``observation_key`` from a TensorDict of the still-running episodes (converted
+    to ``dtype`` on ``device``) and writes ``action_key``, as it does on our env; ``options`` are
+    our env's task options (:func:`gymnasium_kwargs`). Returns :func:`evaluate`'s ``return``,
+    ``return_std``, ``return_min``, ``return_max``, ``episode_length`` and ``terminated``, and the
+    per-episode ``returns`` and ``lengths``.
+    """
+    import gymnasium
+    import numpy as np
+    from tensordict import TensorDict
+
+    kwargs = gymnasium_kwargs(env_id, options)
+    if steps is not None:
+        kwargs["max_episode_steps"] = steps
+    envs = [gymnasium.make(env_id, **kwargs) for _ in range(episodes)]
+    try:
+        observations = [env.reset(seed=seed + i)[0] for i, env in enumerate(envs)]
+        returns, lengths = np.zeros(episodes), np.zeros(episodes, dtype=np.int64)
+        terminated = np.zeros(episodes, dtype=bool)
+        running = list(range(episodes))
+        while running:
+            obs = torch.as_tensor(np.stack([observations[i] for i in running]), dtype=dtype, device=device)
+            with torch.no_grad(), set_exploration_type(exploration_type):
+                action = policy(TensorDict({observation_key: obs}, batch_size=[len(running)], device=device))
+            action = action.get(action_key).detach().cpu().double().numpy()
+            still = []
+            for row, i in enumerate(running):
+                observations[i], reward, term, trunc, _ = envs[i].step(action[row])
+                returns[i] += reward
+                lengths[i] += 1
+                if term or trunc:
+                    terminated[i] = term
+                else:
+                    still.append(i)
+            running = still
+    finally:
+        for env in envs:
+            env.close()
+    return {"return": float(returns.mean()), "return_std": float(returns.std()), "return_min": float(returns.min()),
+            "return_max": float(returns.max()), "episode_length": float(lengths.mean()),
+            "terminated": float(terminated.mean()), "returns": returns.tolist(), "lengths": lengths.tolist()}
 
 
 def evaluate_random(env, steps: int | None = None, seed: int | None = None) -> float:

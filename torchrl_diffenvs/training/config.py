@@ -6,6 +6,8 @@ typo costs one run, not one run per typo. It runs before any env, network or log
 """
 from __future__ import annotations
 
+import importlib.util
+
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -192,6 +194,31 @@ def _check_randomize(env_cfg, problems: list[str]) -> None:
             problems.append(f"env.randomize.{key} and env.params.{key} are both set: keep one")
 
 
+def _check_gymnasium_eval(env: DictConfig, problems: list[str]) -> None:
+    """``eval.gymnasium=true``: the env must be one of Gymnasium's, with its physics (no
+    ``env.params``), and Gymnasium (with MuJoCo for a MuJoCo task) installed."""
+    from ..evaluation import gymnasium_kwargs
+
+    name = env.get("name")
+    try:
+        import gymnasium
+
+        gymnasium.spec(name)
+    except Exception:  # gymnasium's NameNotFound/VersionNotFound, or not installed
+        problems.append(f"eval.gymnasium=true: env {name!r} is not one of Gymnasium's registered envs (the MuJoCo "
+                        "and classic-control tasks are)")
+        return
+    if env.get("params"):
+        problems.append(f"eval.gymnasium=true: env.params={_plain(env.params)} change the physics, and Gymnasium's "
+                        f"env {name!r} runs its own; drop env.params to score the policy in it")
+    try:
+        gymnasium_kwargs(name, _plain(env.get("options") or {}))
+    except ValueError as err:
+        problems.append(f"eval.gymnasium=true: {err}")
+    if name.endswith("-v5") and importlib.util.find_spec("mujoco") is None:
+        problems.append(f"eval.gymnasium=true: Gymnasium's {name!r} needs MuJoCo: pip install \"torchrl_diffenvs[mujoco]\"")
+
+
 def validate_config(cfg: DictConfig) -> None:
     """Raises :class:`ConfigError` listing every problem of ``cfg``; returns ``None`` when it can run.
 
@@ -266,6 +293,8 @@ def validate_config(cfg: DictConfig) -> None:
 
     _check_randomize(cfg.env, problems)
     _check_params(cfg.env, problems)
+    if OmegaConf.select(cfg, "eval.gymnasium", default=False) is True:
+        _check_gymnasium_eval(cfg.env, problems)
     refresh = OmegaConf.select(cfg, "selfplay.refresh_interval")
 
     # build one env: catches bad options / params / max_episode_steps with the env's own message

@@ -13,12 +13,12 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from ..evaluation import episode_returns, evaluate_random, first_episode_ends, record_video
+from ..evaluation import episode_returns, evaluate_in_gymnasium, evaluate_random, first_episode_ends, record_video
 from ..learners import LEARNERS
 from .checkpoint import load_checkpoint
 from .config import ConfigError, make_env_from_config
 
-__all__ = ["chunk_length", "evaluate_checkpoint", "exploration_of", "json_report", "write_video"]
+__all__ = ["chunk_length", "evaluate_checkpoint", "exploration_of", "gymnasium_scores", "json_report", "write_video"]
 
 log = logging.getLogger("train")
 
@@ -31,6 +31,17 @@ def chunk_length(steps: int, longest: int = 8) -> int:
 def exploration_of(cfg: DictConfig) -> ExplorationType:
     """``eval.deterministic``: the mean action (default) or sampled actions."""
     return ExplorationType.DETERMINISTIC if cfg.eval.get("deterministic", True) else ExplorationType.RANDOM
+
+
+def gymnasium_scores(cfg: DictConfig, policy, steps: int, episodes: int | None = None) -> dict:
+    """``eval.gymnasium=true``: ``policy`` played in Gymnasium's own env of ``cfg.env`` (for a MuJoCo
+    task, MuJoCo's forward), ``episodes`` (default ``eval.num_envs``) full episodes from seeds
+    ``eval.seed + i``: ``{"eval/gymnasium_return": ..., "eval/gymnasium_return_std": ..., ...}``."""
+    options = OmegaConf.to_container(cfg.env.options, resolve=True) if cfg.env.get("options") else {}
+    scores = evaluate_in_gymnasium(policy, cfg.env.name, episodes or cfg.eval.num_envs, cfg.eval.seed, steps,
+                                   options=options, dtype=getattr(torch, cfg.dtype), device=cfg.device,
+                                   exploration_type=exploration_of(cfg))
+    return {f"eval/gymnasium_{k}": v for k, v in scores.items() if k not in ("returns", "lengths")}
 
 
 def _diff(old: DictConfig, new: DictConfig, where: str = "env.") -> dict:
@@ -160,12 +171,16 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
               "deterministic": bool(cfg.eval.get("deterministic", True)),
               "eval/random_return": evaluate_random(env, steps, cfg.eval.seed),
               **{f"eval/{k}": v for k, v in scores.items()}}
+    if cfg.eval.gymnasium:
+        result.update(gymnasium_scores(cfg, policy, steps, games))
     run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.eval.gif:
         video = write_video(cfg, env, policy, steps, run_dir / "eval")
         result["video"] = str(video) if video else None
     (run_dir / "eval_metrics.json").write_text(json_report(result))
+    in_gymnasium = (f"; in Gymnasium's own env {result['eval/gymnasium_return']:.4g}"
+                    if "eval/gymnasium_return" in result else "")
     log.info(f"{cfg.env.name} {cfg.loss.name} ({cfg.checkpoint}): eval return {scores['return']:.4g} "
              f"+- {scores['return_std']:.3g} over {games} games (random policy "
-             f"{result['eval/random_return']:.4g}); outputs in {run_dir}")
+             f"{result['eval/random_return']:.4g}){in_gymnasium}; outputs in {run_dir}")
     return result

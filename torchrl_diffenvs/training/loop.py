@@ -58,7 +58,7 @@ from .config import (
     resolve_device,
     validate_config,
 )
-from .eval_mode import chunk_length, evaluate_checkpoint, json_report, write_video
+from .eval_mode import chunk_length, evaluate_checkpoint, gymnasium_scores, json_report, write_video
 from .interrupts import StopRequests, TrainingInterrupted
 from .run_logger import RunLogger, plot_learning_curve, read_history
 from .selfplay import SelfPlay
@@ -259,6 +259,10 @@ class Trainer:
             score = last["eval/return"] = scores["return"]
             last["eval/episode_length"], last["eval/terminated"] = scores["episode_length"], scores["terminated"]
             self.log({f"eval/{k}": v for k, v in scores.items()})
+            if cfg.eval.gymnasium:  # the same policy in Gymnasium's own env (MuJoCo's forward)
+                theirs = gymnasium_scores(cfg, self.learner.policy, self.eval_steps)
+                last["eval/gymnasium_return"] = theirs["eval/gymnasium_return"]
+                self.log(theirs)
         score = self.world.broadcast_object(score)
         progress["last_eval"] = progress["env_steps"]
         best_after = cfg.train.get("save_best_after")
@@ -332,6 +336,7 @@ class Trainer:
             "eval/return": last["eval/return"], "eval/random_return": last.get("eval/random_return"),
             "eval/episode_length": last.get("eval/episode_length"), "eval/terminated": last.get("eval/terminated"),
             "train/return": last["train/return"], "checkpoint": str(self.ckpt_dir / "last.pt"),
+            **({"eval/gymnasium_return": last["eval/gymnasium_return"]} if "eval/gymnasium_return" in last else {}),
             "run_dir": str(self.run_dir),
             "wandb_dir": str(self.logger.wandb_dir) if self.logger.wandb_dir else None,
         }

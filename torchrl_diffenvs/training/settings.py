@@ -66,6 +66,9 @@ class EvalSettings(Settings):
     gif: bool = checked(True, checks.boolean)  # write <run dir>/final.gif (or .mp4); mode=eval: eval.gif
     video_format: str = checked("gif", checks.one_of(("gif", "mp4")))  # mp4 needs the video extra (imageio-ffmpeg)
     deterministic: bool = checked(True, checks.boolean)  # evaluate the mean action (true) or sampled actions
+    # also play each evaluation in Gymnasium's own env (a MuJoCo task: MuJoCo itself; the mujoco extra):
+    # eval/gymnasium_return beside eval/return, on eval.num_envs episodes from seeds eval.seed + i
+    gymnasium: bool = checked(False, checks.boolean)
     # mode=eval: episodes to play, eval.num_envs at a time; null: eval.num_envs
     games_num: int | None = checked(None, _optional(checks.positive_int, "for eval.num_envs"))
     gif_env_index: int = checked(0, checks.nonnegative_int)  # which evaluation env the video shows

@@ -1,0 +1,86 @@
+"""Scoring in Gymnasium's own env: ``evaluate_in_gymnasium`` against a hand-run gymnasium loop,
+``benchmarks/transfer.py`` on a checkpoint, and ``eval.gymnasium=true`` in the training script."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+gym = pytest.importorskip("gymnasium")
+pytest.importorskip("mujoco")
+
+from _env_helpers import REPO, load_script  # noqa: E402
+from _train_helpers import make_cfg, tiny_cfg, train_script  # noqa: E402
+
+from torchrl_diffenvs.evaluation import evaluate_in_gymnasium, gymnasium_kwargs  # noqa: E402
+from torchrl_diffenvs.training.config import ConfigError  # noqa: E402
+
+
+def _linear_policy(obs_dim: int, act_dim: int, seed: int = 0) -> TensorDictModule:
+    torch.manual_seed(seed)
+    net = nn.Sequential(nn.Linear(obs_dim, act_dim), nn.Tanh()).double()
+    return TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
+
+
+def _hand_run(policy, env_id: str, episodes: int, seed: int, steps: int):
+    returns, lengths = [], []
+    for i in range(episodes):
+        env = gym.make(env_id, max_episode_steps=steps)
+        obs, _ = env.reset(seed=seed + i)
+        total, length, done = 0.0, 0, False
+        while not done:
+            with torch.no_grad():
+                action = policy.module(torch.as_tensor(obs, dtype=torch.float64)).numpy()
+            obs, reward, terminated, truncated, _ = env.step(action)
+            total, length, done = total + reward, length + 1, terminated or truncated
+        returns.append(total)
+        lengths.append(length)
+    return returns, lengths
+
+
+def test_evaluate_in_gymnasium_matches_a_hand_run_gymnasium_loop():
+    # Hopper: some episodes end by a fall before the time limit, so the batch shrinks as they end
+    policy = _linear_policy(11, 3)
+    scores = evaluate_in_gymnasium(policy, "Hopper-v5", episodes=3, seed=7, steps=120, dtype=torch.float64)
+    returns, lengths = _hand_run(policy, "Hopper-v5", 3, 7, 120)
+    # the batched policy rounds as the one-at-a-time one up to a last bit
+    assert scores["returns"] == pytest.approx(returns, rel=1e-12) and scores["lengths"] == lengths
+    assert scores["return"] == pytest.approx(np.mean(returns), rel=1e-12)
+    assert min(lengths) < 120 and scores["terminated"] > 0
+
+
+def test_gymnasium_kwargs_keep_the_task_options_and_refuse_unknown_ones():
+    assert gymnasium_kwargs("Ant-v5", {"include_cfrc_ext_in_observation": False, "contact": "mujoco",
+                                       "contact_gradient": "cfd", "healthy_gradient_width": 0.1}) == \
+        {"include_cfrc_ext_in_observation": False}
+    with pytest.raises(ValueError, match="option 'wobble' has no counterpart in Gymnasium's env, which takes"):
+        gymnasium_kwargs("Hopper-v5", {"wobble": 1})
+
+
+def test_transfer_benchmark_and_training_evaluation_in_gymnasium(tmp_path):
+    result = train_script.run(tiny_cfg("Hopper-v5", "shac", 1, "eval.gymnasium=true", "eval.num_envs=2",
+                                       "eval.max_steps=20"), tmp_path / "run")
+    assert np.isfinite(result["eval/gymnasium_return"])
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    logged = [r["eval/gymnasium_return"] for r in rows if "eval/gymnasium_return" in r]
+    assert logged and logged[-1] == result["eval/gymnasium_return"]
+
+    # the transfer benchmark plays the checkpoint's policy in both envs, as evaluate_in_gymnasium does
+    transfer = load_script("transfer_bench", REPO / "benchmarks" / "transfer.py")
+    policy, cfg, _ = transfer.policy_and_config(str(tmp_path / "run" / "checkpoints" / "last.pt"))
+    out = transfer.transfer(policy, cfg, episodes=2, seed=5)
+    direct = evaluate_in_gymnasium(policy, "Hopper-v5", 2, 5, cfg.env.max_episode_steps)
+    assert out["gymnasium"]["returns"] == direct["returns"]
+    assert out["ratio"] == pytest.approx(out["gymnasium"]["return"] / out["ours"]["return"])
+
+
+def test_gymnasium_evaluation_config_errors():
+    with pytest.raises(ConfigError, match="env 'swimmer' is not one of Gymnasium's registered envs"):
+        train_script.run(make_cfg("env=swimmer", "loss=shac", "eval.gymnasium=true", "logger=none"), "/tmp/unused")
+    with pytest.raises(ConfigError, match="env.params=.*change the physics"):
+        train_script.run(make_cfg("env=Hopper-v5", "loss=shac", "eval.gymnasium=true", "logger=none",
+                                  "+env.params.gravity=[0,0,-5]"), "/tmp/unused")
