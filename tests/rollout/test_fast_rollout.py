@@ -72,7 +72,11 @@ def test_every_env_takes_the_fast_path(name):
     assert fast_rollout_unsupported(env, None, {"break_when_any_done": False, "tensordict": env.reset()}) is None
 
 
-@pytest.mark.parametrize("name", single_agent_envs())
+# HumanoidStandup is the Humanoid's model and code path at twice the cost
+LIGHTER = [name for name in single_agent_envs() if name != "HumanoidStandup-v5"]
+
+
+@pytest.mark.parametrize("name", LIGHTER)
 @pytest.mark.parametrize("break_when_any_done", [True, False])
 def test_random_actions_match_envbase(name, break_when_any_done):
     env = make_fast_env(name)
@@ -117,7 +121,7 @@ def test_terminations_and_partial_resets_match_envbase():
     assert_same_tensordict(got, ref)
 
 
-@pytest.mark.parametrize("name", single_agent_envs())
+@pytest.mark.parametrize("name", LIGHTER)
 def test_policy_values_and_gradients_match_envbase(name):
     """A TanhNormal actor sampling with rsample; gradients of the return w.r.t. its weights."""
     env = make_fast_env(name, dtype=torch.float64)

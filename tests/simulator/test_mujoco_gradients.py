@@ -75,7 +75,8 @@ def step_fn(env, state_keys, param_key=None):
     return fn, fixed_extras
 
 
-@pytest.mark.parametrize("name", MUJOCO_TASKS)
+# HumanoidStandup's model is the Humanoid's, lying down: its gradcheck adds time, not coverage
+@pytest.mark.parametrize("name", [t for t in MUJOCO_TASKS if t != "HumanoidStandup-v5"])
 def test_gradcheck_one_step(name):
     n = 1 if name in ("Ant-v5", "Humanoid-v5", "HumanoidStandup-v5") else 2  # many contacts: the slowest, one env
     env = make_env(name, num_envs=n, dtype=torch.float64, seed=0)
@@ -99,7 +100,8 @@ def rollout_return(env, state, actions, params):
     return total
 
 
-@pytest.mark.parametrize("name", CONTACT_TASKS)
+# the Humanoid's free body and capsule feet are the Ant's and the runners' cases, at 3x their cost
+@pytest.mark.parametrize("name", [t for t in CONTACT_TASKS if t != "Humanoid-v5"])
 def test_15_step_rollout_matches_finite_differences_through_contact(name):
     """Directional derivatives of a 15-step return w.r.t. actions, the start state and params.
 
@@ -158,12 +160,12 @@ def test_gradients_finite_at_touchdown_rest_and_deep_penetration(name, depth):
 
 @pytest.mark.parametrize("name", CONTACT_TASKS)
 def test_long_random_rollouts_stay_finite(name):
-    """Random actions in float32 never produce NaN: a full HalfCheetah episode (1000 steps), 300 steps
+    """Random actions in float32 never produce NaN: 400 HalfCheetah steps (it never resets), 300 steps
     of Hopper and Walker2d (they fall and reset), 150 of the Ant (20 force evaluations per step) and
     of the Humanoid (falls and resets)."""
     env = make_env(name, num_envs=16, seed=0, max_episode_steps=1000)
     with torch.no_grad():
-        td = env.rollout({"HalfCheetah-v5": 1000, "Ant-v5": 150, "Humanoid-v5": 150}.get(name, 300),
+        td = env.rollout({"HalfCheetah-v5": 400, "Ant-v5": 150, "Humanoid-v5": 150}.get(name, 300),
                          break_when_any_done=False)
     assert torch.isfinite(td["next", "observation"]).all()
     assert torch.isfinite(td["next", "reward"]).all()
