@@ -10,6 +10,14 @@ lengths (a policy that falls over in MuJoCo ends its episodes early there).
 
     OMP_NUM_THREADS=1 python benchmarks/transfer.py checkpoints=[outputs/.../checkpoints/last.pt]
     OMP_NUM_THREADS=1 python benchmarks/transfer.py checkpoints=[a.pt,b.pt] episodes=32 data=transfer_race
+    OMP_NUM_THREADS=1 python benchmarks/transfer.py checkpoints=[old.pt] options=[contact=smooth]
+
+``options=[KEY=VALUE,...]`` sets env options on every checkpoint's env, e.g. ``contact=smooth``
+for a checkpoint trained on the smooth contact before the option existed (its env section names
+no contact model, which now means MuJoCo's). ``contacts=[smooth,mujoco]`` scores each checkpoint
+here once per contact model (a row each; default: the checkpoint's own).
+
+    OMP_NUM_THREADS=1 python benchmarks/transfer.py checkpoints=[old.pt] contacts=[smooth,mujoco]
 """
 from __future__ import annotations
 
@@ -28,7 +36,7 @@ from torchrl_diffenvs import checks  # noqa: E402
 from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 from torchrl_diffenvs.evaluation import evaluate, evaluate_in_gymnasium  # noqa: E402
 
-HEADERS = ["env", "learner", "trained env steps", "contact", "return here", "return in MuJoCo", "ratio",
+HEADERS = ["env", "learner", "trained env steps", "contact here", "return here", "return in MuJoCo", "ratio",
            "episode length here", "in MuJoCo"]
 
 
@@ -39,10 +47,13 @@ class TransferSettings(C.BenchmarkSettings):
     checkpoints: tuple = ()  # checkpoint files written by sota_scripts/train.py
     episodes: int = checked(16, checks.positive_int)  # full episodes in each env (start states)
     seed: int = checked(1_000_003, checks.nonnegative_int)  # eval.seed's default: the training's evaluation starts
+    options: tuple = ()  # KEY=VALUE env options set on each checkpoint's env (e.g. contact=smooth)
+    contacts: tuple = checked((), checks.each(checks.one_of(("mujoco", "smooth"))))  # a row per contact model here
 
 
-def policy_and_config(path: str):
-    """The policy of a checkpoint, with its weights, and the run's configuration."""
+def policy_and_config(path: str, options=()):
+    """The policy of a checkpoint, with its weights, and the run's configuration (``options``:
+    ``KEY=VALUE`` env options set on it)."""
     from torchrl_diffenvs.learners import LEARNERS
     from torchrl_diffenvs.training.checkpoint import load_checkpoint
     from torchrl_diffenvs.training.config import make_env_from_config
@@ -50,6 +61,8 @@ def policy_and_config(path: str):
     ckpt = load_checkpoint(path)
     cfg = OmegaConf.create(ckpt["config"])
     cfg.device = "cpu"
+    if options:
+        cfg.env.options = OmegaConf.merge(cfg.env.get("options") or {}, OmegaConf.from_dotlist(list(options)))
     env = make_env_from_config(cfg, 1, seed=0)
     policy = LEARNERS[cfg.loss.name].policy_from_config(cfg.loss, env)
     policy.load_state_dict(ckpt["policy"])
@@ -87,8 +100,10 @@ def main(argv=None):
     if not s.checkpoints:
         raise SystemExit("transfer: name the checkpoints to score: checkpoints=[<run dir>/checkpoints/last.pt,...]")
     rows = []
-    for path in s.checkpoints:
-        policy, cfg, env_steps = policy_and_config(path)
+    runs = [(path, [*s.options, f"contact={contact}"]) for path in s.checkpoints for contact in s.contacts] or \
+        [(path, list(s.options)) for path in s.checkpoints]
+    for path, options in runs:
+        policy, cfg, env_steps = policy_and_config(path, options)
         with torch.no_grad():
             result = transfer(policy, cfg, 2 if s.quick else s.episodes, s.seed)
         rows.append(row(cfg, env_steps, result))
