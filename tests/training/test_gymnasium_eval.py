@@ -77,6 +77,14 @@ def test_transfer_benchmark_and_training_evaluation_in_gymnasium(tmp_path):
     assert out["gymnasium"]["returns"] == direct["returns"]
     assert out["ratio"] == pytest.approx(out["gymnasium"]["return"] / out["ours"]["return"])
 
+    # mode=eval scores the checkpoint in Gymnasium's env too, on eval.num_envs episodes from eval.seed
+    played = train_script.run(make_cfg("mode=eval", f"checkpoint={tmp_path / 'run' / 'checkpoints' / 'last.pt'}",
+                                       "eval.num_envs=2", "eval.gif=false", "logger=none", "eval.gymnasium=true",
+                                       "eval.seed=5"), tmp_path / "eval")
+    assert played["eval/gymnasium_return"] == pytest.approx(direct["return"], rel=1e-12)
+    saved = json.loads((tmp_path / "eval" / "eval_metrics.json").read_text())
+    assert saved["eval/gymnasium_return"] == pytest.approx(direct["return"], rel=1e-12)
+
 
 def test_gymnasium_evaluation_config_errors():
     with pytest.raises(ConfigError, match="env 'swimmer' is not one of Gymnasium's registered envs"):

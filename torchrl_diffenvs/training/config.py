@@ -31,6 +31,7 @@ __all__ = [
     "MODES",
     "WANDB_MODES",
     "check_checkpoint_path",
+    "check_gymnasium_eval",
     "check_group_choice",
     "check_resume_compatible",
     "env_kwargs",
@@ -194,7 +195,7 @@ def _check_randomize(env_cfg, problems: list[str]) -> None:
             problems.append(f"env.randomize.{key} and env.params.{key} are both set: keep one")
 
 
-def _check_gymnasium_eval(env: DictConfig, problems: list[str]) -> None:
+def check_gymnasium_eval(env: DictConfig, problems: list[str]) -> None:
     """``eval.gymnasium=true``: the env must be one of Gymnasium's, with its physics (no
     ``env.params``), and Gymnasium (with MuJoCo for a MuJoCo task) installed."""
     from ..evaluation import gymnasium_kwargs
@@ -293,8 +294,8 @@ def validate_config(cfg: DictConfig) -> None:
 
     _check_randomize(cfg.env, problems)
     _check_params(cfg.env, problems)
-    if OmegaConf.select(cfg, "eval.gymnasium", default=False) is True:
-        _check_gymnasium_eval(cfg.env, problems)
+    if OmegaConf.select(cfg, "eval.gymnasium", default=False) is True and mode != "eval":
+        check_gymnasium_eval(cfg.env, problems)  # mode=eval: on the checkpoint's env (eval_mode)
     refresh = OmegaConf.select(cfg, "selfplay.refresh_interval")
 
     # build one env: catches bad options / params / max_episode_steps with the env's own message

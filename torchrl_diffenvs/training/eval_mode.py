@@ -16,7 +16,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from ..evaluation import episode_returns, evaluate_in_gymnasium, evaluate_random, first_episode_ends, record_video
 from ..learners import LEARNERS
 from .checkpoint import load_checkpoint
-from .config import ConfigError, make_env_from_config
+from .config import ConfigError, check_gymnasium_eval, make_env_from_config
 
 __all__ = ["chunk_length", "evaluate_checkpoint", "exploration_of", "gymnasium_scores", "json_report", "write_video"]
 
@@ -139,6 +139,11 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
     cfg = cfg.copy()
     with open_dict(cfg):  # whole sections replaced, not merged: the trained env may have other options
         cfg.env, cfg.loss, cfg.dtype = env_section, trained.loss, trained.dtype
+    if cfg.eval.gymnasium:
+        problems: list[str] = []
+        check_gymnasium_eval(cfg.env, problems)
+        if problems:
+            raise ConfigError(f"checkpoint={str(cfg.checkpoint)!r}: " + "; ".join(problems))
     try:
         env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed)
     except (ValueError, TypeError, KeyError) as err:
