@@ -66,6 +66,7 @@ class GradientHorizonSettings(C.BenchmarkSettings):
     seed: int = 0
     params: list[str] | None = None  # NAME=VALUE physical parameter overrides, e.g. [body_mass=...]
     modes: tuple = checked(("exact", "cfd", "smooth"), each(one_of(("exact", "cfd", "smooth"))))
+    contact: str = checked("mujoco", one_of(("mujoco", "smooth")))  # the smooth option: modes=[exact] only
 
 
 def window_return(env, state: dict, actions: torch.Tensor) -> torch.Tensor:
@@ -96,7 +97,7 @@ def physical_params(s: GradientHorizonSettings) -> dict:
 
 def make(task: str, n: int, s: GradientHorizonSettings, mode: str = "exact"):
     return make_env(task, num_envs=n, seed=s.seed, dtype=torch.float64, params=physical_params(s),
-                    contact_gradient=mode)
+                    contact=s.contact, contact_gradient=mode)
 
 
 def settled_states(task: str, s: GradientHorizonSettings) -> dict:
@@ -155,6 +156,8 @@ def measure(task: str, horizon: int, s: GradientHorizonSettings) -> dict:
 
 def main(argv=None):
     s = parse_cli(GradientHorizonSettings, argv, __doc__)
+    if s.contact == "smooth" and set(s.modes) != {"exact"}:
+        raise SystemExit("gradient_horizon: contact=smooth has no constraint solve to shape: pass modes=[exact]")
     C.setup_threads(s.threads)
     warnings.filterwarnings("ignore")
     if s.quick:
