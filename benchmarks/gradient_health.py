@@ -19,6 +19,11 @@ max over iterations and seeds) and its skipped updates.
     OMP_NUM_THREADS=1 python benchmarks/gradient_health.py
     OMP_NUM_THREADS=1 python benchmarks/gradient_health.py tasks=[Ant-v5] seeds=5 fidelity=false
     OMP_NUM_THREADS=1 python benchmarks/gradient_health.py mode=learners learners=[shac,ahac] env_steps=20000
+    OMP_NUM_THREADS=1 python benchmarks/gradient_health.py mode=contact_gradients tasks=[HalfCheetah-v5,Hopper-v5]
+
+With ``mode=contact_gradients`` the rows are the contact gradient modes (``contact_gradient``:
+``exact``, ``cfd``, ``smooth``) on MuJoCo's forward with the model file's integrator: the same
+forward, so only the gradient columns differ (no fidelity columns).
 """
 from __future__ import annotations
 
@@ -55,7 +60,7 @@ class GradientHealthSettings(BenchmarkSettings):
     warmup: int = 100
     gamma: float = 0.99
     fidelity: bool = True
-    mode: str = checked("options", one_of(("options", "learners")))
+    mode: str = checked("options", one_of(("options", "learners", "contact_gradients")))
     learners: tuple = checked(("bptt", "shac", "ahac", "sapo"), each(one_of(("bptt", "shac", "ahac", "sapo"))))
     env_steps: int = 20_000  # mode=learners: the budget measured (the first env steps of a run)
 
@@ -141,6 +146,29 @@ def learners_table(settings) -> list[list[str]]:
     return rows
 
 
+def contact_gradients_table(settings) -> list[list[str]]:
+    """The closed-loop actor gradient of each contact gradient mode (same forward, same windows)."""
+    headers = ["task", "contact gradient", "actor grad norm (median)", "max", "largest normal force (N)",
+               "step cost"]
+    rows = []
+    for task in settings.tasks:
+        base_cost = None
+        for mode in ("exact", "cfd", "smooth"):
+            runs = [window_gradient(task, {"contact_gradient": mode}, seed, settings) for seed in range(settings.seeds)]
+            norms = [r["norm"] for r in runs]
+            cost = statistics.median(r["step_seconds"] for r in runs)
+            base_cost = base_cost or cost
+            rows.append([task, mode, f"{statistics.median(norms):.3g}", f"{max(norms):.3g}",
+                         f"{max(r['force'] for r in runs):.3g}", f"{cost / base_cost:.2f}"])
+            print(" | ".join(rows[-1]), flush=True)
+            C.write_data(settings, "gradient_health_modes", source="gradient_health", tables={"modes": C.data_table(
+                f"Closed-loop actor gradient at initialisation on MuJoCo's forward, per contact gradient mode "
+                f"({settings.seeds} seeds, {settings.num_envs} envs, {settings.horizon}-step window after "
+                f"{settings.warmup} steps)", headers, rows)})
+    print_table(headers, rows)
+    return rows
+
+
 def main(argv=None):
     settings = parse_cli(GradientHealthSettings, argv, __doc__)
     torch.set_num_threads(settings.threads)
@@ -153,6 +181,8 @@ def main(argv=None):
     if settings.quick:
         settings = GradientHealthSettings(**{**settings.__dict__, "seeds": 1, "num_envs": 4, "horizon": 4,
                                              "warmup": 5, "fidelity": False, "tasks": settings.tasks[:1]})
+    if settings.mode == "contact_gradients":
+        return contact_gradients_table(settings)
     rows = []
     for task in settings.tasks:
         variants = [({"integrator": i, "substeps": k}, option_label(i, k, task)) for i, k in OPTIONS]

@@ -298,6 +298,14 @@ def test_gradient_health_quick(tmp_path):
     assert all(float(r[2]) > 0 for r in rows)  # a finite, non-zero actor gradient for every option
 
 
+def test_gradient_health_reports_each_contact_gradient_mode(tmp_path):
+    rows = load("gradient_health").main(["quick=true", "mode=contact_gradients", "tasks=[HalfCheetah-v5]",
+                                         f"out={tmp_path / 'g.json'}", "data=none"])
+    assert [r[1] for r in rows] == ["exact", "cfd", "smooth"]
+    assert all(0 < float(r[2]) < float("inf") for r in rows)
+    assert len({r[4] for r in rows}) == 1  # the same forward: the same largest contact force in every mode
+
+
 def test_contact_fidelity_still_return_matches_gymnasium():
     """A still Hopper (zero action, the task's own reset noise) earns gymnasium's healthy bonus of 1 per
     step and almost nothing else, in MuJoCo and here: about 20 over 20 steps."""
