@@ -29,7 +29,8 @@ reward, Gymnasium's; rewards after an env's first termination are dropped). Repo
     OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py tasks=[Ant-v5] horizons=[4,8,16] data=none
     OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py tasks=[Hopper-v5] modes=[exact,cfd] data=none
 
-Each row is one contact gradient mode (``contact_gradient``: ``exact``, ``cfd``, ``smooth``; see
+It writes ``docs/data/gradient_modes.json`` (``contact=smooth``: ``gradient_horizon.json``) unless
+``data=`` names another file. Each row is one contact gradient mode (``contact_gradient``: ``exact``, ``cfd``, ``smooth``; see
 the simulator docs): the forward, hence the window's returns and the smoothed gradient, is the
 same in every mode, so the modes are compared against one smoothed estimate.
 """
@@ -175,8 +176,8 @@ def main(argv=None):
                        f"{med['ceiling']:.2f}", f"{med['local']:.2f}", f"{med['gain']:.2f}"]
                 rows.append(row)
                 print(" | ".join(row), flush=True)
-            C.write_data(s, "gradient_horizon", {"horizon": C.data_table(
-                f"The window's analytic action gradient against its smoothed gradient (sigma {s.sigma}, "
+            C.write_data(s, "gradient_modes" if s.contact == "mujoco" else "gradient_horizon", {"horizon": C.data_table(
+                f"The window's analytic action gradient against its smoothed gradient ({s.contact} contact, sigma {s.sigma}, "
                 f"{s.samples} perturbations; median over {s.starts} settled start states, float64"
                 + (f"; params {', '.join(s.params)}" if s.params else "") + ")", headers, rows)})
     C.print_table(headers, rows)

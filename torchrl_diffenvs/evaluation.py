@@ -160,10 +160,17 @@ def evaluate_in_gymnasium(policy, env_id: str, episodes: int = 16, seed: int = 0
     import numpy as np
     from tensordict import TensorDict
 
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"evaluate_in_gymnasium: episodes must be an integer >= 1, got {episodes!r}")
     kwargs = gymnasium_kwargs(env_id, options)
     if steps is not None:
         kwargs["max_episode_steps"] = steps
     envs = [gymnasium.make(env_id, **kwargs) for _ in range(episodes)]
+    if not isinstance(envs[0].action_space, gymnasium.spaces.Box):
+        for env in envs:
+            env.close()
+        raise ValueError(f"{env_id}: Gymnasium's env takes {envs[0].action_space} actions, not continuous ones "
+                         "like this library's task of the same name: its policy cannot be played there")
     try:
         observations = [env.reset(seed=seed + i)[0] for i, env in enumerate(envs)]
         returns, lengths = np.zeros(episodes), np.zeros(episodes, dtype=np.int64)

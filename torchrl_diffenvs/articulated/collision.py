@@ -212,11 +212,13 @@ def _sphere_sphere(centre1, radius1, centre2, radius2, axis1, axis2):
     gap = centre2 - centre1
     length = torch.sqrt(_dot(gap, gap))
     fallback = _cross(axis1, axis2)
-    fallback_length = torch.sqrt(_dot(fallback, fallback))
+    squared = _dot(fallback, fallback)
+    # clamped inside the root: parallel axes give sqrt(0), whose infinite derivative times the zero
+    # gradient of the branch not taken would be NaN (the values are those of sqrt(.).clamp_min)
+    fallback_length = torch.sqrt(squared.clamp_min(_MINVAL * _MINVAL))
     x_axis = torch.zeros_like(gap)
     x_axis[..., 0] = 1.0
-    fallback = torch.where((fallback_length < _MINVAL).unsqueeze(-1), x_axis,
-                           fallback / fallback_length.clamp_min(_MINVAL).unsqueeze(-1))
+    fallback = torch.where((squared < _MINVAL * _MINVAL).unsqueeze(-1), x_axis, fallback / fallback_length.unsqueeze(-1))
     coincident = (length < _MINVAL).unsqueeze(-1)
     normal = torch.where(coincident, fallback, gap / torch.where(coincident.squeeze(-1), 1.0, length).unsqueeze(-1))
     dist = length - radius1 - radius2
@@ -232,7 +234,7 @@ def _make_frame(normal, tangent):
     default = torch.where((normal[..., 1].abs() < 0.5).unsqueeze(-1), y_axis, z_axis)
     tangent = torch.where(unset.unsqueeze(-1), default, tangent)
     tangent = tangent - _dot(normal, tangent).unsqueeze(-1) * normal
-    tangent = tangent / torch.sqrt(_dot(tangent, tangent)).clamp_min(_MINVAL).unsqueeze(-1)
+    tangent = tangent / torch.sqrt(_dot(tangent, tangent).clamp_min(_MINVAL * _MINVAL)).unsqueeze(-1)  # see _sphere_sphere
     return torch.stack([normal, tangent, _cross(normal, tangent)], dim=-2)
 
 

@@ -23,7 +23,9 @@ class ContactGradient(NamedTuple):
       the contacts within ``distance`` (metres) beyond their margin, as active rows whose weight
       fades linearly to 0 at ``distance`` (their reference acceleration is MuJoCo's formula at
       that distance). A foot about to land then has a gradient with respect to its height and
-      velocity, where the exact one is zero.
+      velocity, where the exact one is zero. Contacts MuJoCo has (within the margin) keep their
+      exact status: one there that does not push is out of the surrogate, so the backward weight
+      of a separating contact jumps from 0 to about 1 as it crosses the margin.
     - ``"smooth"`` (smoothed complementarity): the surrogate's active set is soft, each existing
       row weighted by ``sigmoid(f / (softness f_max))``, ``f`` the force the row would carry at
       the solution if it were active (negative for an inactive one) and ``f_max`` the env's largest
@@ -47,6 +49,9 @@ class ContactGradient(NamedTuple):
             unknown = set(value.keys()) - set(cls._fields)
             if unknown:
                 raise ValueError(f"contact_gradient: unknown keys {sorted(unknown)}; valid: {list(cls._fields)}")
+            if "mode" not in value.keys():
+                raise ValueError(f"contact_gradient: a mapping must name its mode (one of {GRADIENT_MODES}), "
+                                 f"got {dict(value)!r}")
             gradient = cls(**dict(value))
         else:
             raise ValueError(f"contact_gradient must be one of {GRADIENT_MODES}, a mapping of {list(cls._fields)} "

@@ -196,8 +196,9 @@ def _check_randomize(env_cfg, problems: list[str]) -> None:
 
 
 def check_gymnasium_eval(env: DictConfig, problems: list[str]) -> None:
-    """``eval.gymnasium=true``: the env must be one of Gymnasium's, with its physics (no
-    ``env.params``), and Gymnasium (with MuJoCo for a MuJoCo task) installed."""
+    """``eval.gymnasium=true``: the env must be one of Gymnasium's with the same continuous
+    actions and observations, with its physics (no ``env.params`` or ``env.randomize``), and
+    Gymnasium (with MuJoCo for a MuJoCo task) installed."""
     from ..evaluation import gymnasium_kwargs
 
     name = env.get("name")
@@ -212,12 +213,30 @@ def check_gymnasium_eval(env: DictConfig, problems: list[str]) -> None:
     if env.get("params"):
         problems.append(f"eval.gymnasium=true: env.params={_plain(env.params)} change the physics, and Gymnasium's "
                         f"env {name!r} runs its own; drop env.params to score the policy in it")
+    if env.get("randomize"):
+        problems.append(f"eval.gymnasium=true: env.randomize={_plain(env.randomize)} changes the physics per env, "
+                        f"and Gymnasium's env {name!r} runs its model file's; drop env.randomize")
     try:
-        gymnasium_kwargs(name, _plain(env.get("options") or {}))
+        options = gymnasium_kwargs(name, _plain(env.get("options") or {}))
     except ValueError as err:
         problems.append(f"eval.gymnasium=true: {err}")
+        return
     if name.endswith("-v5") and importlib.util.find_spec("mujoco") is None:
         problems.append(f"eval.gymnasium=true: Gymnasium's {name!r} needs MuJoCo: pip install \"torchrl_diffenvs[mujoco]\"")
+        return
+    try:
+        ours = make_env(name, num_envs=1, **_plain(env.get("options") or {}))
+    except (ValueError, TypeError, KeyError):
+        return  # the env's own check (below, in validate_config) names the bad option
+    theirs = gymnasium.make(name, **options)
+    action_dim = ours.full_action_spec[ours.action_key].shape[-1]
+    obs_dim = ours.observation_spec["observation"].shape[-1] if "observation" in ours.observation_spec.keys() else None
+    if not isinstance(theirs.action_space, gymnasium.spaces.Box) or theirs.action_space.shape != (action_dim,) or \
+            (obs_dim is not None and theirs.observation_space.shape != (obs_dim,)):
+        problems.append(f"eval.gymnasium=true: Gymnasium's {name!r} has actions {theirs.action_space} and observations "
+                        f"of shape {theirs.observation_space.shape}, this library's task {action_dim} continuous actions "
+                        f"and {obs_dim} observations: its policy cannot be played there")
+    theirs.close()
 
 
 def validate_config(cfg: DictConfig) -> None:
