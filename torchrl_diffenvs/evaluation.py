@@ -123,13 +123,10 @@ def gymnasium_kwargs(env_id: str, options: dict | None = None) -> dict:
     Gymnasium's env is MuJoCo's forward. Any other option raises, naming those it takes."""
     import gymnasium
 
-    spec = gymnasium.spec(env_id)
-    entry = spec.entry_point
-    if isinstance(entry, str):
-        module, _, name = entry.partition(":")
-        import importlib
+    from gymnasium.envs.registration import load_env_creator
 
-        entry = getattr(importlib.import_module(module), name)
+    entry = gymnasium.spec(env_id).entry_point
+    entry = load_env_creator(entry) if isinstance(entry, str) else entry
     accepted = set(inspect.signature(entry.__init__).parameters) - {"self", "kwargs"}
     out = {}
     for key, value in (options or {}).items():

@@ -314,11 +314,9 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
         return SolverResult(qacc_smooth, empty, empty.bool(), torch.zeros_like(done, dtype=torch.long), done)
     compact = qacc_smooth.device.type == "cpu" and not torch.compiler.is_compiling()
 
-    def rows_where(needed):
-        """The rows' arrays, on the CPU without the rows needed in no env of the batch (a host read
-        costs nothing there), and the kept positions (None: all)."""
-        arrays = (rows.jacobian, rows.aref, rows.exists, rows.weight, rows.found, rows.pos,
-                  rows.margin.expand_as(rows.pos), rows.regulariser)
+    def rows_where(needed, *arrays):
+        """``arrays`` (per row), on the CPU without the rows needed in no env of the batch (a host
+        read costs nothing there), and the kept positions (None: all)."""
         if not compact:
             return arrays, None
         keep = needed.any(0).nonzero().squeeze(-1)
@@ -327,7 +325,7 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
     def full(x, keep):  # back to the fixed row positions
         return x if keep is None else x.new_zeros(rows.aref.shape).index_copy(1, keep, x)
 
-    (jacobian, aref, exists, weight, *_), keep = rows_where(rows.exists)
+    (jacobian, aref, exists, weight), keep = rows_where(rows.exists, rows.jacobian, rows.aref, rows.exists, rows.weight)
     qacc, used, converged, active = _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations,
                                                 tolerance)
     # one differentiable solve with the active set: the value, and in the exact mode the gradient
@@ -342,7 +340,9 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
     needed = rows.exists
     if gradient.mode == "cfd":
         needed = rows.exists | (rows.found & (rows.pos - rows.margin < gradient.distance))
-    (jacobian, aref, exists, _, found, pos, margin, reg), keep = rows_where(needed)
+    (jacobian, aref, exists, found, pos, margin, reg), keep = rows_where(
+        needed, rows.jacobian, rows.aref, rows.exists, rows.found, rows.pos, rows.margin.expand_as(rows.pos),
+        rows.regulariser)
     share = _surrogate_share(gradient, jacobian, aref, exists, found, pos, margin, reg,
                              active if keep is None else active[:, keep], qacc)
     qacc_s, force_s = _solve_with(mass, qacc_smooth, jacobian, aref, share / reg)
