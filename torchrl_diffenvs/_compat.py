@@ -1,7 +1,7 @@
 """Every use of TorchRL's, tensordict's and torch's private names, in one fenced module.
 
 The rest of the package touches public APIs only; what it needs beyond them is here, each with
-why. Checked against the versions in :data:`CHECKED_VERSIONS`; ``tests/project/test_compat.py``
+why. Checked against the versions in `CHECKED_VERSIONS`; ``tests/project/test_compat.py``
 exercises every assumption below and fails loudly on a version where one breaks (run it first
 after upgrading TorchRL or tensordict).
 """
@@ -94,7 +94,7 @@ def collector_carrier_state(collector) -> dict | None:
 
 
 def load_collector_carrier(collector, state: dict | None) -> None:
-    """Restores :func:`collector_carrier_state` (no-op for ``None``)."""
+    """Restores `collector_carrier_state` (no-op for ``None``)."""
     carrier = getattr(collector, "_carrier", None)
     if state is not None and isinstance(carrier, TensorDictBase):
         carrier.update(TensorDict(state["data"], batch_size=state["batch_size"], device=carrier.device))

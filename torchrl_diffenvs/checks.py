@@ -106,8 +106,8 @@ def checked(default, check: Check):
 @dataclasses.dataclass(frozen=True)
 class Settings:
     """Base of typed settings: a frozen dataclass whose fields carry their default and their
-    check (:func:`checked`). Building one checks every field (``ValueError`` naming each bad
-    one); :meth:`problems` lists them without raising (the training script reports all at once).
+    check (`checked`). Building one checks every field (``ValueError`` naming each bad
+    one); `problems` lists them without raising (the training script reports all at once).
     The learners' settings and the demos' arguments are such dataclasses."""
 
     @classmethod

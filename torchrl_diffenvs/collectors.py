@@ -3,7 +3,7 @@ finished-episode returns that every learner reports.
 
 TorchRL's own collectors run under ``torch.no_grad`` (they feed replay buffers); the
 gradient-based learners need the opposite: rollouts whose rewards and observations are
-differentiable w.r.t. the policy parameters. :class:`DiffWindowCollector` owns that.
+differentiable w.r.t. the policy parameters. [`DiffWindowCollector`][torchrl_diffenvs.collectors.DiffWindowCollector] owns that.
 """
 from __future__ import annotations
 
@@ -82,7 +82,7 @@ class IsolatingPolicy(TensorDictModuleBase):
     reaches the shared weights. So, on every step, the policy reads its inputs with non-finite
     values replaced by 0 (the recorded observations stay as the env produced them), and the
     actions it writes (``action_keys``) get a gradient hook that replaces the gradient of every
-    env not in ``gate.keep`` by 0. :meth:`open_gate` starts a rollout with every env passing and
+    env not in ``gate.keep`` by 0. [`open_gate`][torchrl_diffenvs.collectors.IsolatingPolicy.open_gate] starts a rollout with every env passing and
     returns the gate, whose ``keep`` (``[N]`` bool) is set after the rollout, before the backward
     pass: that is when the non-finite envs are known.
 
@@ -179,14 +179,14 @@ class DiffWindowCollector:
     after the step *before any reset*: ``("next", "observation")`` of a truncated step is the
     pre-reset observation, which is what a critic must bootstrap from. The collector adds
     ``("next", "episode_reward")``: the undiscounted return of the episode so far, detached
-    (at a done step it is the finished episode's return), from an :class:`EpisodeReturnTracker`.
+    (at a done step it is the finished episode's return), from an [`EpisodeReturnTracker`][torchrl_diffenvs.collectors.EpisodeReturnTracker].
 
     Actions are drawn under ``exploration_type`` (default ``ExplorationType.RANDOM``, so a
     ``ProbabilisticActor`` with a ``TanhNormal`` uses ``rsample``: reparameterised, gradients
     reach the distribution parameters).
 
     Args:
-        env: a batched differentiable env (a :class:`~torchrl_diffenvs.DiffEnv`, possibly
+        env: a batched differentiable env (a [`DiffEnv`][torchrl_diffenvs.DiffEnv], possibly
             wrapped in a ``TransformedEnv`` whose transforms keep gradients).
         policy: a TensorDict module that writes ``"action"``.
         horizon: window length ``H``.
@@ -206,7 +206,7 @@ class DiffWindowCollector:
         isolate_nonfinite: (default) envs with a NaN/inf reward or observation in a window (or
             a ``("next", "nonfinite")`` flag) are marked ``"isolated"`` ``[N, H]`` in it, which
             the losses leave out, and their gradient is cut at the policy's outputs
-            (:class:`IsolatingPolicy`), so that they cannot make the others' gradient NaN.
+            ([`IsolatingPolicy`][torchrl_diffenvs.collectors.IsolatingPolicy]), so that they cannot make the others' gradient NaN.
 
     Attributes:
         finished_returns: the undiscounted returns of the episodes that ended in the last window.
@@ -306,7 +306,7 @@ class DiffWindowCollector:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        """Restores :meth:`state_dict` (same env class and ``num_envs``)."""
+        """Restores [`state_dict`][torchrl_diffenvs.collectors.DiffWindowCollector.state_dict] (same env class and ``num_envs``)."""
         carried = state["carried"]
         self._carried = None if carried is None else self._from_dict(carried)
         self.tracker.load_state_dict(state["tracker"])
@@ -380,7 +380,7 @@ class DiffWindowCollector:
     def _isolate_nonfinite(self, window: TensorDictBase, gate: _Gate | None) -> None:
         """Finds the envs with a NaN/inf reward or observation (or a ``("next", "nonfinite")``
         flag) in ``window``, marks them ``"isolated"`` ``[N, H]`` for the losses, cuts their
-        gradient at the policy's outputs and keeps their mask in :attr:`nonfinite`."""
+        gradient at the policy's outputs and keeps their mask in `nonfinite`."""
         keys = policy_keys(self.env)
         observed = [key for key in getattr(self.policy, "in_keys", ()) if key != "episode_step"]
         bad = nonfinite_envs(window, [next_key(keys.reward), *now_and_next(observed or [keys.observation])])

@@ -12,9 +12,9 @@ With equal per-rank batches this is the single-process algorithm on the concaten
 ``K`` ranks with ``N`` envs each take the steps of one process with ``K x N`` envs (up to
 floating-point summation order), which ``tests/training/test_distributed.py`` checks in float64.
 
-The learners hold a :class:`World`; the default :data:`SINGLE_PROCESS` makes every method a
+The learners hold a `World`; the default `SINGLE_PROCESS` makes every method a
 no-op, so single-process code pays nothing. ``torchrun`` sets ``WORLD_SIZE``, ``RANK`` and
-``LOCAL_RANK``; :meth:`World.from_environment` reads them and joins the process group (gloo on
+``LOCAL_RANK``; `World.from_environment` reads them and joins the process group (gloo on
 CPU, NCCL on CUDA).
 
 Why an explicit all-reduce rather than ``DistributedDataParallel``: TorchRL's loss modules call
@@ -188,7 +188,7 @@ class World:
         return box[0]
 
     def check_same(self, value: str, what: str) -> None:
-        """Raises :class:`DistributedError` on every rank unless all ranks hold the same ``value``
+        """Raises `DistributedError` on every rank unless all ranks hold the same ``value``
         (e.g. the configuration, a checksum of the initial parameters)."""
         if self.size == 1:
             return

@@ -1,18 +1,18 @@
 """Networks shared by the gradient-based learners, the demos and the training script.
 
-* :func:`make_actor`: a stochastic policy (``TanhNormal`` with a state-independent log-std) as a
-  TorchRL ``ProbabilisticActor``, usable by :class:`~torchrl_diffenvs.objectives.BPTTLoss`,
-  :class:`~torchrl_diffenvs.objectives.SHACLoss` and TorchRL's PPO / SAC losses; or a
+* [`make_actor`][torchrl_diffenvs.modules.make_actor]: a stochastic policy (``TanhNormal`` with a state-independent log-std) as a
+  TorchRL ``ProbabilisticActor``, usable by [`BPTTLoss`][torchrl_diffenvs.objectives.BPTTLoss],
+  [`SHACLoss`][torchrl_diffenvs.objectives.SHACLoss] and TorchRL's PPO / SAC losses; or a
   deterministic tanh-MLP policy (Ivy Gym's ``optimize_policy`` demo).
-* :func:`make_critic`: a state-value network writing ``"state_value"``.
-* :func:`make_qvalue`: ``Q(observation, action)`` writing ``"state_action_value"`` (SAC).
-* :func:`actor_from_config`, :func:`critic_from_config`, :func:`qvalue_from_config`: the same
+* [`make_critic`][torchrl_diffenvs.modules.make_critic]: a state-value network writing ``"state_value"``.
+* [`make_qvalue`][torchrl_diffenvs.modules.make_qvalue]: ``Q(observation, action)`` writing ``"state_action_value"`` (SAC).
+* [`actor_from_config`][torchrl_diffenvs.modules.actor_from_config], [`critic_from_config`][torchrl_diffenvs.modules.critic_from_config], [`qvalue_from_config`][torchrl_diffenvs.modules.qvalue_from_config]: the same
   builders driven by a ``loss`` configuration section (the learners' network settings).
-* :class:`~torchrl_diffenvs.normalization.ObservationNormalizer` (re-exported here): running mean /
+* [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] (re-exported here): running mean /
   std of observations, updated explicitly outside the autograd graph and applied with frozen
   statistics inside it.
 
-All builders take sizes and dtypes from the env's (transformed) specs (:func:`env_dims`): a float64
+All builders take sizes and dtypes from the env's (transformed) specs ([`env_dims`][torchrl_diffenvs.modules.env_dims]): a float64
 env gives float64 networks (gradient checks), a ``TransformedEnv`` networks sized for what its
 transforms output.
 """
@@ -144,7 +144,7 @@ def make_agent_mlp(
     """The networks of a multi-agent env: TorchRL's ``MultiAgentMLP`` on ``[..., num_agents, in_dim]``.
 
     ``centralised=False``: each agent's output from its own input, one network shared by the
-    agents (a decentralised policy or critic: :func:`make_mlp` applied to every agent).
+    agents (a decentralised policy or critic: [`make_mlp`][torchrl_diffenvs.modules.make_mlp] applied to every agent).
     ``True``: each agent's output from every agent's input (MAPPO's centralised critic), with one
     network per agent: a shared one would give every agent the same value, which per-agent
     rewards (``multi_swimmer``'s) do not have."""
@@ -199,7 +199,7 @@ def env_dims(env, in_key="observation") -> tuple[int, int, torch.dtype]:
 
 def observation_key_of(policy, default="observation"):
     """The observation entry ``policy`` reads (its only in-key), else ``default``: what a learner
-    updates the policy's :class:`ObservationNormalizer` from (e.g. a key a ``CatTensors`` added)."""
+    updates the policy's [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] from (e.g. a key a ``CatTensors`` added)."""
     in_keys = list(getattr(policy, "in_keys", ()))
     return in_keys[0] if len(in_keys) == 1 else default
 
@@ -213,7 +213,7 @@ def _action_bounds(env) -> tuple[float, float]:
 
 
 class TanhNormalActor(ProbabilisticActor):
-    """The ``ProbabilisticActor`` that :func:`make_actor` builds: a ``TanhNormal`` over ``"loc"`` /
+    """The ``ProbabilisticActor`` that [`make_actor`][torchrl_diffenvs.modules.make_actor] builds: a ``TanhNormal`` over ``"loc"`` /
     ``"scale"`` squashed into ``[low, high]``, with a direct path for the calls a rollout makes.
 
     A rollout calls the policy once per step. ``ProbabilisticActor.forward`` builds a
@@ -221,12 +221,12 @@ class TanhNormalActor(ProbabilisticActor):
     sampling machinery: about 0.5 ms per call on top of the network here, more than a 64-64 MLP
     or a pendulum step costs at N = 64. For the common calls (sampling under
     ``ExplorationType.RANDOM``, or the squashed mean under ``DETERMINISTIC``, without a
-    log-probability, an output TensorDict or a per-call generator) :meth:`forward` computes the
+    log-probability, an output TensorDict or a per-call generator) `forward` computes the
     same thing directly: ``loc + eps * scale`` with
     ``eps`` drawn exactly as ``Normal.rsample`` draws it, then TorchRL's ``SafeTanhTransform``
     and the affine map into the bounds. Same values, same gradients, same random stream
     (``tests/learners/test_modules.py`` checks them bit for bit against ``ProbabilisticActor.forward``).
-    Every other call, and :meth:`get_dist` (used by TorchRL's PPO and SAC losses), goes
+    Every other call, and `get_dist` (used by TorchRL's PPO and SAC losses), goes
     through ``ProbabilisticActor`` unchanged.
     """
 
@@ -300,10 +300,13 @@ def make_actor(
     and writing ``("agents", "loc")``, ``("agents", "scale")``, ``("agents", "action")``.
 
     Args:
-        env: a :class:`~torchrl_diffenvs.DiffEnv`, or any TorchRL env with a floating-point
-            ``in_key`` observation and a bounded action spec (sizes from :func:`env_dims`).
-        hidden, activation, layer_norm, norm_after_activation, init: the MLP (:func:`make_mlp`;
-            SHAC's reference: ``(64, 64)``, ELU, LayerNorm after the activation).
+        env: a [`DiffEnv`][torchrl_diffenvs.DiffEnv], or any TorchRL env with a floating-point
+            ``in_key`` observation and a bounded action spec (sizes from [`env_dims`][torchrl_diffenvs.modules.env_dims]).
+        hidden: the MLP's hidden sizes ([`make_mlp`][torchrl_diffenvs.modules.make_mlp]; SHAC's reference: ``(64, 64)``).
+        activation: the MLP's activation (SHAC's reference: ELU).
+        layer_norm: a LayerNorm in each hidden layer (SHAC's reference: yes).
+        norm_after_activation: the LayerNorm after the activation (SHAC's reference) instead of before.
+        init: the weights' initialisation, as in [`make_mlp`][torchrl_diffenvs.modules.make_mlp].
         init_log_std: initial log standard deviation (pre-tanh) of the stochastic policy.
         distribution: ``"tanh_normal"`` (default): a ``ProbabilisticActor`` with a ``TanhNormal``
             squashed into the action bounds; it writes ``"loc"``, ``"scale"``, ``"action"`` (and
@@ -312,9 +315,9 @@ def make_actor(
             ``DETERMINISTIC`` it returns the squashed mean. ``"deterministic"``: a module
             ``MLP -> tanh`` scaled into the action bounds writing ``"action"`` (Ivy Gym's
             policy); no sampling.
-        normalizer: an :class:`ObservationNormalizer` applied to the observation first.
+        normalizer: an [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] applied to the observation first.
         return_log_prob: store the log-probability of the sampled action (needed by PPO).
-        in_key: the observation entry to read (default: the env's, :func:`~torchrl_diffenvs.envs.policy_keys`).
+        in_key: the observation entry to read (default: the env's, `policy_keys`).
     """
     if distribution not in DISTRIBUTIONS:
         raise ValueError(f"make_actor: unknown distribution {distribution!r}; valid: {DISTRIBUTIONS}")
@@ -359,7 +362,7 @@ class _ConcatInputs(nn.Module):
     one): each input is flattened per env (its trailing ``event_dims``, 0 for a scalar), the first
     one (the observation) goes through ``normalizer`` when given, and the privileged block (the
     inputs read from ``privileged_keys``, right after the observation) through
-    ``privileged_normalizer`` when given (see :func:`update_privileged_statistics`)."""
+    ``privileged_normalizer`` when given (see [`update_privileged_statistics`][torchrl_diffenvs.modules.update_privileged_statistics])."""
 
     def __init__(self, net: nn.Module, event_dims: Sequence[int] | None = None,
                  normalizer: ObservationNormalizer | None = None, privileged_keys: Sequence = (),
@@ -438,7 +441,7 @@ def make_critic(
     flattened per env), while the actor keeps seeing the observation only. ``normalizer``
     applies to the observation part; the state and parameters go through their own running
     normaliser (as rl_games normalises its central value's inputs), which the learner updates
-    with :func:`update_privileged_statistics` (``privileged_norm=False``: they enter raw).
+    with [`update_privileged_statistics`][torchrl_diffenvs.modules.update_privileged_statistics] (``privileged_norm=False``: they enter raw).
 
     On a multi-agent env it writes ``("agents", "state_value")`` ``[..., A, 1]``, one value per
     agent, from a parameter-shared ``MultiAgentMLP``: from the agent's own observation
@@ -474,7 +477,7 @@ def make_qvalue(env, hidden: Sequence[int] = (256, 256), activation: type[nn.Mod
                 critic_input: str = "observation") -> ValueOperator:
     """``Q(observation, action)`` writing ``"state_action_value"`` (what TorchRL's ``SACLoss``
     expects); with ``critic_input="state"``, ``Q(observation, state, params, action)`` (see
-    :func:`make_critic`), the privileged inputs raw: SAC keeps no running input statistics (its
+    [`make_critic`][torchrl_diffenvs.modules.make_critic]), the privileged inputs raw: SAC keeps no running input statistics (its
     replay buffer would mix them)."""
     if policy_keys(env).num_agents is not None:
         raise ValueError(f"make_qvalue: {type(env).__name__} is a multi-agent env; SAC's Q-networks are single-agent "
@@ -525,11 +528,11 @@ def actor_from_config(loss_cfg: Mapping, env, return_log_prob: bool = False):
 
 def critic_from_config(section: Mapping, env, normalizer: ObservationNormalizer | None = None,
                        critic_input: str = "observation", centralised: bool = False) -> LeanModule:
-    """:func:`make_critic` from a ``loss.critic`` section, sharing the actor's normaliser."""
+    """[`make_critic`][torchrl_diffenvs.modules.make_critic] from a ``loss.critic`` section, sharing the actor's normaliser."""
     return make_critic(env, **network_kwargs(section), normalizer=normalizer, critic_input=critic_input,
                        centralised=centralised).to(env.device)
 
 
 def qvalue_from_config(section: Mapping, env, critic_input: str = "observation") -> ValueOperator:
-    """:func:`make_qvalue` from a ``loss.qvalue`` section."""
+    """[`make_qvalue`][torchrl_diffenvs.modules.make_qvalue] from a ``loss.qvalue`` section."""
     return make_qvalue(env, **network_kwargs(section), critic_input=critic_input).to(env.device)

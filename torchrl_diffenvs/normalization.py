@@ -9,7 +9,7 @@ __all__ = ["ObservationNormalizer"]
 
 class ObservationNormalizer(nn.Module):
     """``(x - mean) / max(sqrt(var + eps), min_std)`` with running statistics that change only in
-    :meth:`update`.
+    [`update`][torchrl_diffenvs.modules.ObservationNormalizer.update].
 
     Design: the normaliser is an ``nn.Module`` placed as the first layer of the actor and critic
     networks (``make_actor(env, normalizer=norm)``, ``make_critic(env, normalizer=norm)``; pass the
@@ -18,8 +18,8 @@ class ObservationNormalizer(nn.Module):
 
     Calling the module never changes the statistics: they are frozen for the duration of a
     rollout window, so every step of the window and the backward pass see the same affine map
-    (gradients flow through it to the observation). The training loop calls :meth:`update` with
-    the window's raw observations *after* the backward pass; :meth:`update` works in place under
+    (gradients flow through it to the observation). The training loop calls [`update`][torchrl_diffenvs.modules.ObservationNormalizer.update] with
+    the window's raw observations *after* the backward pass; [`update`][torchrl_diffenvs.modules.ObservationNormalizer.update] works in place under
     ``no_grad`` and ignores rows that contain NaN/inf.
 
     Statistics are merged with Chan et al.'s parallel algorithm; before the first update the map

@@ -15,7 +15,7 @@ class OpenLoopActor(TensorDictModuleBase):
     """Open-loop control: ``action = squash(logits[episode_step])`` with a learnable table.
 
     Trajectory optimisation is then ordinary BPTT: roll this actor through the env from one fixed
-    start state and minimise :class:`~torchrl_diffenvs.objectives.BPTTLoss` (Ivy Gym's
+    start state and minimise [`BPTTLoss`][torchrl_diffenvs.objectives.BPTTLoss] (Ivy Gym's
     ``optimize_trajectory``). Every env of the batch uses the same table, indexed by its own
     ``"episode_step"``.
 
@@ -23,7 +23,8 @@ class OpenLoopActor(TensorDictModuleBase):
         horizon: number of time steps ``T`` (rows of the table).
         action_dim: action size ``A``.
         init_range: the logits start ``U[low, high]`` (Ivy: ``U[-2, 2]``).
-        low, high: action bounds; ``action = low + (tanh(logit) + 1) / 2 * (high - low)``.
+        low: lower action bound.
+        high: upper action bound; ``action = low + (tanh(logit) + 1) / 2 * (high - low)``.
         dtype: parameter dtype.
         generator: torch generator for the initial logits (seeding).
     """

@@ -2,19 +2,19 @@
 
 One module per stage of the simulator, in the order a physics step runs them:
 
-* :mod:`.mjcf` and :mod:`.model`: the MJCF reader and the parsed model (numpy);
-* :mod:`.tree`: the model as tensors (:class:`RigidBodyTree`) and its default physical params;
-* :mod:`.spatial`: spatial algebra (6-vector cross products, quaternions, batched solves);
-* :mod:`.kinematics`: body poses and dof motion axes, sums along the tree, ``mj_integratePos``;
-* :mod:`.inertia`: the mass matrix and bias forces;
-* :mod:`.forces`: motors, springs, dampers and the fluid model;
-* :mod:`.collision`: MuJoCo's collision detection (contacts between geoms);
-* :mod:`.constraint`: MuJoCo's constraint rows (joint limits, contacts) and their solve;
-* :mod:`.contact` and :mod:`.limits`: the smooth contact option's penalty contact and its joint limits;
-* :mod:`.pipeline`: :func:`accelerations`, the forward dynamics on one screen;
-* :mod:`.integrators`: :func:`step` with semi-implicit Euler or RK4.
+* `mjcf` and `model`: the MJCF reader and the parsed model (numpy);
+* `tree`: the model as tensors ([`RigidBodyTree`][torchrl_diffenvs.articulated.RigidBodyTree]) and its default physical params;
+* `spatial`: spatial algebra (6-vector cross products, quaternions, batched solves);
+* `kinematics`: body poses and dof motion axes, sums along the tree, ``mj_integratePos``;
+* `inertia`: the mass matrix and bias forces;
+* `forces`: motors, springs, dampers and the fluid model;
+* [`collision`][torchrl_diffenvs.articulated.collision]: MuJoCo's collision detection (contacts between geoms);
+* [`constraint`][torchrl_diffenvs.articulated.constraint]: MuJoCo's constraint rows (joint limits, contacts) and their solve;
+* `contact` and `limits`: the smooth contact option's penalty contact and its joint limits;
+* `pipeline`: [`accelerations`][torchrl_diffenvs.articulated.accelerations], the forward dynamics on one screen;
+* `integrators`: [`step`][torchrl_diffenvs.articulated.step] with semi-implicit Euler or RK4.
 
-:mod:`.dynamics` gathers the stages' functions under one name.
+`dynamics` gathers the stages' functions under one name.
 """
 from .integrators import StepResult, step
 from .kinematics import Kinematics, forward_kinematics

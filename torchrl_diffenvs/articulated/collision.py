@@ -1,6 +1,6 @@
 """MuJoCo's collision detection, batched: the contacts ``mj_collision`` finds between geoms.
 
-Every geom pair that MuJoCo's filter lets touch (:func:`colliding_pairs`) is tested by its
+Every geom pair that MuJoCo's filter lets touch ([`colliding_pairs`][torchrl_diffenvs.articulated.collision.colliding_pairs]) is tested by its
 primitive, as ``engine_collision_primitive.c`` does: plane-sphere and sphere-sphere give one
 contact, plane-capsule two (one per end), sphere-capsule one, capsule-capsule one (two where the
 axes are parallel). The number of contacts is fixed per pair (a slot per possible contact), and
@@ -9,7 +9,7 @@ margin. No data-dependent shape or Python branch: the same ops run whatever touc
 
 Each contact has MuJoCo's ``pos``, ``frame`` (normal first, pointing from geom 1 to geom 2),
 ``dist`` and the pair's mixed parameters (``condim``, friction, ``solref``, ``solimp``,
-``includemargin``: :func:`_mix`, as ``mj_contactParam``).
+``includemargin``: `_mix`, as ``mj_contactParam``).
 """
 from __future__ import annotations
 
@@ -115,7 +115,7 @@ def _geoms(model: ArticulatedModel, index: list[int], dtype, device) -> _Geoms:
 @dataclass
 class ContactSlots:
     """The constant part of a model's contacts: one entry per contact slot ``[C]``, grouped by
-    primitive (``groups``: :class:`_PrimitiveGroup`, each pair giving ``_PRIMITIVES[primitive]``
+    primitive (``groups``: `_PrimitiveGroup`, each pair giving ``_PRIMITIVES[primitive]``
     consecutive slots)."""
 
     groups: list[_PrimitiveGroup]
@@ -142,7 +142,7 @@ def unsupported_pairs(model: ArticulatedModel) -> list[tuple[str, str]]:
 
 
 def contact_slots(model: ArticulatedModel, friction_slots: list[tuple[str, str]], dtype, device) -> ContactSlots:
-    """The :class:`ContactSlots` of a model. ``friction_slots``: the geom-name pairs of the
+    """The [`ContactSlots`][torchrl_diffenvs.articulated.collision.ContactSlots] of a model. ``friction_slots``: the geom-name pairs of the
     ``contact_friction`` param (``RigidBodyTree.contact_pairs``, either order)."""
     slot_of = {frozenset(pair): i for i, pair in enumerate(friction_slots)}
     by_primitive: dict[tuple[str, str], list[tuple[int, int]]] = {}
@@ -179,7 +179,7 @@ def contact_slots(model: ArticulatedModel, friction_slots: list[tuple[str, str]]
 
 
 class Contacts(NamedTuple):
-    """The contacts at a batch of configurations, one per slot of :class:`ContactSlots`."""
+    """The contacts at a batch of configurations, one per slot of [`ContactSlots`][torchrl_diffenvs.articulated.collision.ContactSlots]."""
 
     dist: torch.Tensor  # [N, C] signed distance (negative: penetrating)
     pos: torch.Tensor  # [N, C, 3] world position, midway between the surfaces
@@ -281,8 +281,8 @@ def _capsule_capsule(pos1, axis1, radius1, pos2, axis2, radius2, margin):
 
 def collide(slots: ContactSlots, kin) -> Contacts:
     """The contacts of every slot at the configurations of ``kin`` (a
-    :class:`~.kinematics.Kinematics`; not imported here: the kinematics import the tree, which
-    imports this module): :class:`Contacts`."""
+    [`Kinematics`][torchrl_diffenvs.articulated.Kinematics]; not imported here: the kinematics import the tree, which
+    imports this module): [`Contacts`][torchrl_diffenvs.articulated.collision.Contacts]."""
     dists, poss, frames, founds = [], [], [], []
     for kind, first, g1, g2 in slots.groups:
         pos1, rot1 = _geom_poses(kin, g1)

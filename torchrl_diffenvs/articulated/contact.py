@@ -38,7 +38,7 @@ class _PairForces(NamedTuple):
 
 
 def _penalty_force(dist, vel, normal, mu, params: Params):
-    """The smooth contact force (see :func:`contact_force`) at points ``[N, K]`` with signed
+    """The smooth contact force (see `contact_force`) at points ``[N, K]`` with signed
     distance ``dist``, relative velocity ``vel [N, K, 3]``, unit ``normal`` (pushing along it) and
     friction ``mu``: ``(force, normal_force, touching, damping [N, 1], slip)``."""
     normal_vel = (vel * normal).sum(-1)
@@ -106,7 +106,7 @@ def pair_jacobian(tree: RigidBodyTree, kin: Kinematics, point: torch.Tensor) -> 
 
 
 def _pair_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params) -> _PairForces:
-    """The smooth contact model (see :func:`contact_force`) between the geoms of two bodies: the
+    """The smooth contact model (see `contact_force`) between the geoms of two bodies: the
     same normal force and regularised friction on the signed distance of two sphere-swept segments.
 
     Models whose body-body contacts are all frictionless (``condim=1``, as the humanoid's and the
@@ -134,7 +134,7 @@ def pair_contact_force(tree: RigidBodyTree, kin: Kinematics, qvel, params: Param
                        contacts: _PairForces | None = None):
     """``[N, nv]`` generalised force of the contacts between bodies' geoms: ``J^T f`` with ``J`` the
     Jacobian of B's point velocity relative to A's. ``with_damping=True`` also returns its velocity
-    damping ``J^T (a n n^T + b (I - n n^T)) J`` ``[N, nv, nv]`` (see :func:`contact_force`)."""
+    damping ``J^T (a n n^T + b (I - n n^T)) J`` ``[N, nv, nv]`` (see `contact_force`)."""
     c = _pair_forces(tree, kin, qvel, params) if contacts is None else contacts
     wrench = torch.cat([_cross(c.point, c.force), c.force], dim=-1)  # on B, about kin.origin; A: -wrench
     generalised = generalised_force(tree.pair_dof_sign, kin, wrench)
@@ -152,7 +152,7 @@ def pair_contact_force(tree: RigidBodyTree, kin: Kinematics, qvel, params: Param
 
 
 def _contact_points_and_forces(tree: RigidBodyTree, kin: Kinematics, qvel, params: Params) -> _ContactForces:
-    """The smooth contact model (see :func:`contact_force`) at every contact point."""
+    """The smooth contact model (see `contact_force`) at every contact point."""
     rot = kin.body_rot[:, tree.contact_body]  # [N, P, 3, 3]
     centre = kin.body_pos[:, tree.contact_body] + (rot @ tree.contact_local.unsqueeze(-1)).squeeze(-1)
     normal = tree.contact_plane_normal
@@ -198,7 +198,7 @@ def contact_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, para
     ``with_damping=True`` also returns ``C [N, nv, nv]``, the (positive semi-definite) velocity
     damping of these forces, ``-d(force)/d(qvel)`` with the friction direction held fixed: the
     Euler integrator treats it implicitly, as MuJoCo treats joint damping. ``contacts``: the
-    points' forces (:func:`_contact_points_and_forces`) when the caller has them.
+    points' forces (`_contact_points_and_forces`) when the caller has them.
     """
     if tree.contact_body.numel() == 0:
         zero = qvel.new_zeros(qvel.shape)

@@ -19,20 +19,20 @@ rounding error:
 * joint limits as MuJoCo's soft constraints (solref/solimp impedance, reference acceleration,
   regulariser from ``dof_invweight0``), solved row by row: exact when one limit is active at a
   time, MuJoCo's coupled solve otherwise;
-* smooth penalty contact between geoms and ground planes (:func:`contact_force`), not MuJoCo's
-  convex solver: see :mod:`torchrl_diffenvs.articulated` for the difference;
+* smooth penalty contact between geoms and ground planes (`contact_force`), not MuJoCo's
+  convex solver: see [`torchrl_diffenvs.articulated`][torchrl_diffenvs.articulated] for the difference;
 * MuJoCo's integrators: semi-implicit Euler with implicit joint damping, and classic RK4, both
-  moving quaternions as ``mj_integratePos`` does (:func:`integrate_position`).
+  moving quaternions as ``mj_integratePos`` does (`integrate_position`).
 
 Physical parameters come per env in a mapping (``body_mass [N, nbody]``, ``body_inertia
 [N, nbody, 3, 3]``, ``damping``/``armature``/``stiffness [N, nv]``, ``gravity [N, 3]``,
 ``contact_stiffness``/``contact_damping [N]``, ``contact_friction [N, ncontact]``), so they can be
 randomised or differentiated like any other input.
 
-The stages live in their own modules, in the order :func:`~.pipeline.accelerations` runs them:
-:mod:`.tree` (the model as tensors), :mod:`.spatial` (spatial algebra), :mod:`.kinematics`,
-:mod:`.inertia` (mass matrix and bias), :mod:`.forces` (motors, passive and fluid forces),
-:mod:`.contact`, :mod:`.limits`, :mod:`.pipeline` (the forward dynamics) and :mod:`.integrators`.
+The stages live in their own modules, in the order [`accelerations`][torchrl_diffenvs.articulated.accelerations] runs them:
+`tree` (the model as tensors), `spatial` (spatial algebra), `kinematics`,
+`inertia` (mass matrix and bias), `forces` (motors, passive and fluid forces),
+`contact`, `limits`, `pipeline` (the forward dynamics) and `integrators`.
 This module gathers them under one name.
 """
 from __future__ import annotations

@@ -64,7 +64,7 @@ def fluid_force(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, params
 def passive_force(tree: RigidBodyTree, kin: Kinematics, qpos, qvel, params: Params) -> torch.Tensor:
     """``[N, nv]`` MuJoCo's ``qfrc_passive``: joint dampers ``-damping qvel``, springs
     ``-stiffness (qpos - springref)``, fixed tendons' springs and dampers (on the tendon length
-    ``L = coef . q``: ``coef * (-k (L - springlength) - b dL/dt)``) and, in a medium, :func:`fluid_force`."""
+    ``L = coef . q``: ``coef * (-k (L - springlength) - b dL/dt)``) and, in a medium, `fluid_force`."""
     # springs act on hinge and slide coordinates (ball and free joints have none, see the loader)
     stretch = (qpos - tree.qpos_spring)[:, tree.dof_qpos] * tree.dof_has_spring
     passive = -params["damping"] * qvel - params["stiffness"] * stretch

@@ -50,7 +50,7 @@ def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Para
 
     The bias force is MuJoCo's ``qfrc_bias``: Coriolis, centrifugal and gravity terms.
     ``with_velocity_jacobian=True`` also returns ``d qfrc_bias / d qvel [N, nv, nv]``
-    (:func:`bias_velocity_jacobian`), as a third result.
+    (`bias_velocity_jacobian`), as a third result.
     """
     inertia = _spatial_inertia(tree, kin, params)
     mass = _joint_space_inertia(tree, kin.motion, inertia) + torch.diag_embed(params["armature"])
@@ -77,8 +77,8 @@ def bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Ten
 
 
 def _bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Tensor, inertia: torch.Tensor):
-    """:func:`bias_velocity_jacobian` from the bodies' spatial inertias: the derivative of the
-    velocity-product terms of :func:`mass_matrix_and_bias` along each ``qvel_j`` at once.
+    """`bias_velocity_jacobian` from the bodies' spatial inertias: the derivative of the
+    velocity-product terms of [`mass_matrix_and_bias`][torchrl_diffenvs.articulated.mass_matrix_and_bias] along each ``qvel_j`` at once.
 
     With ``S_j`` dof ``j``'s motion axis, ``v_b`` body ``b``'s velocity and ``I_b`` its inertia,
     ``qvel_j`` changes ``v_b`` by ``S_j`` (where ``j`` moves ``b``), the velocity-product
@@ -112,7 +112,7 @@ def _bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Te
 
 
 def _motion_cross_matrix(v: torch.Tensor) -> torch.Tensor:
-    """``[.., 6] -> [.., 6, 6]``: the matrix of ``u -> v x u`` (:func:`~.spatial.cross_motion`);
+    """``[.., 6] -> [.., 6, 6]``: the matrix of ``u -> v x u`` (`cross_motion`);
     ``-(its transpose)`` is ``f -> v x* f``."""
     w, linear = _skew(v[..., :3]), _skew(v[..., 3:])
     zero = torch.zeros_like(w)

@@ -1,4 +1,4 @@
-"""MuJoCo's integrators over :func:`~torchrl_diffenvs.articulated.pipeline.accelerations`:
+"""MuJoCo's integrators over [`accelerations`][torchrl_diffenvs.articulated.accelerations]:
 semi-implicit Euler (with implicit joint and contact damping), MuJoCo's ``implicit`` (Euler with
 the Coriolis and centrifugal forces implicit too) and classic RK4."""
 from __future__ import annotations
@@ -17,7 +17,7 @@ __all__ = ['StepResult', 'eager_step', 'step', 'stepping_with']
 
 
 class StepResult(NamedTuple):
-    """One physics step: the new state, and the state MuJoCo last evaluated (see :func:`step`)."""
+    """One physics step: the new state, and the state MuJoCo last evaluated (see [`step`][torchrl_diffenvs.articulated.step])."""
 
     qpos: torch.Tensor
     qvel: torch.Tensor
@@ -26,15 +26,15 @@ class StepResult(NamedTuple):
     contact_force: torch.Tensor | None = None  # [N] the largest contact normal force at the evaluated state
 
 
-#: id(tree) -> the function that runs its physics steps instead of :func:`eager_step` (see
-#: :func:`stepping_with`): how ``compile_physics`` runs one compiled physics step at a time
+#: id(tree) -> the function that runs its physics steps instead of `eager_step` (see
+#: `stepping_with`): how ``compile_physics`` runs one compiled physics step at a time
 _STEPPERS: dict[int, Callable] = {}
 
 
 class stepping_with:  # noqa: N801 (a context manager, used as a function)
-    """Within ``with stepping_with(tree, stepper):``, :func:`step` on ``tree`` calls ``stepper``
-    (same arguments, same result) instead of :func:`eager_step`: how
-    :func:`~torchrl_diffenvs.compile_physics` runs the articulated tasks, whose env step is
+    """Within ``with stepping_with(tree, stepper):``, [`step`][torchrl_diffenvs.articulated.step] on ``tree`` calls ``stepper``
+    (same arguments, same result) instead of `eager_step`: how
+    [`compile_physics`][torchrl_diffenvs.compile_physics] runs the articulated tasks, whose env step is
     ``frame_skip`` physics steps, through one compiled physics step reused at every step (a
     graph ``frame_skip`` times smaller than the env step's, and the same graph for every step of
     a chunk). Code being traced by ``torch.compile`` always takes the eager step (no nesting)."""
@@ -57,7 +57,7 @@ class stepping_with:  # noqa: N801 (a context manager, used as a function)
 
 def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,
          invweight0=None) -> StepResult:
-    """One physics step (:func:`eager_step`, or the stepper :func:`stepping_with` set for ``tree``)."""
+    """One physics step (`eager_step`, or the stepper `stepping_with` set for ``tree``)."""
     if _STEPPERS and not torch.compiler.is_compiling():
         stepper = _STEPPERS.get(id(tree))
         if stepper is not None:
@@ -74,7 +74,7 @@ def eager_step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float,
     quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
     observations and rewards read some of them, and the largest contact normal force there
     (``contact_force [N]``, detached; None without contacts). ``invweight0``:
-    :func:`~.pipeline.invweight0` of ``params``, if the caller has it.
+    `invweight0` of ``params``, if the caller has it.
     """
     # the params are the same at every stage: the constraints' regulariser scales are computed once
     # (callers stepping several times with the same params pass them in: see MuJoCoModelEnv.simulate)

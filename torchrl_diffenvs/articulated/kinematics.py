@@ -52,7 +52,7 @@ def integrate_position(tree: RigidBodyTree, qpos: torch.Tensor, qvel: torch.Tens
     """MuJoCo's ``mj_integratePos``: ``qpos [N, nq]`` moved by ``qvel [N, nv]`` for ``dt``.
 
     Hinge, slide and a free joint's translation add ``dt * qvel``; ball joints and a free joint's
-    rotation turn their quaternion (:func:`integrate_quaternion`).
+    rotation turn their quaternion (`integrate_quaternion`).
     """
     if tree.nq == tree.nv:  # hinges and slides only
         return qpos + dt * qvel

@@ -28,7 +28,7 @@ def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight
 
     For row ``i`` with distance ``r`` (negative when violated), velocity ``v = J qvel`` and
     unconstrained acceleration ``a0 = J qacc_smooth``: ``aref = -B v - K d(r) (r - margin)``,
-    ``R = (1 - d) / d * invweight0`` (:func:`dof_invweight0`); the forces ``f >= 0`` of the active
+    ``R = (1 - d) / d * invweight0`` (`dof_invweight0`); the forces ``f >= 0`` of the active
     rows solve MuJoCo's constraint problem jointly (the rows couple through ``A = J M^-1 J^T``):
     the linear complementarity problem ``w = (A + R) f + (a0 - aref) >= 0``, ``f >= 0``,
     ``f . w = 0``, solved exactly by principal pivoting (a fixed number of rounds, batched), and

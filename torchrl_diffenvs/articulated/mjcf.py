@@ -1,7 +1,7 @@
 """An MJCF reader for the subset of MuJoCo's XML that Gymnasium's own model files use.
 
-:func:`load_mjcf` turns a model file into an :class:`ArticulatedModel`: plain float64 numpy arrays
-(bodies, joints, geoms, motors) that :mod:`torchrl_diffenvs.articulated.dynamics` turns into
+[`load_mjcf`][torchrl_diffenvs.articulated.load_mjcf] turns a model file into an [`ArticulatedModel`][torchrl_diffenvs.articulated.ArticulatedModel]: plain float64 numpy arrays
+(bodies, joints, geoms, motors) that `torchrl_diffenvs.articulated.dynamics` turns into
 tensors. It follows MuJoCo's compiler where it matters for the dynamics:
 
 * ``<compiler>``: ``angle`` (degree by default), ``eulerseq``, ``inertiafromgeom``,
@@ -20,10 +20,10 @@ tensors. It follows MuJoCo's compiler where it matters for the dynamics:
 
 MuJoCo's constraint-solver settings (``<option solver iterations tolerance ls_iterations cone
 impratio>``) and the geoms' contact parameters (``margin``, ``solref``, ``solimp``, ``solmix``,
-``priority``) are read: MuJoCo's contact model (:mod:`~torchrl_diffenvs.articulated.constraint`)
+``priority``) are read: MuJoCo's contact model ([`constraint`][torchrl_diffenvs.articulated.constraint])
 solves with them. Anything else that would change the dynamics
 (limits or springs on ball joints, tendon limits, spatial tendons, equality constraints,
-other actuators, wind and the ellipsoid fluid model, joint friction loss, ...) raises :class:`MJCFError` naming the
+other actuators, wind and the ellipsoid fluid model, joint friction loss, ...) raises [`MJCFError`][torchrl_diffenvs.articulated.MJCFError] naming the
 element, the attribute and the file. Purely visual things (materials, textures, lights, cameras,
 sites, colours, sensors) are ignored.
 """

@@ -1,4 +1,4 @@
-"""The parsed model: :class:`ArticulatedModel` (float64 numpy arrays of a kinematic tree of rigid
+"""The parsed model: [`ArticulatedModel`][torchrl_diffenvs.articulated.ArticulatedModel] (float64 numpy arrays of a kinematic tree of rigid
 bodies, as MuJoCo's compiler lays it out) and the geometry helpers the reader uses (rotations,
 geom volumes and inertias)."""
 from __future__ import annotations

@@ -2,7 +2,7 @@
 cross products, quaternions, and the batched solves.
 
 Spatial vectors are ``[.., 6]`` tensors, angular part first, in world axes about a reference point
-(see :class:`~torchrl_diffenvs.articulated.kinematics.Kinematics`).
+(see [`Kinematics`][torchrl_diffenvs.articulated.Kinematics]).
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Differentiable batched environments (TorchRL ``EnvBase`` subclasses).
 
 Each task registers itself in its own file (``@register_env(...)`` above its class); importing
-the task modules here is what makes them known to :func:`make_env`."""
+the task modules here is what makes them known to [`make_env`][torchrl_diffenvs.make_env]."""
 from .base import DiffEnv
 from .cartpole import CartPoleEnv
 from .rollout import compile_physics, eager_physics

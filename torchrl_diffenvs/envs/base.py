@@ -1,6 +1,6 @@
 """The base class that turns a task's pure physics into a batched, differentiable TorchRL env.
 
-A task subclass only supplies physics (see :class:`DiffEnv`); everything TorchRL needs (specs,
+A task subclass only supplies physics (see [`DiffEnv`][torchrl_diffenvs.DiffEnv]); everything TorchRL needs (specs,
 batch size, device, dtype, seeding, partial resets, truncation, input validation) lives here.
 
 TensorDict layout (``N = num_envs``)::
@@ -16,8 +16,8 @@ TensorDict layout (``N = num_envs``)::
 
 Keeping the state apart from the observation matters: an ObservationNorm (or any transform) on
 "observation" can never feed its output back into the dynamics. A multi-agent task
-(:class:`~torchrl_diffenvs.envs.multi_agent.MultiAgentDiffEnv`) moves "observation", "action" and
-"reward" into an "agents" group ``[N, A]`` (:meth:`DiffEnv._policy_specs` is the one place that
+([`MultiAgentDiffEnv`][torchrl_diffenvs.envs.MultiAgentDiffEnv]) moves "observation", "action" and
+"reward" into an "agents" group ``[N, A]`` (`DiffEnv._policy_specs` is the one place that
 lays them out).
 """
 from __future__ import annotations
@@ -47,7 +47,7 @@ class DiffEnv(EnvBase):
 
     * ``name`` (str), ``action_dim`` (int) and ``default_params`` (dict of floats or lists);
     * ``initial_state(params, n) -> dict[str, Tensor]``: samples ``n`` start states with
-      :meth:`uniform` / :meth:`normal` (so seeding works: see "Start states" below);
+      [`uniform`][torchrl_diffenvs.DiffEnv.uniform] / [`normal`][torchrl_diffenvs.DiffEnv.normal] (so seeding works: see "Start states" below);
     * ``transition(state, action, params) -> (next_state, reward, terminated)``: one step, pure
       tensor code; ``reward`` is ``[N]``, ``terminated`` a ``[N]`` bool tensor or ``None``;
     * ``observation(state, params) -> Tensor [N, obs_dim]``.
@@ -61,19 +61,19 @@ class DiffEnv(EnvBase):
     Gymnasium-compatible tasks) the action is clipped as Gymnasium does, which zeroes the
     gradient outside the bounds.
 
-    Start states: when the env resets, every number :meth:`uniform` and :meth:`normal` return
+    Start states: when the env resets, every number [`uniform`][torchrl_diffenvs.DiffEnv.uniform] and [`normal`][torchrl_diffenvs.DiffEnv.normal] return
     inside ``initial_state`` comes from env ``i``'s own random stream, a hash of (seed, ``i``,
     ``i``'s episode count, draw number): env ``i``'s start states are the same whatever the batch
-    size and however often the other envs reset (:mod:`~torchrl_diffenvs.envs.streams`).
-    :attr:`episodes` holds the counts (saved and restored with ``env.rng``'s state);
-    :meth:`set_seed` sets them back to zero.
+    size and however often the other envs reset (`streams`).
+    [`episodes`][torchrl_diffenvs.DiffEnv.episodes] holds the counts (saved and restored with ``env.rng``'s state);
+    `set_seed` sets them back to zero.
 
     Non-finite envs: every operation is elementwise over the batch, so a NaN/inf action or
     parameter of env ``i`` can only make env ``i``'s values non-finite. After each step the base
     class flags such an env in ``"nonfinite"`` (``[N, 1]`` bool), marks it ``terminated`` (an
     auto-reset restarts it; a NaN state never stays) and replaces the non-finite elements of its
     ``"observation"`` and ``"reward"`` by ``0`` so that batch means stay finite; its ``"state"``
-    keeps the NaN/inf values (see :func:`~torchrl_diffenvs.envs.rollout.step.physics_step`). The
+    keeps the NaN/inf values (see `physics_step`). The
     other envs' values and gradients are unchanged; the flagged env's own gradients may be NaN,
     so learners mask flagged envs out of their losses.
 
@@ -229,7 +229,7 @@ class DiffEnv(EnvBase):
         return {"observation": observation}, action, Unbounded(shape=(n, 1), dtype=dtype, device=self.device)
 
     def _policy_entries(self, observation: torch.Tensor, reward: torch.Tensor | None) -> dict:
-        """The output entries a policy reads (and the reward), laid out as :meth:`_policy_specs` says."""
+        """The output entries a policy reads (and the reward), laid out as `_policy_specs` says."""
         out = {"observation": observation}
         if reward is not None:
             out["reward"] = reward.unsqueeze(-1)
@@ -239,9 +239,9 @@ class DiffEnv(EnvBase):
     def uniform(self, low: float, high: float, *shape: int) -> torch.Tensor:
         """``U[low, high)`` samples of shape ``shape`` (``[n, ...]``) for ``initial_state``.
 
-        During a reset (:meth:`start_states`) row ``i`` comes from env ``i``'s own random stream;
+        During a reset ([`start_states`][torchrl_diffenvs.DiffEnv.start_states]) row ``i`` comes from env ``i``'s own random stream;
         called anywhere else (e.g. ``initial_state`` called directly), from the seeded
-        generator :attr:`rng`.
+        generator `rng`.
         """
         draw = self.__dict__.get("_start_draw")
         if draw is None:
@@ -251,7 +251,7 @@ class DiffEnv(EnvBase):
         return sample * (high - low) + low
 
     def normal(self, *shape: int) -> torch.Tensor:
-        """Standard normal samples of shape ``shape`` (``[n, ...]``), from the same streams as :meth:`uniform`."""
+        """Standard normal samples of shape ``shape`` (``[n, ...]``), from the same streams as [`uniform`][torchrl_diffenvs.DiffEnv.uniform]."""
         draw = self.__dict__.get("_start_draw")
         if draw is None:
             return torch.randn(shape, generator=self.rng, device=self.device, dtype=self.float_dtype)
@@ -281,7 +281,7 @@ class DiffEnv(EnvBase):
 
     @property
     def episodes(self) -> torch.Tensor:
-        """``[N]`` int64: how many start states each env has drawn since the last :meth:`set_seed`
+        """``[N]`` int64: how many start states each env has drawn since the last `set_seed`
         (env ``i``'s next start state is the one of episode ``episodes[i]`` of its stream)."""
         return self.rng.episodes
 
@@ -294,7 +294,7 @@ class DiffEnv(EnvBase):
 
     def start_states(self, params, episodes: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """``initial_state`` for every env, env ``i`` at episode ``episodes[i]`` of its own stream
-        (default: :attr:`episodes`, the next ones). Pure: advances no counter (``_reset`` does)."""
+        (default: [`episodes`][torchrl_diffenvs.DiffEnv.episodes], the next ones). Pure: advances no counter (``_reset`` does)."""
         episodes = self.episodes if episodes is None else episodes
         # hash as many words up front as the last call used (one numpy hash instead of one per draw)
         key = self.rng.key
@@ -448,14 +448,14 @@ class DiffEnv(EnvBase):
 
     @classmethod
     def overridden_methods(cls, names) -> list[str]:
-        """Those of ``names`` that ``cls`` defines differently from :class:`DiffEnv` (the lean
+        """Those of ``names`` that ``cls`` defines differently from [`DiffEnv`][torchrl_diffenvs.DiffEnv] (the lean
         rollout reproduces DiffEnv's and TorchRL's versions only)."""
         return [name for name in names if getattr(cls, name) is not getattr(DiffEnv, name)]
 
     def rollout(self, max_steps: int, policy=None, callback=None, **kwargs) -> TensorDictBase:
         """``EnvBase.rollout`` (same arguments, same result), through a lean loop when possible.
 
-        The lean loop (:mod:`torchrl_diffenvs.envs.rollout`) steps the pure physics on plain
+        The lean loop (`torchrl_diffenvs.envs.rollout`) steps the pure physics on plain
         tensors and builds the output TensorDict once; it is taken unless a ``callback`` or an
         argument it does not reproduce is given (see ``fast_rollout_unsupported``).
         ``TransformedEnv`` never calls this method: it steps the base env itself.
@@ -468,7 +468,7 @@ class DiffEnv(EnvBase):
     _render_source = None  # see _remember_for_render
 
     def _remember_for_render(self, tensordict: TensorDictBase, reset_mask: torch.Tensor | None = None) -> None:
-        """Keeps what :meth:`render` draws of the latest ``[N]`` output: its ``"state"``,
+        """Keeps what [`render`][torchrl_diffenvs.DiffEnv.render] draws of the latest ``[N]`` output: its ``"state"``,
         ``"params"`` and ``"reward"``, *detached* (views, no copies: about 3 us), so that the env
         never holds a rollout's autograd graph alive.
 
@@ -499,10 +499,10 @@ class DiffEnv(EnvBase):
             env_index: an env index, a list of indices, or ``"all"``; several envs are tiled
                 into one grid frame.
             size: pixels of one env's picture, ``int`` (square) or ``(height, width)``.
-            **kwargs: passed to :func:`torchrl_diffenvs.rendering.render_frame`.
+            **kwargs: passed to [`torchrl_diffenvs.rendering.render_frame`][torchrl_diffenvs.rendering.render_frame].
 
         Needs Pillow (``pip install "torchrl_diffenvs[render]"``); see
-        :mod:`torchrl_diffenvs.rendering` for the drawings and GIF export.
+        [`torchrl_diffenvs.rendering`][torchrl_diffenvs.rendering] for the drawings and GIF export.
         """
         from ..rendering import render_frame  # lazy: Pillow is an optional extra
 

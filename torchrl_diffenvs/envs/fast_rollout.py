@@ -1,6 +1,6 @@
 """The lean rollout's public names, where they have always been imported from.
 
-The implementation lives in :mod:`torchrl_diffenvs.envs.rollout`.
+The implementation lives in `torchrl_diffenvs.envs.rollout`.
 """
 from .rollout import (
     FAST_ROLLOUT_KWARGS,

@@ -8,7 +8,7 @@ continuous action ``a`` (force ``10 a``) instead of ``Discrete(2)``; ``a = +1`` 
 Gymnasium's actions ``1`` / ``0``.
 
 The three tasks share one file because they share one contract (Gymnasium parity, and its
-``TimeLimit`` truncation rule in :class:`GymnasiumClassicEnv`); each task is still physics only.
+``TimeLimit`` truncation rule in `GymnasiumClassicEnv`); each task is still physics only.
 Every constant of Gymnasium's model is a per-env parameter (``env.params``), so the tasks can be
 randomised or differentiated like the Ivy-style ones; the defaults are Gymnasium's values.
 """
@@ -27,7 +27,7 @@ class GymnasiumClassicEnv(DiffEnv):
     """Base of the Gymnasium-compatible tasks: Gymnasium's ``TimeLimit`` truncation rule.
 
     Gymnasium's ``TimeLimit`` sets ``truncated=True`` at the step limit even when that step also
-    terminates (both flags true); :class:`DiffEnv` reports only ``terminated`` then. ``done`` is
+    terminates (both flags true); [`DiffEnv`][torchrl_diffenvs.DiffEnv] reports only ``terminated`` then. ``done`` is
     the same under both rules; only the ``truncated`` flag of that one step differs.
     """
 
@@ -41,7 +41,7 @@ class GymnasiumClassicEnv(DiffEnv):
 class CartPoleV1Env(GymnasiumClassicEnv):
     """Gymnasium's ``CartPole-v1`` (balance the pole; theta = 0 upright) with a continuous force.
 
-    Dynamics: Gymnasium's cart-pole equations (:func:`cartpole_accelerations`) with its default
+    Dynamics: Gymnasium's cart-pole equations (`cartpole_accelerations`) with its default
     explicit Euler integrator (positions advance with the *old* velocities), force ``10 a``.
     Observation ``[x, xd, th, thd]``; reward ``+1`` per step, the terminating step included;
     terminated when ``|x| > 2.4`` or ``|th| > 12 deg``; truncated after 500 steps. Start: all four

@@ -1,4 +1,4 @@
-"""The base class of multi-agent tasks: TorchRL's multi-agent layout over a :class:`DiffEnv`.
+"""The base class of multi-agent tasks: TorchRL's multi-agent layout over a [`DiffEnv`][torchrl_diffenvs.DiffEnv].
 
 What a policy reads and writes moves into an ``"agents"`` group of shape ``[N, A]``
 (``A = num_agents``), as in TorchRL's VMAS and PettingZoo wrappers::
@@ -55,7 +55,7 @@ class PolicyKeys:
 
 
 def policy_keys(env) -> PolicyKeys:
-    """The :class:`PolicyKeys` of ``env`` (any TorchRL env)."""
+    """The `PolicyKeys` of ``env`` (any TorchRL env)."""
     if not is_multi_agent(env):
         return PolicyKeys()
     names = ("observation", "action", "reward", "loc", "scale", "log_prob", "value")
@@ -71,9 +71,9 @@ def reward_per_env(tensordict: TensorDictBase, key: NestedKey = "reward") -> tor
 
 
 class MultiAgentDiffEnv(DiffEnv):
-    """A :class:`DiffEnv` with ``num_agents`` agents in one batched simulation.
+    """A [`DiffEnv`][torchrl_diffenvs.DiffEnv] with ``num_agents`` agents in one batched simulation.
 
-    A subclass defines the same physics functions as for a :class:`DiffEnv`, with an agent
+    A subclass defines the same physics functions as for a [`DiffEnv`][torchrl_diffenvs.DiffEnv], with an agent
     dimension:
 
     * ``transition(state, action, params) -> (next_state, reward, terminated)``: ``action`` is
@@ -86,7 +86,7 @@ class MultiAgentDiffEnv(DiffEnv):
     Args:
         num_envs: simulations in the batch.
         num_agents: agents per simulation (``>= 1``).
-        **kwargs: as :class:`DiffEnv` (device, dtype, seed, max_episode_steps, params).
+        **kwargs: as [`DiffEnv`][torchrl_diffenvs.DiffEnv] (device, dtype, seed, max_episode_steps, params).
     """
 
     min_agents: int = 1

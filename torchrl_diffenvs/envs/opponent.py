@@ -1,11 +1,11 @@
 """Two-player tasks seen from one side: the opponent's policy is part of the env's dynamics.
 
-A :class:`TwoPlayerDiffEnv` is an ordinary single-agent :class:`DiffEnv` for the learner: its
+A [`TwoPlayerDiffEnv`][torchrl_diffenvs.envs.TwoPlayerDiffEnv] is an ordinary single-agent [`DiffEnv`][torchrl_diffenvs.DiffEnv] for the learner: its
 ``"observation"``, ``"action"`` and ``"reward"`` are player 0's. Each step the opponent (player 1)
 acts from its own observation, computed by the same ``observe`` function with the players
 swapped, so that a snapshot of the learner's policy can play the other side (self-play, as
 rl_games does it: ``sota_scripts/train.py selfplay.refresh_interval=...``, see
-:mod:`torchrl_diffenvs.training.selfplay`). By default the opponent is the task's scripted
+`torchrl_diffenvs.training.selfplay`). By default the opponent is the task's scripted
 controller. Gradients flow through the opponent's response into player 0's earlier actions
 (the opponent's own weights are frozen).
 """
@@ -42,13 +42,13 @@ class _FrozenActor(nn.Module):
 
 
 def opponent_from_actor(actor: nn.Module) -> Callable[[torch.Tensor], torch.Tensor]:
-    """A frozen copy of ``actor`` (from :func:`~torchrl_diffenvs.modules.make_actor`) as an opponent:
+    """A frozen copy of ``actor`` (from [`make_actor`][torchrl_diffenvs.modules.make_actor]) as an opponent:
     ``observation [N, obs_dim] -> action [N, action_dim]``, its deterministic (mean) action."""
     return _FrozenActor(actor)
 
 
 class TwoPlayerDiffEnv(DiffEnv):
-    """A :class:`DiffEnv` whose player 1 is played by :attr:`opponent`.
+    """A [`DiffEnv`][torchrl_diffenvs.DiffEnv] whose player 1 is played by [`opponent`][torchrl_diffenvs.envs.TwoPlayerDiffEnv.opponent].
 
     A subclass defines ``initial_state`` as usual and
 

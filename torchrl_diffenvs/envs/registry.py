@@ -1,6 +1,6 @@
-"""The task registry behind :func:`make_env` and :func:`list_envs`.
+"""The task registry behind [`make_env`][torchrl_diffenvs.make_env] and [`list_envs`][torchrl_diffenvs.list_envs].
 
-A task is one file: its physics (a :class:`~torchrl_diffenvs.DiffEnv` subclass) and, above the
+A task is one file: its physics (a [`DiffEnv`][torchrl_diffenvs.DiffEnv] subclass) and, above the
 class, one registration that names it, says how it is drawn and gives its training config::
 
     @register_env(drawer="torchrl_diffenvs.rendering.tasks:PENDULUM")
@@ -10,7 +10,7 @@ class, one registration that names it, says how it is drawn and gives its traini
 
 The drawer is a ``"module:attribute"`` path, imported only when the task is first drawn (so
 Pillow stays optional); the training script's ``env=<name>`` config is generated from the
-registration (:func:`env_config`).
+registration ([`env_config`][torchrl_diffenvs.envs.env_config]).
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ class TaskSpec:
     Attributes:
         cls: the env class (a ``DiffEnv`` subclass).
         drawer: how the task is drawn: a ``"module:attribute"`` path to a
-            :class:`~torchrl_diffenvs.rendering.Drawer` (or to a callable ``(env_class) -> Drawer``),
+            [`Drawer`][torchrl_diffenvs.rendering.Drawer] (or to a callable ``(env_class) -> Drawer``),
             a ``Drawer`` itself, or ``None``.
         options: task options shown in (and passed from) the training config's ``env.options``.
         num_envs: the training config's default batch size.
@@ -65,7 +65,7 @@ def register_env(cls: type | None = None, name: str | None = None, *, drawer=Non
 
 
 def list_envs() -> list[str]:
-    """Every name :func:`make_env` accepts."""
+    """Every name [`make_env`][torchrl_diffenvs.make_env] accepts."""
     return sorted(_REGISTRY)
 
 
@@ -82,7 +82,7 @@ def task_spec(name: str) -> TaskSpec:
 
 
 def env_class(name: str) -> type:
-    """The class :func:`make_env` builds for ``name``."""
+    """The class [`make_env`][torchrl_diffenvs.make_env] builds for ``name``."""
     return _spec(name).cls
 
 

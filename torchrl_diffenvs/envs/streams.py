@@ -39,7 +39,7 @@ _MASK64 = (1 << 64) - 1
 
 
 def _mix_int(x: int) -> int:
-    """:func:`_mix` of one Python int (no numpy scalar overflow warnings)."""
+    """`_mix` of one Python int (no numpy scalar overflow warnings)."""
     x &= _MASK64
     x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
     x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _MASK64
@@ -88,7 +88,7 @@ class StartDraw:
     """The random numbers of one ``initial_state`` call for envs ``index`` at episode ``episode``.
 
     Env ``i``'s stream is a sequence of 64-bit words, word ``p`` a hash of (its key, ``p``);
-    each :meth:`uniform` / :meth:`normal` call takes the next words (``calls`` is the position),
+    each `uniform` / `normal` call takes the next words (``calls`` is the position),
     the same for every env, so the numbers of a task's ``initial_state`` are, element by
     element, independent of the batch and of how often the other envs reset.
 
@@ -166,11 +166,11 @@ def _cpu_state_bytes() -> int:
 class EnvGenerator(torch.Generator):
     """``env.rng``: a ``torch.Generator`` that also holds the env's start-state streams.
 
-    ``key`` (the seed's 64-bit key, :func:`seed_key`) and ``episodes`` (``[N]`` int64, on the
+    ``key`` (the seed's 64-bit key, `seed_key`) and ``episodes`` (``[N]`` int64, on the
     env's device: how many start states each env has drawn) say where every env's stream is.
-    :meth:`get_state` appends them to the generator's own state, so everything that saves and
+    `get_state` appends them to the generator's own state, so everything that saves and
     restores ``env.rng`` (checkpoints, ``DiffWindowCollector.state_dict``) resumes the start
-    states exactly too; :meth:`set_state` also takes a plain generator state (the streams are
+    states exactly too; `set_state` also takes a plain generator state (the streams are
     then left as they are).
     """
 

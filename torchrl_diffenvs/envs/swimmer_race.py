@@ -12,7 +12,7 @@ from .swimmer import check_pond_options, redraw_near, swimmer_reward
               options={"num_urchins": 5, "urchin_clearance": 0.25})
 class SwimmerRaceEnv(TwoPlayerDiffEnv):
     """Two fish (the swimmer's point masses) start at the same distance from one goal, on opposite
-    sides of it; fish 0 is the learner, fish 1 the opponent (:meth:`set_opponent`; default: the
+    sides of it; fish 0 is the learner, fish 1 the opponent ([`set_opponent`][torchrl_diffenvs.envs.TwoPlayerDiffEnv.set_opponent]; default: the
     scripted controller below).
 
     Zero-sum reward of fish 0: ``c_0 - c_1`` with ``c_i = exp(-0.5 |p_i - g|^2) * prod_k (1 -

@@ -1,8 +1,8 @@
 """One learner per algorithm, each in one file that reads like its algorithm.
 
 ``bptt``, ``shac``, ``ahac`` and ``sapo`` backpropagate through the differentiable env; ``ppo``
-and ``sac`` are TorchRL's own losses and collectors. All share :class:`Learner`'s interface, used alike by
-the training loop (:mod:`torchrl_diffenvs.training`), the demos, the benchmarks and the tests::
+and ``sac`` are TorchRL's own losses and collectors. All share [`Learner`][torchrl_diffenvs.learners.Learner]'s interface, used alike by
+the training loop (`torchrl_diffenvs.training`), the demos, the benchmarks and the tests::
 
     learner = SHACLearner(env, make_actor(env), make_critic(env), SHACConfig(horizon=8))
     for _ in range(100):
@@ -12,9 +12,9 @@ Adding a learner
 ----------------
 One file plus one registration line:
 
-1. ``torchrl_diffenvs/learners/<name>.py``: a frozen settings dataclass (a :class:`LearnerConfig`
+1. ``torchrl_diffenvs/learners/<name>.py``: a frozen settings dataclass (a [`LearnerConfig`][torchrl_diffenvs.learners.LearnerConfig]
    whose fields are ``checked(default, check)``: the defaults live there and nowhere else) and a
-   :class:`Learner` subclass that implements ``from_config``, ``steps_per_env``,
+   [`Learner`][torchrl_diffenvs.learners.Learner] subclass that implements ``from_config``, ``steps_per_env``,
    ``train_iteration``, ``state_dict`` and ``load_state_dict``, and says in class attributes what
    the training loop needs to know about it: ``name`` (the ``loss=<name>`` choice),
    ``config_class``, ``networks`` (its network sections and their defaults), ``run_defaults``
@@ -24,8 +24,8 @@ One file plus one registration line:
 2. ``register_learner(MyLearner)`` at the end of this file.
 
 ``python sota_scripts/train.py loss=<name>`` then works: the ``loss`` configuration group gets
-``<name>`` (generated from the class, :meth:`Learner.default_config`), the settings are checked
-with the project's one-line errors (:meth:`Learner.config_problems`), and the training loop,
+``<name>`` (generated from the class, [`Learner.default_config`][torchrl_diffenvs.learners.Learner.default_config]), the settings are checked
+with the project's one-line errors ([`Learner.config_problems`][torchrl_diffenvs.learners.Learner.config_problems]), and the training loop,
 checkpoints, resume and ``mode=eval`` drive it through the interface. Presets (other settings of
 the same learner, e.g. ``loss=shac_reference``) are YAML files in ``configs/loss/`` whose defaults
 list starts with the learner's name.
@@ -48,7 +48,7 @@ LEARNERS: dict[str, type[Learner]] = {}
 
 
 def register_learner(learner: type[Learner]) -> type[Learner]:
-    """Makes ``learner`` available as ``loss=<learner.name>`` (:func:`make_learner` and the training
+    """Makes ``learner`` available as ``loss=<learner.name>`` ([`make_learner`][torchrl_diffenvs.learners.make_learner] and the training
     script's ``loss`` configuration group). Returns it, so it can decorate the class."""
     if not (isinstance(learner, type) and issubclass(learner, Learner)) or not learner.name:
         raise TypeError(f"register_learner needs a Learner subclass with a name, got {learner!r}")

@@ -6,16 +6,16 @@ One iteration:
 
 1. collect a window ``[N, H]`` with the graph on (``H = round(horizon)``);
 2. actor step on SHAC's bootstrapped return, bootstrapped by the minimum of the twin critics
-   (:class:`~torchrl_diffenvs.objectives.AHACLoss`), one guarded Adam step;
+   ([`AHACLoss`][torchrl_diffenvs.objectives.AHACLoss]), one guarded Adam step;
 3. critic targets: TD(lambda) of the detached window from the same minimum;
 4. critic passes over ``critic_minibatches`` minibatches until the mean loss of a pass stops
    moving (``critic_passes: null``: the reference's early stop) or a fixed number of passes;
 5. update the observation normaliser from the window;
 6. move the dual variable and the horizon from the window's ``("next", "contact_force")``
-   (:class:`~torchrl_diffenvs.objectives.AdaptiveHorizon`); the next window has the new length;
+   ([`AdaptiveHorizon`][torchrl_diffenvs.objectives.AdaptiveHorizon]); the next window has the new length;
 7. step the learning-rate schedules (the dual learning rate follows the same schedule).
 
-:class:`TwinCriticLearner` holds what AHAC and SAPO share (steps 1-5).
+`TwinCriticLearner` holds what AHAC and SAPO share (steps 1-5).
 """
 from __future__ import annotations
 
@@ -59,7 +59,7 @@ CRITIC_SHUFFLES = ("in_order", "once_per_window", "every_pass")
 
 @dataclasses.dataclass(frozen=True)
 class AHACConfig(LearnerConfig):
-    """Settings of :class:`AHACLearner` (the keys of ``loss=ahac``); defaults are the
+    """Settings of [`AHACLearner`][torchrl_diffenvs.learners.AHACLearner] (the keys of ``loss=ahac``); defaults are the
     reference's (``scripts/cfg/alg/ahac.yaml``)."""
 
     min_horizon: int = checked(8, checks.positive_int)  # the window length H stays in [min_horizon, max_horizon]
@@ -100,13 +100,13 @@ def twin_critic_from_config(section: Mapping, env, normalizer: ObservationNormal
 class TwinCriticLearner(ActorCriticCheckpoint, Learner):
     """SHAC's window loop with twin critics and no target critic: what AHAC and SAPO share.
 
-    Subclasses give the loss and the optimiser and may override :meth:`_after_actor_step`
-    (metrics, temperature), :meth:`_critic_targets` and :meth:`_after_window` (horizon).
+    Subclasses give the loss and the optimiser and may override `_after_actor_step`
+    (metrics, temperature), `_critic_targets` and `_after_window` (horizon).
 
     Args:
-        env, actor, reset_input, world: as :class:`~torchrl_diffenvs.learners.SHACLearner`.
-        loss: the window loss (:class:`~torchrl_diffenvs.objectives.AHACLoss` or
-            :class:`~torchrl_diffenvs.objectives.SAPOLoss`), holding the critics.
+        env, actor, reset_input, world: as [`SHACLearner`][torchrl_diffenvs.learners.SHACLearner].
+        loss: the window loss ([`AHACLoss`][torchrl_diffenvs.objectives.AHACLoss] or
+            [`SAPOLoss`][torchrl_diffenvs.objectives.SAPOLoss]), holding the critics.
         config: the learner's settings (``actor_lr``, ``critic_lr``, ``betas``, ``lr_schedule``,
             ``min_lr``, ``lr_decay``, ``critic_minibatches``, ``critic_shuffle``,
             ``max_grad_norm``, ``skip_above`` are read here).
@@ -149,7 +149,7 @@ class TwinCriticLearner(ActorCriticCheckpoint, Learner):
 
     @property
     def steps_per_env(self) -> int:
-        """Length of the window the last :meth:`train_iteration` collected (the next one's before any)."""
+        """Length of the window the last `train_iteration` collected (the next one's before any)."""
         return self._last_window_steps
 
     # ------------------------------------------------------------------ hooks
@@ -274,10 +274,12 @@ class AHACLearner(TwinCriticLearner):
     Args:
         env: a batched differentiable single-agent env that reports contact forces.
         actor: the policy to train, writing ``"action"``.
-        critic: a :class:`~torchrl_diffenvs.objectives.TwinCritic`.
-        config: :class:`AHACConfig`.
+        critic: a [`TwinCritic`][torchrl_diffenvs.objectives.TwinCritic].
+        config: [`AHACConfig`][torchrl_diffenvs.learners.AHACConfig].
         total_env_steps: the budget the learning-rate schedules run over.
-        normalizer, reset_input, world: as :class:`~torchrl_diffenvs.learners.SHACLearner`.
+        normalizer: as [`SHACLearner`][torchrl_diffenvs.learners.SHACLearner].
+        reset_input: as [`SHACLearner`][torchrl_diffenvs.learners.SHACLearner].
+        world: as [`SHACLearner`][torchrl_diffenvs.learners.SHACLearner].
     """
 
     name = "ahac"

@@ -27,10 +27,10 @@ LR_SCHEDULES = ("linear", "exponential", "constant")
 
 class LearnerConfig(Settings):
     """Base of a learner's settings: a frozen dataclass whose fields carry their checks
-    (:func:`~torchrl_diffenvs.checks.checked`).
+    (`checked`).
 
     The fields are the keys of the training script's ``loss`` section (besides ``name`` and the
-    network sections, :attr:`Learner.networks`), and their defaults are the section's defaults:
+    network sections, `Learner.networks`), and their defaults are the section's defaults:
     the configuration is generated from this class, so the training script and Python code build
     learners alike.
     """
@@ -49,7 +49,7 @@ def _finite_number(value) -> str | None:
 @dataclasses.dataclass(frozen=True)
 class NetworkConfig(Settings):
     """A network section of a learner's settings (``loss.critic``, ``loss.qvalue``): the MLP that
-    :func:`~torchrl_diffenvs.modules.make_critic` / ``make_qvalue`` build."""
+    [`make_critic`][torchrl_diffenvs.modules.make_critic] / ``make_qvalue`` build."""
 
     hidden: tuple = checked((64, 64), _layer_widths)  # layer widths
     activation: str = checked("elu", checks.one_of(tuple(ACTIVATIONS)))
@@ -60,7 +60,7 @@ class NetworkConfig(Settings):
 
 @dataclasses.dataclass(frozen=True)
 class ActorNetworkConfig(NetworkConfig):
-    """``loss.actor``: the policy network (:func:`~torchrl_diffenvs.modules.make_actor`)."""
+    """``loss.actor``: the policy network ([`make_actor`][torchrl_diffenvs.modules.make_actor])."""
 
     init_log_std: float = checked(-1.0, _finite_number)  # the policy's initial log standard deviation
     distribution: str = checked("tanh_normal", checks.one_of(DISTRIBUTIONS))  # tanh_normal | deterministic
@@ -89,7 +89,7 @@ def lr_scheduler(optimizer: torch.optim.Optimizer, kind: str, total_iterations: 
     ``total_iterations()`` iterations, then stays there; ``"exponential"`` multiplies it by
     ``decay`` every iteration; ``"constant"`` keeps it.
 
-    A run resumed with another budget (:func:`load_lr_scheduler`) continues without a jump: the
+    A run resumed with another budget (`load_lr_scheduler`) continues without a jump: the
     linear schedule goes on from the learning rate it had reached, straight to ``min_lr`` at the
     end of the new budget (from the iteration ``r`` and factor ``f_r`` of the resume,
     ``f(i) = f_r + (end - f_r) (i - r) / (total - r)``), and holds ``min_lr`` after it. A
@@ -118,11 +118,11 @@ def lr_scheduler(optimizer: torch.optim.Optimizer, kind: str, total_iterations: 
 
 
 def load_lr_scheduler(schedule: torch.optim.lr_scheduler.LambdaLR, state: dict) -> None:
-    """Restores a :func:`lr_scheduler` so that the learning rate goes on from the saved one.
+    """Restores a [`lr_scheduler`][torchrl_diffenvs.learners.lr_scheduler] so that the learning rate goes on from the saved one.
 
     With the budget it was saved with, the schedule continues exactly. With another budget the
     saved learning rate no longer lies on the schedule's line: the schedule is re-anchored at the
-    saved iteration and rate (see :func:`lr_scheduler`), so the rate right after the resume is
+    saved iteration and rate (see [`lr_scheduler`][torchrl_diffenvs.learners.lr_scheduler]), so the rate right after the resume is
     the rate right before it, and it then decays to ``min_lr`` over the remaining budget.
     """
     anchor = getattr(schedule, "anchor", None)
@@ -146,24 +146,24 @@ class Learner(ABC):
     demos, the benchmarks and the tests.
 
     A learner owns its networks, optimisers, schedules and data collection on the training env.
-    Each :meth:`train_iteration` collects :attr:`env_steps_per_iteration` env steps and updates
-    the networks; :attr:`policy` is the actor that evaluation runs in deterministic mode.
-    :meth:`from_config` builds one from a ``loss`` configuration section.
+    Each [`train_iteration`][torchrl_diffenvs.learners.Learner.train_iteration] collects [`env_steps_per_iteration`][torchrl_diffenvs.learners.Learner.env_steps_per_iteration] env steps and updates
+    the networks; `policy` is the actor that evaluation runs in deterministic mode.
+    [`from_config`][torchrl_diffenvs.learners.Learner.from_config] builds one from a ``loss`` configuration section.
 
     Args:
         env: the training env: any TorchRL ``EnvBase`` with a batch dimension ``[N]`` (BPTT and
             SHAC also take a batch-unlocked one with ``reset_input``); BPTT and SHAC need its
             rewards or observations to carry gradients w.r.t. the actions.
-        config: the learner's settings (its :class:`LearnerConfig` subclass).
+        config: the learner's settings (its [`LearnerConfig`][torchrl_diffenvs.learners.LearnerConfig] subclass).
         total_env_steps: the training budget (global: all ranks together); the learning-rate
             schedules run over it, and it can be changed later (a resumed run with a larger budget).
-        world: the ranks training together (:class:`~torchrl_diffenvs.distributed.World`; default
+        world: the ranks training together (`World`; default
             one process). Every gradient is averaged over them before the optimiser step, and
-            :attr:`env_steps_per_iteration` counts the env steps of all of them.
+            [`env_steps_per_iteration`][torchrl_diffenvs.learners.Learner.env_steps_per_iteration] counts the env steps of all of them.
     """
 
     # ------------------------------------------------------------------ what differs between learners
-    #: the ``loss=<name>`` of the training script (and of :func:`~torchrl_diffenvs.learners.register_learner`)
+    #: the ``loss=<name>`` of the training script (and of [`register_learner`][torchrl_diffenvs.learners.register_learner])
     name: str = ""
     #: its settings: a frozen dataclass whose field defaults are the ``loss`` section's defaults
     config_class: type[LearnerConfig] = LearnerConfig
@@ -184,7 +184,7 @@ class Learner(ABC):
     #: empty: ``(name,)``
     multi_agent_choices: tuple[str, ...] = ()
     #: collects differentiable windows through the env's own rollout (BPTT, SHAC), which
-    #: ``compile=true`` (:func:`~torchrl_diffenvs.compile_physics`) runs in compiled chunks
+    #: ``compile=true`` ([`compile_physics`][torchrl_diffenvs.compile_physics]) runs in compiled chunks
     compiles_windows: bool = False
 
     policy: TensorDictModuleBase
@@ -210,7 +210,7 @@ class Learner(ABC):
     @classmethod
     @abstractmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> Learner:
-        """Builds the learner and its networks from a ``loss`` section (:meth:`default_config` and overrides)."""
+        """Builds the learner and its networks from a ``loss`` section ([`default_config`][torchrl_diffenvs.learners.Learner.default_config] and overrides)."""
 
     @classmethod
     def default_config(cls) -> dict:
@@ -251,14 +251,14 @@ class Learner(ABC):
 
     @classmethod
     def settings_from(cls, loss_cfg: Mapping) -> LearnerConfig:
-        """The :attr:`config_class` of a ``loss`` section: every key but ``name``, the network
+        """The [`config_class`][torchrl_diffenvs.learners.LearnerConfig] of a ``loss`` section: every key but ``name``, the network
         sections and the (off) settings this learner does not support."""
         skipped = {"name", *cls.networks, *cls.unsupported_settings}
         return cls.config_class.from_mapping({k: v for k, v in loss_cfg.items() if k not in skipped})
 
     @classmethod
     def policy_from_config(cls, loss_cfg: Mapping, env) -> TensorDictModuleBase:
-        """The policy network alone, shaped as :meth:`from_config` builds it (``mode=eval`` loads a
+        """The policy network alone, shaped as [`from_config`][torchrl_diffenvs.learners.Learner.from_config] builds it (``mode=eval`` loads a
         checkpoint's ``"policy"`` weights into it)."""
         return actor_from_config(loss_cfg, env, return_log_prob=cls.policy_log_prob)[0]
 
@@ -269,11 +269,11 @@ class Learner(ABC):
     @property
     @abstractmethod
     def steps_per_env(self) -> int:
-        """Steps each env takes in one :meth:`train_iteration` (the window or rollout length)."""
+        """Steps each env takes in one [`train_iteration`][torchrl_diffenvs.learners.Learner.train_iteration] (the window or rollout length)."""
 
     @property
     def env_steps_per_iteration(self) -> int:
-        """Env steps collected by one :meth:`train_iteration`, on all ranks together."""
+        """Env steps collected by one [`train_iteration`][torchrl_diffenvs.learners.Learner.train_iteration], on all ranks together."""
         return self.num_envs * self.steps_per_env * self.world.size
 
     @property
@@ -297,7 +297,7 @@ class Learner(ABC):
 
     @abstractmethod
     def load_state_dict(self, state: dict) -> None:
-        """Restores :meth:`state_dict` into a learner built from the same configuration."""
+        """Restores [`state_dict`][torchrl_diffenvs.learners.Learner.state_dict] into a learner built from the same configuration."""
 
     def close(self) -> None:
         """Releases collectors (override when there is anything to release)."""

@@ -3,9 +3,9 @@
 One iteration, in the algorithm's order:
 
 1. collect a window ``[N, H]`` with the autograd graph on, the env state carried over from the
-   previous window and detached at its start (:class:`~torchrl_diffenvs.collectors.DiffWindowCollector`);
+   previous window and detached at its start ([`DiffWindowCollector`][torchrl_diffenvs.collectors.DiffWindowCollector]);
 2. actor step: backpropagate the window's (discounted) negative return over its finite envs
-   (:class:`~torchrl_diffenvs.objectives.BPTTLoss`; envs with NaN/inf rewards or observations
+   ([`BPTTLoss`][torchrl_diffenvs.objectives.BPTTLoss]; envs with NaN/inf rewards or observations
    are left out, counted in ``"nonfinite_envs"`` and named in a warning), average the gradient over the ranks (data
    parallel; a no-op in one process) and take one guarded Adam step (clip the gradient norm;
    skip NaN/inf or absurd gradients);
@@ -36,7 +36,7 @@ __all__ = ["BPTTConfig", "BPTTLearner"]
 
 @dataclasses.dataclass(frozen=True)
 class BPTTConfig(LearnerConfig):
-    """Settings of :class:`BPTTLearner` (the ``loss`` section of ``loss=bptt``; its defaults are this class's)."""
+    """Settings of [`BPTTLearner`][torchrl_diffenvs.learners.BPTTLearner] (the ``loss`` section of ``loss=bptt``; its defaults are this class's)."""
 
     horizon: int = checked(16, checks.positive_int)  # window length H: an iteration is N x H env steps
     gamma: float = checked(1.0, checks.in_interval(0.0, 1.0))  # discount inside a window (Brax APG: 1)
@@ -56,20 +56,20 @@ class BPTTLearner(Learner):
     """Back-propagation through time over short windows with carried env state.
 
     On a multi-agent env one parameter-shared actor acts for every agent and the loss is the
-    team's mean return (:class:`~torchrl_diffenvs.objectives.BPTTLoss`).
+    team's mean return ([`BPTTLoss`][torchrl_diffenvs.objectives.BPTTLoss]).
 
     Args:
         env: a batched differentiable env (rewards and observations carry gradients w.r.t. actions).
-        actor: the policy to train, writing ``"action"`` (e.g. :func:`~torchrl_diffenvs.modules.make_actor`).
-        config: :class:`BPTTConfig`.
+        actor: the policy to train, writing ``"action"`` (e.g. [`make_actor`][torchrl_diffenvs.modules.make_actor]).
+        config: [`BPTTConfig`][torchrl_diffenvs.learners.BPTTConfig].
         total_env_steps: the budget the learning-rate schedule runs over.
-        normalizer: the :class:`~torchrl_diffenvs.modules.ObservationNormalizer` inside ``actor``
+        normalizer: the [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] inside ``actor``
             to update after every window, if any.
         start_state: start every window from this TensorDict's ``"state"`` instead of carrying
             the env state on (trajectory optimisation from a fixed start).
         reset_input: for a batch-unlocked env (TorchRL's ``PendulumEnv``), what to reset it with:
-            ``lambda: env.gen_params(batch_size=[N])`` (see :class:`DiffWindowCollector`).
-        world: the ranks training together (:mod:`torchrl_diffenvs.distributed`); ``env`` is this
+            ``lambda: env.gen_params(batch_size=[N])`` (see [`DiffWindowCollector`][torchrl_diffenvs.collectors.DiffWindowCollector]).
+        world: the ranks training together (`torchrl_diffenvs.distributed`); ``env`` is this
             rank's batch.
     """
 

@@ -58,7 +58,7 @@ __all__ = ["PPOConfig", "PPOLearner"]
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig(LearnerConfig):
-    """Settings of :class:`PPOLearner` (the ``loss`` section of ``loss=ppo``; its defaults are this class's)."""
+    """Settings of [`PPOLearner`][torchrl_diffenvs.learners.PPOLearner] (the ``loss`` section of ``loss=ppo``; its defaults are this class's)."""
 
     rollout_len: int = checked(32, checks.positive_int)  # an iteration is num_envs x rollout_len env steps
     epochs: int = checked(5, checks.positive_int)  # passes over each batch
@@ -113,11 +113,11 @@ class PPOLearner(Learner):
         actor: a stochastic policy writing ``"action"`` and its log-probability
             (``make_actor(env, return_log_prob=True)``).
         critic: a state-value network writing ``"state_value"``.
-        config: :class:`PPOConfig`.
+        config: [`PPOConfig`][torchrl_diffenvs.learners.PPOConfig].
         total_env_steps: the budget the learning-rate schedule runs over.
-        normalizer: the :class:`~torchrl_diffenvs.modules.ObservationNormalizer` inside actor
+        normalizer: the [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] inside actor
             and critic to update after every iteration, if any.
-        world: the ranks training together (:mod:`torchrl_diffenvs.distributed`); ``env`` is this
+        world: the ranks training together (`torchrl_diffenvs.distributed`); ``env`` is this
             rank's batch.
     """
 

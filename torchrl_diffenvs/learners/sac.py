@@ -43,7 +43,7 @@ __all__ = ["SACConfig", "SACLearner"]
 
 @dataclasses.dataclass(frozen=True)
 class SACConfig(LearnerConfig):
-    """Settings of :class:`SACLearner` (the ``loss`` section of ``loss=sac``; its defaults are this class's)."""
+    """Settings of [`SACLearner`][torchrl_diffenvs.learners.SACLearner] (the ``loss`` section of ``loss=sac``; its defaults are this class's)."""
 
     rollout_len: int = checked(1, checks.positive_int)  # an iteration is num_envs x rollout_len env steps
     init_random_frames: int = checked(2000, checks.nonnegative_int)  # random actions before learning
@@ -77,10 +77,10 @@ class SACLearner(Learner):
         actor: a stochastic policy writing ``"action"`` (``make_actor(env)``).
         qvalue: ``Q(observation, action)`` writing ``"state_action_value"``, or with
             ``critic_input="state"`` also reading the state and parameters
-            (:func:`~torchrl_diffenvs.modules.make_qvalue`); the replay buffer keeps what it reads.
-        config: :class:`SACConfig`.
+            ([`make_qvalue`][torchrl_diffenvs.modules.make_qvalue]); the replay buffer keeps what it reads.
+        config: [`SACConfig`][torchrl_diffenvs.learners.SACConfig].
         total_env_steps: the training budget (SAC's learning rates are constant).
-        world: the ranks training together (:mod:`torchrl_diffenvs.distributed`); ``env`` is this
+        world: the ranks training together (`torchrl_diffenvs.distributed`); ``env`` is this
             rank's batch.
     """
 

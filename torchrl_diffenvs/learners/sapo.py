@@ -5,9 +5,9 @@ multiphysics simulation"; reference: ``etaoxing/mineral``, ``agents/diffrl/shac.
 One iteration:
 
 1. collect a window ``[N, H]`` with the graph on; the actor (a tanh-squashed normal with a
-   state-dependent standard deviation, :func:`make_sapo_actor`) writes the log-probability of
+   state-dependent standard deviation, `make_sapo_actor`) writes the log-probability of
    every action it samples;
-2. actor step on the soft bootstrapped return (:class:`~torchrl_diffenvs.objectives.SAPOLoss`:
+2. actor step on the soft bootstrapped return ([`SAPOLoss`][torchrl_diffenvs.objectives.SAPOLoss]:
    rewards plus ``alpha`` times the entropy estimate, bootstrapped by the mean of the two
    critics), one guarded AdamW step clipped at ``max_grad_norm``;
 3. temperature step: ``log_alpha`` on the loss's ``alpha_loss`` of the window's entropy
@@ -52,7 +52,7 @@ __all__ = ["SAPOConfig", "SAPOLearner", "SquashedNormalActor", "make_sapo_actor"
 
 @dataclasses.dataclass(frozen=True)
 class SAPOConfig(LearnerConfig):
-    """Settings of :class:`SAPOLearner` (the keys of ``loss=sapo``); defaults are the
+    """Settings of [`SAPOLearner`][torchrl_diffenvs.learners.SAPOLearner] (the keys of ``loss=sapo``); defaults are the
     reference's (``DFlexAntSHAC2.yaml`` + ``DFlexAntSAPO.yaml``)."""
 
     horizon: int = checked(32, checks.positive_int)  # window length H: an iteration is N x H env steps
@@ -178,7 +178,7 @@ def make_sapo_actor(
 ) -> SquashedNormalActor:
     """SAPO's policy: an MLP writing ``loc`` and a state-dependent ``scale`` (log-std clamped to
     ``[min_log_std, max_log_std]``), squashed into the action bounds
-    (:class:`SquashedNormalActor`, writing ``"action"`` and ``"action_log_prob"``).
+    (`SquashedNormalActor`, writing ``"action"`` and ``"action_log_prob"``).
 
     The reference: ``[128, 64, 32]`` Linear-LayerNorm-SiLU, orthogonal weights of gain 1, log-std
     in ``[-5, 2]``. ``init="orthogonal"`` uses ``orthogonal_gain``; ``"default"`` PyTorch's.
@@ -207,11 +207,13 @@ class SAPOLearner(TwinCriticLearner):
     Args:
         env: a batched differentiable single-agent env.
         actor: a policy writing ``"action"`` and ``"action_log_prob"`` when sampling
-            (:func:`make_sapo_actor`).
-        critic: a :class:`~torchrl_diffenvs.objectives.TwinCritic`.
-        config: :class:`SAPOConfig`.
+            (`make_sapo_actor`).
+        critic: a [`TwinCritic`][torchrl_diffenvs.objectives.TwinCritic].
+        config: [`SAPOConfig`][torchrl_diffenvs.learners.SAPOConfig].
         total_env_steps: the budget the learning-rate schedules run over.
-        normalizer, reset_input, world: as :class:`~torchrl_diffenvs.learners.SHACLearner`.
+        normalizer: as [`SHACLearner`][torchrl_diffenvs.learners.SHACLearner].
+        reset_input: as [`SHACLearner`][torchrl_diffenvs.learners.SHACLearner].
+        world: as [`SHACLearner`][torchrl_diffenvs.learners.SHACLearner].
     """
 
     name = "sapo"

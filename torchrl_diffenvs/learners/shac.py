@@ -5,7 +5,7 @@ One iteration, in the order of the reference implementation (DiffRL's ``shac.py`
 1. collect a window ``[N, H]`` with the autograd graph on (the env state carried over and
    detached at the window start);
 2. actor step: backpropagate the window's return bootstrapped by the *target* critic at
-   episode ends and at the window end over the finite envs (:class:`~torchrl_diffenvs.objectives.SHACLoss`;
+   episode ends and at the window end over the finite envs ([`SHACLoss`][torchrl_diffenvs.objectives.SHACLoss];
    envs with NaN/inf rewards or observations are left out of the actor and critic steps, counted in
    ``"nonfinite_envs"`` and named in a warning), one
    guarded Adam step on the gradient averaged over the ranks (a no-op in one process);
@@ -56,7 +56,7 @@ __all__ = ["SHACConfig", "SHACLearner"]
 
 @dataclasses.dataclass(frozen=True)
 class SHACConfig(LearnerConfig):
-    """Settings of :class:`SHACLearner` (the ``loss`` section of ``loss=shac``; its defaults are this class's)."""
+    """Settings of [`SHACLearner`][torchrl_diffenvs.learners.SHACLearner] (the ``loss`` section of ``loss=shac``; its defaults are this class's)."""
 
     horizon: int = checked(16, checks.positive_int)  # window length H: an iteration is N x H env steps
     gamma: float = checked(0.99, checks.in_interval(0.0, 1.0))
@@ -93,14 +93,14 @@ class SHACLearner(ActorCriticCheckpoint, Learner):
         env: a batched differentiable env.
         actor: the policy to train, writing ``"action"``.
         critic: a state-value network writing ``"state_value"`` (e.g.
-            :func:`~torchrl_diffenvs.modules.make_critic`).
-        config: :class:`SHACConfig`.
+            [`make_critic`][torchrl_diffenvs.modules.make_critic]).
+        config: [`SHACConfig`][torchrl_diffenvs.learners.SHACConfig].
         total_env_steps: the budget the learning-rate schedules run over.
-        normalizer: the :class:`~torchrl_diffenvs.modules.ObservationNormalizer` inside the actor
+        normalizer: the [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] inside the actor
             and the critic to update after every window, if any.
         reset_input: for a batch-unlocked env (TorchRL's ``PendulumEnv``), what to reset it with:
-            ``lambda: env.gen_params(batch_size=[N])`` (see :class:`DiffWindowCollector`).
-        world: the ranks training together (:mod:`torchrl_diffenvs.distributed`); ``env`` is this
+            ``lambda: env.gen_params(batch_size=[N])`` (see [`DiffWindowCollector`][torchrl_diffenvs.collectors.DiffWindowCollector]).
+        world: the ranks training together (`torchrl_diffenvs.distributed`); ``env`` is this
             rank's batch.
     """
 

@@ -1,12 +1,12 @@
 """AHAC (Georgiev et al., ICML 2024): SHAC with twin critics, no target critic and a window
 length adapted from the contact forces the env reports.
 
-* :class:`TwinCritic`: two state-value networks read as one critic writing both values
+* [`TwinCritic`][torchrl_diffenvs.objectives.TwinCritic]: two state-value networks read as one critic writing both values
   ``[..., 2]`` (shared by AHAC and SAPO).
-* :class:`AHACLoss`: :class:`~torchrl_diffenvs.objectives.SHACLoss` bootstrapped by the
+* [`AHACLoss`][torchrl_diffenvs.objectives.AHACLoss]: [`SHACLoss`][torchrl_diffenvs.objectives.SHACLoss] bootstrapped by the
   *minimum* of the twin critics (the live ones: there is no target critic); both critics fit
   the same TD(lambda) targets.
-* :class:`AdaptiveHorizon`: the dual-variable rule that moves the window length between
+* [`AdaptiveHorizon`][torchrl_diffenvs.objectives.AdaptiveHorizon]: the dual-variable rule that moves the window length between
   iterations.
 """
 from __future__ import annotations
@@ -28,11 +28,11 @@ class TwinCritic(TensorDictModuleBase):
     """Two state-value networks with the same inputs, read as one critic writing ``[..., 2]``.
 
     Each of ``first`` and ``second`` writes ``value_key`` (``[..., 1]``, e.g.
-    :func:`~torchrl_diffenvs.modules.make_critic`); this module writes both values side by side
+    [`make_critic`][torchrl_diffenvs.modules.make_critic]); this module writes both values side by side
     under ``value_key``. A loss reduces them (AHAC: minimum; SAPO: minimum for the critic
     targets, mean for the actor) and fits both to the same targets: the mean squared error
     against a ``[..., 1]`` target averages the two critics' errors. The two networks have their
-    own weights; an :class:`~torchrl_diffenvs.modules.ObservationNormalizer` may be shared.
+    own weights; an [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] may be shared.
     """
 
     def __init__(self, first: TensorDictModuleBase, second: TensorDictModuleBase, value_key="state_value"):
@@ -53,24 +53,25 @@ class TwinCritic(TensorDictModuleBase):
 
 
 class AHACLoss(SHACLoss):
-    r"""SHAC's loss (:class:`~torchrl_diffenvs.objectives.SHACLoss`) with twin critics and no
+    r"""SHAC's loss ([`SHACLoss`][torchrl_diffenvs.objectives.SHACLoss]) with twin critics and no
     target critic, as AHAC (``imgeorgiev/DiffRL``, ``src/shac/algorithms/ahac.py``).
 
-    The actor's bootstrap and the critic targets use :math:`\min(V_1, V_2)` of the *current*
+    The actor's bootstrap and the critic targets use $\min(V_1, V_2)$ of the *current*
     critics (the reference's ``DoubleCriticMLP.forward`` and ``compute_target_values``);
-    ``critic_loss`` fits both to the same TD(:math:`\lambda`) targets (the reference's
+    ``critic_loss`` fits both to the same TD($\lambda$) targets (the reference's
     ``predict``: both values against one target). Everything else is SHAC's: sub-trajectories
     closed at episode ends and at the window end, a terminal state worth 0, the pre-reset
-    observation bootstrapped on truncation, the loss divided by :math:`N H`.
+    observation bootstrapped on truncation, the loss divided by $N H$.
 
-    No target weights are created (:meth:`make_target_updater` does not apply).
+    No target weights are created (`make_target_updater` does not apply).
 
     Args:
         actor_network: the policy that collected the windows.
         critic_network: a critic writing ``"state_value"`` with the values of its members in the
-            last dimension (:class:`TwinCritic`: ``[..., 2]``); one member is plain SHAC without
+            last dimension ([`TwinCritic`][torchrl_diffenvs.objectives.TwinCritic]: ``[..., 2]``); one member is plain SHAC without
             a target critic.
-        gamma, lmbda: discount and TD(lambda) parameter.
+        gamma: discount.
+        lmbda: TD(lambda) parameter.
     """
 
     def convert_to_functional(self, *args, create_target_params: bool = False, **kwargs):
@@ -90,10 +91,10 @@ class AHACLoss(SHACLoss):
 class AdaptiveHorizon:
     r"""AHAC's window length: a dual variable per window step moved by the contact forces.
 
-    State: the horizon :math:`H` (a float; windows are ``round(H)`` steps, Python's rounding) and
-    a dual vector :math:`\lambda` with one entry per step of the current window. After a window
-    whose mean (over the envs) contact force at step :math:`i` is :math:`f_i`
-    (:meth:`update`), exactly as the reference (``ahac.py``, ``train()``: "Train horizon", and
+    State: the horizon $H$ (a float; windows are ``round(H)`` steps, Python's rounding) and
+    a dual vector $\lambda$ with one entry per step of the current window. After a window
+    whose mean (over the envs) contact force at step $i$ is $f_i$
+    ([`update`][torchrl_diffenvs.objectives.AdaptiveHorizon.update]), exactly as the reference (``ahac.py``, ``train()``: "Train horizon", and
     ``init_buffers``)::
 
         lambda_i <- lambda_i - lr * (C - f_i)        # every step i of the window
@@ -101,13 +102,13 @@ class AdaptiveHorizon:
         lambda   <- [lambda_0] * round(H)            # one entry per step of the next window
 
     with ``lr`` the dual learning rate of this iteration (the reference decays it linearly to
-    1e-5 with the actor's schedule) and ``C = contact_threshold``. :math:`\lambda` is not
-    clipped at 0 (the reference does not clip it). Starting state: :math:`H` = ``min_horizon``,
-    :math:`\lambda = 0`.
+    1e-5 with the actor's schedule) and ``C = contact_threshold``. $\lambda$ is not
+    clipped at 0 (the reference does not clip it). Starting state: $H$ = ``min_horizon``,
+    $\lambda = 0$.
 
-    Direction: :math:`\lambda` rises while the contact forces exceed :math:`C` and falls while
-    they stay below it, and :math:`H` follows :math:`\sum\lambda`: with this sign the window
-    *lengthens* while the forces exceed :math:`C` and shortens below it (what the reference's
+    Direction: $\lambda$ rises while the contact forces exceed $C$ and falls while
+    they stay below it, and $H$ follows $\sum\lambda$: with this sign the window
+    *lengthens* while the forces exceed $C$ and shortens below it (what the reference's
     code does).
 
     The reference's per-env force is the norm over the bodies' contact-force vectors divided by
@@ -130,11 +131,11 @@ class AdaptiveHorizon:
         return int(round(self.horizon))
 
     def update(self, contact_force: torch.Tensor, lr: float) -> int:
-        """Moves :math:`\\lambda` and :math:`H` after a window; returns the next window's length.
+        """Moves $\\lambda$ and $H$ after a window; returns the next window's length.
 
         Args:
             contact_force: the window's contact forces ``[N, H]`` (or the per-step means ``[H]``),
-                ``H`` = the window's length (:attr:`steps` when it was collected).
+                ``H`` = the window's length ([`steps`][torchrl_diffenvs.objectives.AdaptiveHorizon.steps] when it was collected).
             lr: this iteration's dual learning rate.
         """
         force = contact_force.detach().to(device="cpu", dtype=torch.float64)

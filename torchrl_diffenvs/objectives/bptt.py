@@ -18,13 +18,13 @@ class BPTTLoss(LossModule):
     r"""BPTT / analytic policy gradient on a differentiable rollout window.
 
     For a window ``[N, H]`` collected with the graph on (see
-    :class:`~torchrl_diffenvs.collectors.DiffWindowCollector`)
+    [`DiffWindowCollector`][torchrl_diffenvs.collectors.DiffWindowCollector])
 
-    .. math::
+    $$
+    \mathcal{L}_{actor} = -\frac{1}{N H} \sum_{i=1}^{N} \sum_{t=0}^{H-1} \gamma^{k_{i,t}} r_{i,t}
+    $$
 
-        \mathcal{L}_{actor} = -\frac{1}{N H} \sum_{i=1}^{N} \sum_{t=0}^{H-1} \gamma^{k_{i,t}} r_{i,t}
-
-    where :math:`k_{i,t}` counts the steps since env ``i``'s sub-trajectory started (the window
+    where $k_{i,t}$ counts the steps since env ``i``'s sub-trajectory started (the window
     start, or the reset after an episode ended inside the window). Dividing by ``H`` makes the
     learning rate independent of the window length. With a multi-agent reward
     (``set_keys(reward=("agents", "reward"))``, ``[N, H, A, 1]``) the agents' rewards are
@@ -34,10 +34,10 @@ class BPTTLoss(LossModule):
     tutorial); with short windows and carried state it is Brax's APG.
 
     **Non-finite envs** (a NaN/inf reward, a ``("next", "nonfinite")`` flag, or marked
-    ``"isolated"`` by the collector) are left out: the sums run over the other envs and :math:`N`
+    ``"isolated"`` by the collector) are left out: the sums run over the other envs and $N$
     counts only them (``nonfinite_envs`` says how many were left out). Their gradient must also be
     kept out of the backward pass, which the window collector does
-    (:class:`~torchrl_diffenvs.collectors.IsolatingPolicy`).
+    ([`IsolatingPolicy`][torchrl_diffenvs.collectors.IsolatingPolicy]).
 
     The policy is not called here: the gradient reaches it through the rollout's graph. The actor
     is held so that ``loss.parameters()`` lists what to optimise.
@@ -50,7 +50,7 @@ class BPTTLoss(LossModule):
     Returns (``forward``): a TensorDict with ``loss_actor``, ``reward_mean`` (the window's mean
     per-step reward over the finite envs, detached) and ``nonfinite_envs`` (how many envs were
     left out); NaN when every env was. Episode returns come from the collector
-    (:attr:`~torchrl_diffenvs.collectors.DiffWindowCollector.finished_returns`).
+    (`finished_returns`).
     """
 
     @dataclass

@@ -17,16 +17,16 @@ class GradientGuard:
     """Clips the gradient (its norm, or each element) and skips optimiser steps whose gradient is unusable.
 
     Differentiating through long rollouts can produce exploding or non-finite gradients (chaotic
-    dynamics, a NaN reward). :meth:`step` computes the total pre-clip gradient norm of
+    dynamics, a NaN reward). [`step`][torchrl_diffenvs.objectives.GradientGuard.step] computes the total pre-clip gradient norm of
     ``parameters``; if it is NaN/inf or above ``skip_above`` (or the ``loss`` value passed in is
     NaN/inf: a NaN that does not depend on the parameters, e.g. ``reward + nan``, leaves the
     gradient finite), the optimiser step is *not* taken (parameters and optimiser state stay
-    exactly as they were) and :attr:`skipped` is incremented. Otherwise the gradients are clipped
+    exactly as they were) and `skipped` is incremented. Otherwise the gradients are clipped
     to ``max_norm`` and the step is taken.
 
     A NaN/inf loss or gradient now and then is survivable; ``max_nonfinite_skips`` of them in a
-    row are not (nothing has been learned since): :meth:`step` then raises a
-    :class:`NonFiniteTrainingError` naming the likely causes.
+    row are not (nothing has been learned since): [`step`][torchrl_diffenvs.objectives.GradientGuard.step] then raises a
+    [`NonFiniteTrainingError`][torchrl_diffenvs.objectives.NonFiniteTrainingError] naming the likely causes.
 
     The caller zeroes gradients before its backward pass as usual.
 
@@ -124,7 +124,7 @@ class GradientGuard:
     def skip(self, context: Callable[[], str] | None = None) -> None:
         """Counts a step skipped for a non-finite loss or gradient (also one the caller could not
         even compute, e.g. when every env of the batch was non-finite); raises a
-        :class:`NonFiniteTrainingError` when that makes ``max_nonfinite_skips`` in a row."""
+        [`NonFiniteTrainingError`][torchrl_diffenvs.objectives.NonFiniteTrainingError] when that makes ``max_nonfinite_skips`` in a row."""
         self.skipped += 1
         self.nonfinite_in_a_row += 1
         if self.max_nonfinite_skips is not None and self.nonfinite_in_a_row >= self.max_nonfinite_skips:

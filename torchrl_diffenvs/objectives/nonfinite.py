@@ -3,8 +3,8 @@
 One env of a batch with a NaN physical parameter, or whose simulation diverged, gives NaN
 rewards and observations. Averaged into a loss, it makes the whole batch's loss and gradient NaN,
 so every update is skipped and nothing learns. The learners instead find such envs per rollout
-(:func:`nonfinite_envs`), leave them out of the loss (the losses' ``keep`` masks; the window
-collector also cuts their gradient at the actions) and report them (:class:`NonFiniteEnvMonitor`:
+([`nonfinite_envs`][torchrl_diffenvs.objectives.nonfinite_envs]), leave them out of the loss (the losses' ``keep`` masks; the window
+collector also cuts their gradient at the actions) and report them ([`NonFiniteEnvMonitor`][torchrl_diffenvs.objectives.NonFiniteEnvMonitor]:
 a warning naming the envs, a count in the metrics).
 """
 from __future__ import annotations
@@ -62,8 +62,8 @@ def nonfinite_envs(batch: TensorDictBase, keys: Iterable[NestedKey] = (("next", 
 
 
 class NonFiniteEnvMonitor:
-    """Reports the non-finite envs of each iteration: :meth:`update` returns their count (a
-    learner's ``"nonfinite_envs"`` metric) and warns (:class:`NonFiniteEnvWarning`) with their
+    """Reports the non-finite envs of each iteration: [`update`][torchrl_diffenvs.objectives.NonFiniteEnvMonitor.update] returns their count (a
+    learner's ``"nonfinite_envs"`` metric) and warns ([`NonFiniteEnvWarning`][torchrl_diffenvs.objectives.NonFiniteEnvWarning]) with their
     indices once per burst: when envs become non-finite that were not in the previous iteration.
 
     Args:

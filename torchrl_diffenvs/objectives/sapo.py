@@ -20,34 +20,34 @@ __all__ = ["SAPOLoss"]
 class SAPOLoss(AHACLoss):
     r"""Soft analytic policy optimisation: SHAC's window loss with an entropy bonus.
 
-    Per step the reward becomes the *soft* reward :math:`r_t + \alpha\, e_t`, with the entropy
-    estimate :math:`e_t` from the log-probability of the action actually taken (written by the
+    Per step the reward becomes the *soft* reward $r_t + \alpha\, e_t$, with the entropy
+    estimate $e_t$ from the log-probability of the action actually taken (written by the
     actor under ``"action_log_prob"`` during the rollout, with its graph):
 
-    .. math::
+    $$
+    e_t = -\log\pi(a_t|s_t), \quad\text{then}\quad
+    e_t \leftarrow (e_t + |\bar H|)/2 \ \text{(entropy_offset)},\quad
+    e_t \leftarrow e_t / |\bar H| \ \text{(entropy_scale)},
+    $$
 
-        e_t = -\log\pi(a_t|s_t), \quad\text{then}\quad
-        e_t \leftarrow (e_t + |\bar H|)/2 \ \text{(entropy_offset)},\quad
-        e_t \leftarrow e_t / |\bar H| \ \text{(entropy_scale)},
-
-    :math:`\bar H = -` ``target_entropy_scale`` :math:`\cdot|A|` the target entropy. (The
+    $\bar H = -$ ``target_entropy_scale`` $\cdot|A|$ the target entropy. (The
     reference, ``etaoxing/mineral`` ``agents/diffrl/shac.py`` with its ``DFlexAntSAPO`` settings,
     scales and offsets the same way; its ``use_distr_ent`` draws a second sample for the
     estimate, this uses the action taken: both are unbiased.)
 
     **Actor** (``loss_actor``): SHAC's bootstrapped return of the soft rewards, the bootstrap
-    being the *mean* of the two critics (``actor_loss_avgcritics``), :math:`\alpha` detached.
+    being the *mean* of the two critics (``actor_loss_avgcritics``), $\alpha$ detached.
     Gradients reach the actor through the rewards, the observations and the log-probabilities.
 
-    **Critic targets**: TD(:math:`\lambda`) of the detached soft rewards bootstrapped by the
+    **Critic targets**: TD($\lambda$) of the detached soft rewards bootstrapped by the
     *minimum* of the two critics (the reference's ``compute_target_values_with_entropy``), the
-    window end treated as a trajectory end; both critics fit them (:meth:`critic_loss`). There is
+    window end treated as a trajectory end; both critics fit them ([`critic_loss`][torchrl_diffenvs.objectives.SHACLoss.critic_loss]). There is
     no target critic: values come from the current critics (as in
-    :class:`~torchrl_diffenvs.objectives.AHACLoss`).
+    [`AHACLoss`][torchrl_diffenvs.objectives.AHACLoss]).
 
-    **Temperature**: :attr:`log_alpha` (initial ``log(init_alpha)``) is trained on
-    :meth:`alpha_loss` ``= alpha' * (H_est - target_entropy)`` with ``H_est`` the window's mean
-    of :math:`-\log\pi` (detached) and ``alpha' = alpha * |target_entropy|`` when the entropy is
+    **Temperature**: `log_alpha` (initial ``log(init_alpha)``) is trained on
+    [`alpha_loss`][torchrl_diffenvs.objectives.SAPOLoss.alpha_loss] ``= alpha' * (H_est - target_entropy)`` with ``H_est`` the window's mean
+    of $-\log\pi$ (detached) and ``alpha' = alpha * |target_entropy|`` when the entropy is
     scaled (the reference's ``unscale_entropy_alpha``), else ``alpha``: the temperature falls
     while the entropy is above the target.
 
@@ -55,13 +55,15 @@ class SAPOLoss(AHACLoss):
 
     Args:
         actor_network: the policy; it must write ``"action_log_prob"`` when sampling
-            (:func:`~torchrl_diffenvs.learners.sapo.make_sapo_actor`).
-        critic_network: a :class:`~torchrl_diffenvs.objectives.TwinCritic` (``[..., 2]``).
+            (`make_sapo_actor`).
+        critic_network: a [`TwinCritic`][torchrl_diffenvs.objectives.TwinCritic] (``[..., 2]``).
         action_dim: ``|A|``.
-        gamma, lmbda: discount and TD(lambda) parameter.
+        gamma: discount.
+        lmbda: TD(lambda) parameter.
         init_alpha: the initial temperature.
         target_entropy_scale: the target entropy is ``-target_entropy_scale * action_dim``.
-        entropy_offset, entropy_scale: the normalisations of :math:`e_t` above.
+        entropy_offset: the offset normalisation of $e_t$ above.
+        entropy_scale: the scale normalisation of $e_t$ above.
     """
 
     @dataclass
@@ -111,7 +113,7 @@ class SAPOLoss(AHACLoss):
 
     # ------------------------------------------------------------------ entropy
     def entropy_bonus(self, log_prob: torch.Tensor) -> torch.Tensor:
-        """:math:`e_t` from ``log_prob`` (offset and scaled as configured), same shape."""
+        """$e_t$ from ``log_prob`` (offset and scaled as configured), same shape."""
         bonus = -log_prob
         h = abs(self.target_entropy)
         if self.entropy_offset:
@@ -122,7 +124,7 @@ class SAPOLoss(AHACLoss):
 
     def alpha_loss(self, entropy: torch.Tensor | float) -> torch.Tensor:
         """The temperature's loss for the entropy estimate ``entropy`` (mean of
-        :math:`-\\log\\pi` over a window); its gradient reaches :attr:`log_alpha` only."""
+        $-\\log\\pi$ over a window); its gradient reaches `log_alpha` only."""
         entropy = torch.as_tensor(entropy, dtype=self.log_alpha.dtype, device=self.log_alpha.device).detach()
         alpha = self.log_alpha.exp()
         if self.entropy_scale:  # the bonus was divided by |target|: the temperature's step is not

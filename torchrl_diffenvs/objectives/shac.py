@@ -23,36 +23,36 @@ class SHACLoss(LossModule):
 
     **Actor.** For a window ``[N, H]`` collected with the graph on, each env's window splits into
     sub-trajectories that end at an episode end or at the window end. A sub-trajectory ending at
-    step :math:`K` (with :math:`k` counting from its start) contributes
+    step $K$ (with $k$ counting from its start) contributes
 
-    .. math::
+    $$
+    -\Big(\sum_{k<K} \gamma^k r_k + \gamma^K \bar V(s_K)\Big),
+    $$
 
-        -\Big(\sum_{k<K} \gamma^k r_k + \gamma^K \bar V(s_K)\Big),
-
-    summed over all sub-trajectories and divided by :math:`N H` (``loss_actor``). :math:`\bar V`
+    summed over all sub-trajectories and divided by $N H$ (``loss_actor``). $\bar V$
     is the *target* critic, evaluated inside the graph on ``("next", "observation")``: gradients
-    flow into the observation, not into the critic's weights. :math:`\bar V(s_K)` is 0 on
+    flow into the observation, not into the critic's weights. $\bar V(s_K)$ is 0 on
     termination; on truncation (time limit) it is evaluated on the pre-reset observation; every
     env is bootstrapped at the window end.
 
-    **Critic.** Targets are truncated TD(:math:`\lambda`) returns computed from detached rewards
+    **Critic.** Targets are truncated TD($\lambda$) returns computed from detached rewards
     and target-critic values of the next observations, with the window end treated as a
-    trajectory end (TorchRL's :class:`~torchrl.objectives.value.TDLambdaEstimator`
+    trajectory end (TorchRL's `TDLambdaEstimator`
     ``.value_estimate(td, next_value=...)``):
 
-    .. math::
+    $$
+    G_t = r_t + \gamma\,[(1-\lambda)\,\bar V(s_{t+1}) + \lambda\, G_{t+1}],\qquad
+    G_t = r_t + \gamma\,\bar V(s_{t+1}) \text{ at a done step or } t = H-1,
+    $$
 
-        G_t = r_t + \gamma\,[(1-\lambda)\,\bar V(s_{t+1}) + \lambda\, G_{t+1}],\qquad
-        G_t = r_t + \gamma\,\bar V(s_{t+1}) \text{ at a done step or } t = H-1,
-
-    with :math:`\bar V = 0` after a termination. ``loss_critic`` is the mean squared error
-    :math:`(V(s_t) - G_t)^2`.
+    with $\bar V = 0$ after a termination. ``loss_critic`` is the mean squared error
+    $(V(s_t) - G_t)^2$.
 
     **Target critic.** Its weights are separate, updated with TorchRL's
-    :class:`~torchrl.objectives.SoftUpdate` (see :meth:`make_target_updater`). Convention: after
+    `SoftUpdate` (see [`make_target_updater`][torchrl_diffenvs.objectives.SHACLoss.make_target_updater]). Convention: after
     each update ``target = eps * target + (1 - eps) * critic`` with ``eps = 1 - tau``; SHAC's
     reference keeps 0.2 of the old target, i.e. ``tau = 0.8`` (``eps = 0.2``). Buffers of the
-    critic (e.g. the statistics of an :class:`~torchrl_diffenvs.modules.ObservationNormalizer`)
+    critic (e.g. the statistics of an [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer])
     are shared by the critic and the target critic: only the weights lag.
 
     **Multi-agent.** With ``set_keys(reward=("agents", "reward"), value=("agents", "state_value"))``
@@ -61,17 +61,17 @@ class SHACLoss(LossModule):
 
     **Non-finite envs** (a NaN/inf reward or critic input, a ``("next", "nonfinite")`` flag, or
     marked ``"isolated"`` by the collector) are left out of ``loss_actor`` and the diagnostics (the
-    sums run over the other envs, :math:`N` counts only them; ``nonfinite_envs`` says how many were
+    sums run over the other envs, $N$ counts only them; ``nonfinite_envs`` says how many were
     left out); their critic targets are NaN, so the critic must be fitted on the other envs
-    (:meth:`finite_envs` gives the mask). Their gradient must also be kept out of the backward
-    pass, which the window collector does (:class:`~torchrl_diffenvs.collectors.IsolatingPolicy`).
+    ([`finite_envs`][torchrl_diffenvs.objectives.SHACLoss.finite_envs] gives the mask). Their gradient must also be kept out of the backward
+    pass, which the window collector does ([`IsolatingPolicy`][torchrl_diffenvs.collectors.IsolatingPolicy]).
 
     **Usage.** ``forward(window)`` returns ``loss_actor`` (backpropagate it into the actor) and
     detached diagnostics (``reward_mean``, ``value_mean``), and writes the detached critic targets
     into the window under ``"value_target"`` (as TorchRL's PPO writes its advantage; they reuse the
-    target values the actor loss needs). The critic is then fitted with :meth:`critic_loss` on
+    target values the actor loss needs). The critic is then fitted with [`critic_loss`][torchrl_diffenvs.objectives.SHACLoss.critic_loss] on
     minibatches of the detached window (SHAC's passes x minibatches);
-    :meth:`compute_value_targets` writes the targets alone.
+    [`compute_value_targets`][torchrl_diffenvs.objectives.SHACLoss.compute_value_targets] writes the targets alone.
 
     Args:
         actor_network: the policy that collected the windows (held for ``parameters()``; it is
@@ -144,7 +144,7 @@ class SHACLoss(LossModule):
         return ["loss_actor", "reward_mean", "value_mean", "nonfinite_envs"]
 
     def make_target_updater(self, tau: float = 0.8) -> SoftUpdate:
-        """TorchRL's :class:`SoftUpdate` for the target critic: ``target <- (1-tau) target + tau critic``.
+        """TorchRL's `SoftUpdate` for the target critic: ``target <- (1-tau) target + tau critic``.
 
         ``tau = 0.8`` is the SHAC reference for simple tasks (0.2 of the old target kept);
         humanoids use ``tau = 0.005``. Call ``.step()`` on the result once per iteration.
@@ -195,7 +195,7 @@ class SHACLoss(LossModule):
 
     def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         """``loss_critic`` = mean of ``(V(obs) - value_target)^2`` over any batch shape (e.g. a
-        minibatch of a flattened window that went through :meth:`compute_value_targets`)."""
+        minibatch of a flattened window that went through [`compute_value_targets`][torchrl_diffenvs.objectives.SHACLoss.compute_value_targets])."""
         target = tensordict.get(self.tensor_keys.value_target, None)
         if target is None:
             raise KeyError(
@@ -209,7 +209,7 @@ class SHACLoss(LossModule):
     # ------------------------------------------------------------------ the loss
     def finite_envs(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``[N]`` bool: the envs of a window whose rewards and critic inputs (now and next) are
-        finite and that nothing flags as non-finite (see :func:`~torchrl_diffenvs.objectives.nonfinite_envs`)."""
+        finite and that nothing flags as non-finite (see [`nonfinite_envs`][torchrl_diffenvs.objectives.nonfinite_envs])."""
         return ~nonfinite_envs(tensordict, [next_key(self.tensor_keys.reward), *now_and_next(self.critic_network.in_keys)])
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -1,9 +1,9 @@
 """Rendering without a display: RGB frames of every task, grids of envs, GIF export.
 
 ``env.render(td=None, env_index=0 | [i, ...] | "all", size=256)`` returns an ``np.ndarray``
-``[H, W, 3]`` uint8 drawn with Pillow; :func:`save_gif` writes a list of frames. A task names its
+``[H, W, 3]`` uint8 drawn with Pillow; [`save_gif`][torchrl_diffenvs.rendering.save_gif] writes a list of frames. A task names its
 drawer in its registration (``@register_env(drawer="module:attribute")``, imported on first use);
-:func:`register_drawer` adds or overrides one by name. Needs the ``render`` extra (Pillow).
+[`register_drawer`][torchrl_diffenvs.rendering.register_drawer] adds or overrides one by name. Needs the ``render`` extra (Pillow).
 """
 from .core import (
     Canvas,

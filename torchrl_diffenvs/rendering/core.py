@@ -1,7 +1,7 @@
 """Frames without a display: a world-coordinate canvas, the drawer registry and ``env.render()``.
 
-A *drawer* knows how to draw one task from one env's state (see :func:`register_drawer`);
-:func:`render_frame` picks the drawer of an env, reads the state of the requested envs from a
+A *drawer* knows how to draw one task from one env's state (see [`register_drawer`][torchrl_diffenvs.rendering.register_drawer]);
+[`render_frame`][torchrl_diffenvs.rendering.render_frame] picks the drawer of an env, reads the state of the requested envs from a
 TensorDict (or from the env's latest output) and returns an RGB ``np.ndarray`` ``[H, W, 3]``,
 uint8. Several envs are tiled into one grid frame.
 """
@@ -43,7 +43,7 @@ def reward_color(unit_reward: float | None) -> RGB:
     """Ivy Gym's body colour ``RGB(1 - r, r, 0)``: red at reward 0, green at 1.
 
     ``unit_reward`` is clamped to ``[0, 1]``; ``None`` or a non-finite value gives
-    :data:`NO_REWARD_COLOR`.
+    `NO_REWARD_COLOR`.
     """
     if unit_reward is None or not math.isfinite(unit_reward):
         return NO_REWARD_COLOR
@@ -63,7 +63,7 @@ class Canvas:
 
     The world box ``bounds`` is fitted into ``size = (height, width)`` pixels with one scale for
     both axes (centred, so shapes are never stretched). Drawing happens at ``supersample`` times
-    the resolution and is box-averaged down in :meth:`to_array`, which smooths the edges that
+    the resolution and is box-averaged down in [`to_array`][torchrl_diffenvs.rendering.Canvas.to_array], which smooths the edges that
     Pillow's ``ImageDraw`` leaves jagged. Shapes with non-finite coordinates are skipped and
     the frame gets a "non-finite state" label instead of an exception.
     """
@@ -197,14 +197,14 @@ def register_drawer(
 
 
 def list_drawers() -> list[str]:
-    """The task names that have a drawer (registered tasks with one, and :func:`register_drawer`'s)."""
+    """The task names that have a drawer (registered tasks with one, and [`register_drawer`][torchrl_diffenvs.rendering.register_drawer]'s)."""
     from ..envs.registry import list_envs, task_spec
 
     return sorted(set(_DRAWERS) | {name for name in list_envs() if task_spec(name).drawer is not None})
 
 
 def get_drawer(env_or_name) -> Drawer:
-    """The drawer of an env or a task name: one added with :func:`register_drawer` (by the env's
+    """The drawer of an env or a task name: one added with [`register_drawer`][torchrl_diffenvs.rendering.register_drawer] (by the env's
     ``name``, then its base classes' names), else the one named in the task's registration."""
     from ..envs.registry import list_envs, task_drawer
 
@@ -327,7 +327,7 @@ def render_frame(
     """Draws envs of ``env`` as one RGB frame ``[H, W, 3]`` uint8 (what ``env.render`` returns).
 
     Args:
-        env: a :class:`~torchrl_diffenvs.DiffEnv` whose task has a drawer.
+        env: a [`DiffEnv`][torchrl_diffenvs.DiffEnv] whose task has a drawer.
         tensordict: a ``[N]`` (or unbatched) TensorDict with ``"state"``; ``"reward"`` colours
             the main body (without it, e.g. right after a reset, the body is grey) and
             ``"params"`` default to ``env.params``. Pass ``td["next"]`` of a step to draw the

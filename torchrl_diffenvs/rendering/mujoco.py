@@ -5,7 +5,7 @@ The tasks are planar, so a parallel projection is the whole picture: Gymnasium's
 for Reacher. Each geom is convex (sphere, capsule, cylinder, ellipsoid, box), so its outline is
 the convex hull of its projected surface points; planes are drawn as the ground (side view) or
 as the arena floor (top view). Body poses come from the same kinematics the physics uses
-(:func:`~torchrl_diffenvs.articulated.dynamics.forward_kinematics`, float64 on the CPU), so the
+([`forward_kinematics`][torchrl_diffenvs.articulated.forward_kinematics], float64 on the CPU), so the
 drawing is exactly where MuJoCo puts the geoms (``tests/rendering/test_rendering_mujoco.py`` checks this
 against ``mujoco.MjData.geom_xpos``).
 """
@@ -144,7 +144,7 @@ def geom_outlines(model_file: str, qpos, plane: str = "xz") -> list[tuple[int, n
 @dataclass(frozen=True)
 class MuJoCoView:
     """How to look at one MuJoCo-model task; ``view(env_class)`` is its
-    :class:`~torchrl_diffenvs.rendering.Drawer` (the model drawn is ``env_class.model_file``).
+    [`Drawer`][torchrl_diffenvs.rendering.Drawer] (the model drawn is ``env_class.model_file``).
 
     Attributes:
         plane: ``"xz"`` (side view) or ``"xy"`` (top view).

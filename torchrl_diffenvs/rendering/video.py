@@ -111,7 +111,7 @@ def save_mp4(frames: Sequence, path: str | os.PathLike, fps: float = 25.0) -> Pa
 
 
 def save_video(frames: Sequence, path: str | os.PathLike, fps: float = 25.0) -> Path:
-    """:func:`save_gif` or :func:`save_mp4`, by the suffix of ``path`` (``.gif`` or ``.mp4``)."""
+    """[`save_gif`][torchrl_diffenvs.rendering.save_gif] or [`save_mp4`][torchrl_diffenvs.rendering.save_mp4], by the suffix of ``path`` (``.gif`` or ``.mp4``)."""
     suffix = Path(path).suffix.lower()
     if suffix == ".mp4":
         return save_mp4(frames, path, fps)

@@ -34,7 +34,7 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     ``healthy_gradient_width`` / ``healthy_gradient_scale``: a surrogate gradient for the healthy
     bonus at the torso height's bounds; ``posture_gradient_scale``: the gradient of dense height
     and uprightness terms (both straight-through: rewards stay Gymnasium's;
-    :class:`~.healthy.HealthySurrogate`). ``cfrc_ext_gradient=False``: the observation's
+    `HealthySurrogate`). ``cfrc_ext_gradient=False``: the observation's
     ``cfrc_ext`` features keep their values but carry no gradient (their derivatives through
     contact are stiff, and can dominate the actor's gradient).
     """

@@ -10,7 +10,7 @@ class HalfCheetahV5Env(PlanarLocomotionEnv):
     As Gymnasium's v5: reward ``(x_after - x_before) / dt - 0.1 |a|^2``, no termination, truncated
     after 1000 steps, observation ``[qpos[1:], qvel]`` (17), start ``qpos0 + U(-0.1, 0.1)``,
     ``qvel ~ 0.1 N(0, 1)``; MuJoCo's Euler integrator at 0.01 s, 5 steps per env step. Contact
-    with the floor is the smooth penalty model, not MuJoCo's solver (see :class:`PlanarLocomotionEnv`).
+    with the floor is the smooth penalty model, not MuJoCo's solver (see `PlanarLocomotionEnv`).
     """
 
     name = "HalfCheetah-v5"

@@ -61,7 +61,7 @@ class HealthySurrogate:
 
     def posture_gradient(self, qpos, params):
         """``[N]``, exactly zero in value: ``posture_gradient_scale`` x the gradient of
-        :meth:`posture_score` (straight-through), so gradient learners feel "stay up and upright"
+        `posture_score` (straight-through), so gradient learners feel "stay up and upright"
         while every reward value stays Gymnasium's."""
         if self.posture_gradient_scale == 0:
             return torch.zeros_like(qpos[:, 0])

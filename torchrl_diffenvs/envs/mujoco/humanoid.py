@@ -98,10 +98,10 @@ class HumanoidV5Env(HealthySurrogate, _HumanoidBase):
     velocity of the mass centre (mass-weighted body centres) over ``dt`` = 0.015 s (five 3 ms
     physics steps); healthy while the state is finite and the torso height ``qpos[2]`` is in
     ``(1, 2)``; terminated when unhealthy; truncated after 1000 steps; start ``qpos0 + U(-0.01,
-    0.01)`` and ``qvel ~ U(-0.01, 0.01)``. Observation: see :class:`_HumanoidBase`.
+    0.01)`` and ``qvel ~ U(-0.01, 0.01)``. Observation: see `_HumanoidBase`.
 
     ``healthy_gradient_width`` / ``healthy_gradient_scale`` and ``posture_gradient_scale``: the
-    surrogate gradients of :class:`~.healthy.HealthySurrogate` (reward values stay Gymnasium's).
+    surrogate gradients of `HealthySurrogate` (reward values stay Gymnasium's).
     """
 
     name = "Humanoid-v5"
@@ -141,7 +141,7 @@ class HumanoidStandupV5Env(_HumanoidBase):
     As Gymnasium's v5: reward ``uph_cost_weight * qpos[2] / timestep - ctrl_cost_weight |a|^2
     - clip(impact_cost_weight |cfrc_ext|^2, max 10) + 1`` (``timestep`` the model's 3 ms physics
     step, as Gymnasium's); never terminates; truncated after 1000 steps; start ``qpos0 + U(-0.01,
-    0.01)``, ``qvel ~ U(-0.01, 0.01)``. Observation: see :class:`_HumanoidBase`.
+    0.01)``, ``qvel ~ U(-0.01, 0.01)``. Observation: see `_HumanoidBase`.
     """
 
     name = "HumanoidStandup-v5"

@@ -18,7 +18,7 @@ class PlanarLocomotionEnv(HealthySurrogate, MuJoCoModelEnv):
 
     ``healthy_gradient_width`` / ``healthy_gradient_scale``: a surrogate gradient for the healthy
     bonus; ``posture_gradient_scale``: the gradient of dense height and uprightness terms (both
-    straight-through: reward values stay Gymnasium's; :class:`~.healthy.HealthySurrogate`).
+    straight-through: reward values stay Gymnasium's; `HealthySurrogate`).
 
     Dynamics: MuJoCo's model and integrator, with a smooth penalty contact instead of MuJoCo's
     soft-constraint solver (see the docs, "The simulator and its fidelity"): trajectories differ from

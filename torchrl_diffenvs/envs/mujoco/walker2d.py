@@ -12,7 +12,7 @@ class Walker2dV5Env(PlanarLocomotionEnv):
     terminated when unhealthy; truncated after 1000 steps; observation ``[qpos[1:], clip(qvel,
     -10, 10)]`` (17); start ``qpos0 + U(-5e-3, 5e-3)``, ``qvel ~ U(-5e-3, 5e-3)``; 0.002 s physics
     steps, 4 per env step, by semi-implicit Euler (the file's RK4 with ``integrator="model"``). Contact with the floor is the smooth penalty model, not
-    MuJoCo's solver (see :class:`PlanarLocomotionEnv`).
+    MuJoCo's solver (see `PlanarLocomotionEnv`).
     """
 
     name = "Walker2d-v5"

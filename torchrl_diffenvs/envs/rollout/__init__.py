@@ -1,4 +1,4 @@
-"""The lean implementation of ``EnvBase.rollout`` for :class:`~torchrl_diffenvs.DiffEnv`.
+"""The lean implementation of ``EnvBase.rollout`` for [`DiffEnv`][torchrl_diffenvs.DiffEnv].
 
 TorchRL's generic rollout builds, validates, copies and merges several TensorDicts per step
 (``step``, ``step_mdp``, ``maybe_reset``, the random-action TensorDict): on CPU that machinery
@@ -6,15 +6,15 @@ costs several times the physics of our tasks. Because a DiffEnv's physics are pu
 functions, a rollout can instead loop over plain tensors, call the policy on one light
 TensorDict per step (only when there is a policy), stack each entry once at the end and build
 the output TensorDict once. ``DiffEnv.rollout`` takes this path when
-:func:`fast_rollout_unsupported` finds nothing in the way, and ``EnvBase.rollout`` otherwise.
+`fast_rollout_unsupported` finds nothing in the way, and ``EnvBase.rollout`` otherwise.
 
 Modules:
 
-* :mod:`~.step`: the one step (:func:`~.step.physics_step`, also ``DiffEnv._step``) and the one
-  auto-reset merge (:func:`~.step.merge_reset`);
-* :mod:`~.loop`: the loop (:func:`fast_rollout`), eager steps and compiled chunks;
-* :mod:`~.compiled`: :func:`compile_physics` and the chunk function it compiles;
-* :mod:`~.output`: TensorDicts in and out; :mod:`~.actions`: random actions without a policy.
+* `step`: the one step (`physics_step`, also ``DiffEnv._step``) and the one
+  auto-reset merge (`merge_reset`);
+* `loop`: the loop (`fast_rollout`), eager steps and compiled chunks;
+* `compiled`: [`compile_physics`][torchrl_diffenvs.compile_physics] and the chunk function it compiles;
+* `output`: TensorDicts in and out; `actions`: random actions without a policy.
 
 The result equals ``EnvBase.rollout``'s for the same env seed and the same actions: keys,
 shapes, dtypes, values (bitwise, eagerly), gradients, auto-resets, ``break_when_any_done`` and

@@ -13,7 +13,7 @@ class RandomActions:
     ``Bounded.rand()`` (torchrl 0.14) draws ``uniform_``, scales it to the bounds and sets values
     that rounding pushed past a bound to that bound. Here the same arithmetic runs on a block of
     steps at once: on CPU, ``uniform_`` fills a tensor from the generator element after element,
-    so one draw of ``K`` steps gives the values of ``K`` one-step draws, bitwise. :meth:`close`
+    so one draw of ``K`` steps gives the values of ``K`` one-step draws, bitwise. `close`
     rewinds the generator to the end of the last action used, so the global random stream goes
     on where TorchRL's rollout leaves it.
     """

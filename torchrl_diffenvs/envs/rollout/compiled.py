@@ -1,5 +1,5 @@
-"""Opt-in ``torch.compile`` of rollouts: :func:`compile_physics` runs ``K``-step chunks of the
-lean loop (policy, :func:`~.step.physics_step`, :func:`~.step.merge_reset`) as one compiled function."""
+"""Opt-in ``torch.compile`` of rollouts: [`compile_physics`][torchrl_diffenvs.compile_physics] runs ``K``-step chunks of the
+lean loop (policy, `physics_step`, `merge_reset`) as one compiled function."""
 from __future__ import annotations
 
 import itertools
@@ -25,8 +25,8 @@ def chunk_steps(env: EnvBase, policy, chunk: int, root: dict, extras: dict, acti
     """``K`` steps of the lean loop on plain tensors: what ``torch.compile`` traces.
 
     Each step: the action (from ``policy``, a TensorDict module called on the step's entries, or
-    the given ``actions[j]``), :func:`~.step.physics_step`, and, when ``fresh`` start states are
-    given, :func:`~.step.merge_reset` of the envs that are done before the chunk's last step
+    the given ``actions[j]``), `physics_step`, and, when ``fresh`` start states are
+    given, `merge_reset` of the envs that are done before the chunk's last step
     (the merge at the last step is the caller's). ``fresh`` holds ``K - 1`` start states per env
     (``[K - 1, N, ...]``, those of its next ``K - 1`` episodes) and env ``i``'s ``r``-th reset in
     the chunk takes the ``r``-th: the start states of the eager loop.
@@ -92,7 +92,7 @@ def chunk_inputs(root: dict) -> dict:
 
 def physics_step_tree(env: EnvBase) -> RigidBodyTree | None:
     """The articulated model of an env whose physics runs through
-    :func:`~torchrl_diffenvs.articulated.integrators.step` (the MuJoCo tasks), else ``None``."""
+    [`step`][torchrl_diffenvs.articulated.step] (the MuJoCo tasks), else ``None``."""
     tree = getattr(env, "tree", None)
     return tree if isinstance(tree, RigidBodyTree) else None
 
@@ -102,7 +102,7 @@ class CompiledPhysics:
 
     Two granularities: ``"chunk"`` compiles the whole ``K``-step chunk (policy, physics, reward,
     resets) as one function; ``"physics step"`` (the articulated tasks) runs the chunk's Python
-    eagerly and compiles one physics step of :func:`~torchrl_diffenvs.articulated.integrators.step`,
+    eagerly and compiles one physics step of [`step`][torchrl_diffenvs.articulated.step],
     reused for every one of the chunk's ``K x frame_skip`` physics steps.
     """
 
@@ -127,7 +127,7 @@ class CompiledPhysics:
         self.first_call_seconds.setdefault(what, seconds)
 
     def chunk_function(self, policy, with_resets: bool) -> Callable:
-        """The compiled :func:`chunk_steps` for ``policy`` (one per policy object, or ``None``)."""
+        """The compiled `chunk_steps` for ``policy`` (one per policy object, or ``None``)."""
         functions = self.functions if policy is None else self.policy_functions.setdefault(policy, {})
         fn = functions.get(with_resets)
         if fn is None:
@@ -169,7 +169,7 @@ class CompiledPhysics:
         return run
 
     def physics_step(self, tree, qpos, qvel, ctrl, params, dt, integrator, invweight0):
-        """:func:`~torchrl_diffenvs.articulated.integrators.step` through ``torch.compile``: one
+        """[`step`][torchrl_diffenvs.articulated.step] through ``torch.compile``: one
         compiled function per step size and integrator (the tree and both are constants of its
         graph), reused at every physics step; its first call per grad mode is timed."""
         fn = self.step_functions.get((dt, integrator))
@@ -237,7 +237,7 @@ def _own_code(function: Callable) -> Callable:
 def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) -> EnvBase:
     """Opt-in: ``env.rollout`` runs through ``torch.compile`` in chunks of ``K`` steps; returns ``env``.
 
-    * With a policy (a TensorDict module such as :func:`~torchrl_diffenvs.modules.make_actor`'s,
+    * With a policy (a TensorDict module such as [`make_actor`][torchrl_diffenvs.modules.make_actor]'s,
       as BPTT, SHAC and evaluation call it): one compiled function per ``K``-step chunk covers
       the policy forward, the physics, the reward, the done flags and the auto-resets of envs
       whose episode ends inside the chunk; its backward is compiled too (AOTAutograd), so
@@ -253,12 +253,12 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
       ``K`` dividing the window length.
     * The articulated tasks (the MuJoCo models: an env step is ``frame_skip`` physics steps of
       a few forward-dynamics passes each) compile one physics step instead
-      (:func:`~torchrl_diffenvs.articulated.integrators.step`, ``dynamic=False``): the chunk's
+      ([`step`][torchrl_diffenvs.articulated.step], ``dynamic=False``): the chunk's
       policy, reward and resets run eagerly and call the same compiled step ``K x frame_skip``
       times. A whole chunk of HalfCheetah-v5 was a graph of 40 physics steps that did not finish
       compiling in 15 minutes on one CPU thread; one step compiles in about a minute, its
       backward too (benchmarks/compile_physics.py). The joint-limit solve runs eagerly inside
-      it (a graph break, see :func:`~torchrl_diffenvs.articulated.limits.limit_force`).
+      it (a graph break, see `limit_force`).
 
     The result is that of the eager path up to floating-point rounding (fused kernels may round
     differently), gradients included, with one exception: random numbers drawn inside compiled
@@ -269,7 +269,7 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
 
     Compiling happens at first use and takes seconds to a minute per function on a CPU (one per
     policy object, grad mode and exploration mode, and again for the backward pass); it pays off
-    for repeated rollouts, mostly at small and medium batch sizes. :func:`compile_report` says
+    for repeated rollouts, mostly at small and medium batch sizes. `compile_report` says
     how long the first calls took. If ``torch.compile`` fails (no C++ compiler for inductor, an
     operation it cannot trace), the rollout logs the reason and runs eagerly from there on.
     ``compile_kwargs`` go to ``torch.compile`` (default ``dynamic=False``). On CUDA,
@@ -277,7 +277,7 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
     trees), to save the kernel-launch overhead of an eager GPU step: rollouts without gradient
     use them (each call's outputs are copied out of the graph's buffers); windows with gradient
     use a second compilation without CUDA graphs (its own compile time at its first call). Undo with
-    :func:`eager_physics`. ``EnvBase.rollout`` and ``env.step`` are not affected.
+    [`eager_physics`][torchrl_diffenvs.eager_physics]. ``EnvBase.rollout`` and ``env.step`` are not affected.
     """
     if isinstance(steps_per_chunk, bool) or not isinstance(steps_per_chunk, int) or steps_per_chunk < 1:
         raise ValueError(f"compile_physics: steps_per_chunk must be a positive integer, got {steps_per_chunk!r}")
@@ -290,7 +290,7 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
 
 
 def compile_report(env: EnvBase) -> dict | None:
-    """What :func:`compile_physics` did on ``env`` so far; ``None`` if it is not compiled.
+    """What [`compile_physics`][torchrl_diffenvs.compile_physics] did on ``env`` so far; ``None`` if it is not compiled.
 
     ``{"steps_per_chunk": K, "granularity": "chunk" or "physics step", "first_call_seconds":
     {function: seconds}, "fallback_reason": str or None}``: the first call of each compiled
@@ -308,6 +308,6 @@ def compile_report(env: EnvBase) -> dict | None:
 
 
 def eager_physics(env: EnvBase) -> EnvBase:
-    """Undoes :func:`compile_physics`; returns ``env``."""
+    """Undoes [`compile_physics`][torchrl_diffenvs.compile_physics]; returns ``env``."""
     env.__dict__.pop("_compiled_physics", None)
     return env

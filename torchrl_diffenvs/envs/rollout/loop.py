@@ -1,9 +1,9 @@
 """The lean rollout loop: ``EnvBase.rollout`` on plain tensors, eager or in compiled chunks.
 
-Each step is the policy (or a random or given action), :func:`~.step.physics_step` and, where
-an env is done, :func:`~.step.merge_reset` with fresh start states; a compiled chunk
-(:mod:`~.compiled`) runs the same functions for ``K`` steps. The per-step entries are kept in
-lists and stacked once at the end (:mod:`~.output`).
+Each step is the policy (or a random or given action), `physics_step` and, where
+an env is done, `merge_reset` with fresh start states; a compiled chunk
+(`compiled`) runs the same functions for ``K`` steps. The per-step entries are kept in
+lists and stacked once at the end (`output`).
 """
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ def fast_rollout(
     Same keys, shapes, dtypes, values and gradients as ``EnvBase.rollout`` for the same env seed
     and the same actions; random actions (no policy) are drawn from torch's global generator as
     TorchRL draws them. Call it through ``env.rollout``, which checks
-    :func:`fast_rollout_unsupported` first; calling it directly with an unsupported argument
+    `fast_rollout_unsupported` first; calling it directly with an unsupported argument
     raises ``ValueError``.
     """
     reason = fast_rollout_unsupported(
@@ -238,7 +238,7 @@ class _Loop:
         return None if self.params_are_env_params else dict(self.env.params.items())
 
     def reset_done(self, nxt: dict, extras: dict) -> tuple[dict, dict]:
-        """``maybe_reset``: the done envs restart from their next start states (:func:`~.step.merge_reset`)."""
+        """``maybe_reset``: the done envs restart from their next start states (`merge_reset`)."""
         done = nxt["done"]
         # without a policy the action is replaced before anyone sees it: no need to zero it
         keep = {"action": extras["action"]} if self.policy is None and "action" in extras else {}

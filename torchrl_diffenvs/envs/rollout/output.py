@@ -1,8 +1,8 @@
 """Step entries <-> TensorDicts, and the rollout output: every entry stacked once along time.
 
-A step is a dict of entries (see :mod:`~torchrl_diffenvs.envs.rollout.step`); the done flags
+A step is a dict of entries (see `step`); the done flags
 and the reward are kept ``[N]`` and get their trailing ``1`` only in TensorDicts (fewer ops per
-step, and the same tensor object can be recognised from step to step, see :func:`stack_time`).
+step, and the same tensor object can be recognised from step to step, see `stack_time`).
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ _TRAILING_ONE = (*FLAG_KEYS, "reward")  # [N] here, [N, 1] in TensorDicts
 def entries_of(td: TensorDictBase, n: int, views: dict | None = None) -> dict:
     """A step TensorDict's root entries in the internal layout.
 
-    ``views``: the ``{key: ([N, 1] view, [N] flag)}`` that :func:`as_tensordict` made for ``td``;
+    ``views``: the ``{key: ([N, 1] view, [N] flag)}`` that `as_tensordict` made for ``td``;
     a flag the policy left untouched maps back to the loop's own tensor.
     """
     entries = dict(td.items())
@@ -34,7 +34,7 @@ def entries_of(td: TensorDictBase, n: int, views: dict | None = None) -> dict:
 
 
 def as_tensordict(entries: dict, batch_size: torch.Size, device, views: dict | None = None) -> TensorDict:
-    """A ``[N]`` TensorDict of one step's entries (the TorchRL layout); see :func:`entries_of`."""
+    """A ``[N]`` TensorDict of one step's entries (the TorchRL layout); see `entries_of`."""
     source = {}
     for key, value in entries.items():
         if key in _TRAILING_ONE:

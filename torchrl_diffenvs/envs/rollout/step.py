@@ -1,8 +1,8 @@
 """The one env step and the one auto-reset merge, on plain tensors.
 
-:func:`physics_step` is what ``DiffEnv._step`` computes, what the lean rollout loop computes at
-every step and what :func:`~torchrl_diffenvs.envs.rollout.compiled.compile_physics` traces;
-:func:`merge_reset` is how every rollout path (eager steps and compiled chunks) replaces the
+`physics_step` is what ``DiffEnv._step`` computes, what the lean rollout loop computes at
+every step and what [`compile_physics`][torchrl_diffenvs.compile_physics] traces;
+`merge_reset` is how every rollout path (eager steps and compiled chunks) replaces the
 entries of the envs that are done by fresh start states. Both are pure tensor code, so
 ``torch.compile`` traces them, and both act on each env separately (one env's values never
 change another's).
@@ -59,7 +59,7 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
 
     ``check=False`` (with ``all_false``): no check at all, every env is taken as finite; for a
     caller that checks the values afterwards and steps again with checks if one is not
-    (the eager loop without a policy, see :mod:`~.loop`).
+    (the eager loop without a policy, see `loop`).
     """
     if env.clip_actions:
         action = action.clamp(env.action_low, env.action_high)
@@ -89,7 +89,7 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
 
 def _all_finite(values) -> bool:
     """Whether every value is finite: one sum of them all, one host sync (non-finite exactly when
-    the sum of :func:`_flat`'s ``[N, K]`` is: the same values in another layout, ``cat`` and
+    the sum of `_flat`'s ``[N, K]`` is: the same values in another layout, ``cat`` and
     ``stack`` promoting to the widest dtype as ``_flat`` converts; integer entries are finite and
     change nothing). No autograd bookkeeping for it, and none of ``torch.no_grad``'s when autograd
     is off already.

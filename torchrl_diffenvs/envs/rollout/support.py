@@ -1,4 +1,4 @@
-"""When the lean rollout applies: :func:`fast_rollout_unsupported` says why a call must take
+"""When the lean rollout applies: `fast_rollout_unsupported` says why a call must take
 ``EnvBase.rollout`` instead (an argument the lean path does not implement, an env that overrides
 a method it reimplements, TorchRL machinery in use)."""
 from __future__ import annotations
