@@ -27,6 +27,7 @@ from pathlib import Path
 from torchrl_diffenvs import checks
 from torchrl_diffenvs.checks import Settings, checked
 
+REPO_ROOT = Path(__file__).resolve().parent.parent
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 # The documentation renders its measured tables from these files (docs/hooks/generate.py)
 DATA_DIR = Path(__file__).resolve().parent.parent / "docs" / "data"
@@ -92,8 +93,25 @@ def versions() -> dict:
         "cpu_count": os.cpu_count(),
         "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "platform": platform.platform(),
-        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "command": " ".join([Path(sys.argv[0]).name, *portable_args(sys.argv[1:])]),
     }
+
+
+def portable_args(args: Sequence[str]) -> list[str]:
+    """The arguments of a command as anyone can rerun them from the repository root: paths inside
+    the repository relative to it, ``data=`` the data file's name (``docs/data/<name>.json``),
+    ``out=`` dropped when it names a scratch file outside the repository (the data file holds the
+    tables the docs show)."""
+    root = str(REPO_ROOT) + os.sep
+    words = []
+    for word in args:
+        key, eq, value = word.partition("=")
+        if eq and key == "data" and (value.endswith(".json") or "/" in value):
+            word = f"data={Path(value).stem}"
+        elif eq and key == "out" and os.path.isabs(value) and not value.startswith(root):
+            continue
+        words.append(word.replace(root, ""))
+    return words
 
 
 def print_header(title: str, info: dict) -> None:
@@ -223,7 +241,7 @@ def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], 
     payload = {
         "measured": measured.get("date") or today(),
         "machine": measured.get("machine") or machine_name(device),
-        "command": measured.get("command") or " ".join(["python", f"benchmarks/{script}", *sys.argv[1:]]),
+        "command": measured.get("command") or " ".join(["python", f"benchmarks/{script}", *portable_args(sys.argv[1:])]),
         "source": f"benchmarks/{source or name}.py",
         "tables": tables,
     }
