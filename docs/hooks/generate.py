@@ -31,9 +31,34 @@ def _plain(text: str) -> str:
     return re.sub(r"``([^`]+)``", r"`\1`", text)
 
 
+SCIENTIFIC = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?e\+0[34]\b")
+CODE_SPAN = re.compile(r"(`+)(.+?)\1")
+SKIPPED = "skipped (budget)"
+
+
+def _plain_number(match: re.Match) -> str:
+    """``2.23e+03`` -> ``2230``: thousands as people read them (smaller and larger stay as written)."""
+    return f"{float(match.group(0)):.0f}"
+
+
 def _cell(value) -> str:
+    """A table cell: pipes escaped outside code spans (inside them Markdown keeps them), one line,
+    thousands written out."""
     text = "-" if value is None else str(value)
-    return text.replace("|", "\\|").replace("\\\\|", "\\|").replace("\n", " ")
+    parts, last = [], 0
+    for match in CODE_SPAN.finditer(text):
+        parts.append(SCIENTIFIC.sub(_plain_number, text[last:match.start()]).replace("\\|", "|").replace("|", "\\|"))
+        parts.append(match.group(0))
+        last = match.end()
+    parts.append(SCIENTIFIC.sub(_plain_number, text[last:]).replace("\\|", "|").replace("|", "\\|"))
+    return "".join(parts).replace("\n", " ")
+
+
+def _skipped(row: list) -> bool:
+    """A row the benchmark did not measure (its time budget ran out): no cell beyond the first two
+    holds a measurement."""
+    cells = [str(c) for c in row[2:]]
+    return any(c == SKIPPED for c in cells) and all(c in ("-", "n/a", SKIPPED) for c in cells)
 
 
 def load_data(name: str) -> dict:
@@ -68,11 +93,21 @@ def render_table(name: str, key: str | None, data_link: str) -> str:
     table = tables[key] if key is not None else next(iter(tables.values()))
     lines = ["| " + " | ".join(_cell(c) for c in table["columns"]) + " |",
              "|" + "|".join("---" for _ in table["columns"]) + "|"]
-    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in table["rows"]]
+    rows = [row for row in table["rows"] if not _skipped(row)]
+    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
+    skipped: dict[str, list[str]] = {}
+    for row in table["rows"]:
+        if _skipped(row):
+            skipped.setdefault(str(row[0]), []).append(str(row[1]))
+    note = ""
+    if skipped:
+        note = ("Not measured (the run's time budget ran out): "
+                + "; ".join(f"{key} ({table['columns'][1]} = {', '.join(values)})" for key, values in skipped.items())
+                + ".\n\n")
     command = data["command"]
     caption = (f"*{table['title']}. Measured {data['measured']} on {data['machine']}"
                + (f" with `{command}`" if command else "") + f" ([data]({data_link}{name}.json)).*")
-    return "\n".join(lines) + "\n\n" + caption + "\n"
+    return note + "\n".join(lines) + "\n\n" + caption + "\n"
 
 
 # --------------------------------------------------------------------------- config reference
