@@ -22,7 +22,7 @@ max over iterations and seeds) and its skipped updates.
     OMP_NUM_THREADS=1 python benchmarks/gradient_health.py mode=contact_gradients tasks=[HalfCheetah-v5,Hopper-v5]
 
 With ``mode=contact_gradients`` the rows are the contact gradient modes (``contact_gradient``:
-``exact``, ``cfd``, ``smooth``) on MuJoCo's forward with the model file's integrator: the same
+``exact``, ``cfd``, ``smooth``, ``penalty``; ``modes=`` picks them) on MuJoCo's forward with the model file's integrator: the same
 forward, so only the gradient columns differ (no fidelity columns).
 """
 from __future__ import annotations
@@ -42,6 +42,7 @@ import _common as C  # noqa: E402
 from _common import BenchmarkSettings, print_table  # noqa: E402
 
 from torchrl_diffenvs import make_env  # noqa: E402
+from torchrl_diffenvs.articulated.contact_gradient import GRADIENT_MODES  # noqa: E402
 from torchrl_diffenvs.checks import checked, each, one_of, parse_cli  # noqa: E402
 
 CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5"]
@@ -63,6 +64,7 @@ class GradientHealthSettings(BenchmarkSettings):
     mode: str = checked("options", one_of(("options", "learners", "contact_gradients")))
     learners: tuple = checked(("bptt", "shac", "ahac", "sapo"), each(one_of(("bptt", "shac", "ahac", "sapo"))))
     env_steps: int = 20_000  # mode=learners: the budget measured (the first env steps of a run)
+    modes: tuple = checked(GRADIENT_MODES, each(one_of(GRADIENT_MODES)))  # mode=contact_gradients: the rows
 
 
 def actor_for(env, seed: int) -> nn.Module:
@@ -153,7 +155,7 @@ def contact_gradients_table(settings) -> list[list[str]]:
     rows = []
     for task in settings.tasks:
         base_cost = None
-        for mode in ("exact", "cfd", "smooth"):
+        for mode in settings.modes:
             runs = [window_gradient(task, {"contact_gradient": mode}, seed, settings) for seed in range(settings.seeds)]
             norms = [r["norm"] for r in runs]
             cost = statistics.median(r["step_seconds"] for r in runs)

@@ -30,7 +30,7 @@ reward, Gymnasium's; rewards after an env's first termination are dropped). Repo
     OMP_NUM_THREADS=1 python benchmarks/gradient_horizon.py tasks=[Hopper-v5] modes=[exact,cfd] data=none
 
 It writes ``docs/data/gradient_modes.json`` (``contact=smooth``: ``gradient_horizon.json``) unless
-``data=`` names another file. Each row is one contact gradient mode (``contact_gradient``: ``exact``, ``cfd``, ``smooth``; see
+``data=`` names another file. Each row is one contact gradient mode (``contact_gradient``: ``exact``, ``cfd``, ``smooth``, ``penalty``; see
 the simulator docs): the forward, hence the window's returns and the smoothed gradient, is the
 same in every mode, so the modes are compared against one smoothed estimate.
 """
@@ -48,6 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
 from torchrl_diffenvs import checks, make_env  # noqa: E402
+from torchrl_diffenvs.articulated.contact_gradient import GRADIENT_MODES  # noqa: E402
 from torchrl_diffenvs.checks import checked, each, one_of, parse_cli  # noqa: E402
 
 TASKS = ["Ant-v5", "HalfCheetah-v5", "Hopper-v5", "Walker2d-v5"]
@@ -66,7 +67,7 @@ class GradientHorizonSettings(C.BenchmarkSettings):
     warmup: int = checked(30, checks.nonnegative_int)
     seed: int = 0
     params: list[str] | None = None  # NAME=VALUE physical parameter overrides, e.g. [body_mass=...]
-    modes: tuple = checked(("exact", "cfd", "smooth"), each(one_of(("exact", "cfd", "smooth"))))
+    modes: tuple = checked(GRADIENT_MODES, each(one_of(GRADIENT_MODES)))
     contact: str = checked("mujoco", one_of(("mujoco", "smooth")))  # the smooth option: modes=[exact] only
 
 

@@ -1,7 +1,7 @@
 """The contact gradient modes (``contact_gradient``): every mode leaves MuJoCo's forward values
 unchanged, bit for bit; CFD gives a foot just above the floor a gradient that the exact solve
 cannot (zero beyond its distance); the smoothed active set tends to the exact gradient as its
-softness goes to 0."""
+softness goes to 0; the penalty mode's gradient is the smooth contact model's at MuJoCo's state."""
 from __future__ import annotations
 
 import pytest
@@ -11,7 +11,7 @@ from torchrl_diffenvs.articulated import step
 from torchrl_diffenvs.articulated.collision import collide
 from torchrl_diffenvs.articulated.contact_gradient import ContactGradient
 from torchrl_diffenvs.articulated.kinematics import forward_kinematics
-from torchrl_diffenvs.articulated.pipeline import invweight0
+from torchrl_diffenvs.articulated.pipeline import accelerations, invweight0
 from torchrl_diffenvs.envs import make_env
 
 
@@ -38,7 +38,7 @@ def _rollout(task, mode, steps=12, seed=3):
 @pytest.mark.parametrize("task", ["Hopper-v5", "HalfCheetah-v5"])
 def test_every_mode_keeps_mujocos_forward_values(task):
     exact_obs, exact_rew, exact_grad = _rollout(task, "exact")
-    for mode in ("cfd", "smooth"):
+    for mode in ("cfd", "smooth", "penalty"):
         obs, rew, grad = _rollout(task, mode)
         assert torch.equal(obs, exact_obs) and torch.equal(rew, exact_rew), mode
         assert torch.isfinite(grad).all()
@@ -89,6 +89,40 @@ def test_smooth_mode_tends_to_the_exact_gradient():
     assert (smooth - exact).norm() > 1e-6 * exact.norm()
 
 
+@pytest.mark.parametrize("task", ["Hopper-v5", "Ant-v5"])
+def test_penalty_mode_differentiates_the_smooth_contact_model_at_mujocos_state(task):
+    """Value: MuJoCo's ``qacc``; gradient: the smooth model's, its contact damping implicit at the
+    physics step (the two trees are built independently, one per contact model)."""
+    penalty = make_env(task, num_envs=2, seed=1, dtype=torch.float64, contact_gradient="penalty")
+    smooth = make_env(task, num_envs=2, seed=1, dtype=torch.float64, contact="smooth")
+    exact = make_env(task, num_envs=2, seed=1, dtype=torch.float64)
+    for name in ("contact_stiffness", "contact_damping", "contact_width", "friction_velocity"):
+        assert torch.equal(penalty.params[name], smooth.params[name]), name
+    tree = penalty.tree
+    qpos = tree.qpos0.expand(2, -1).clone()
+    height = 2 if task == "Ant-v5" else 1  # the root's z in qpos
+    lowest = collide(tree.contact_slots, forward_kinematics(tree, qpos)).dist.min(-1).values
+    qpos[:, height] -= lowest + torch.tensor([0.003, 0.0005], dtype=torch.float64)  # 3 mm and 0.5 mm into the floor
+    qvel = torch.randn(2, tree.nv, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 0.3
+    ctrl = torch.full((2, tree.model.nu), 0.2, dtype=torch.float64)
+
+    def qacc_and_jacobian(env, **kw):
+        params = dict(env.params.items())
+        q, v = qpos.clone().requires_grad_(True), qvel.clone().requires_grad_(True)
+        qacc = accelerations(env.tree, q, v, ctrl, params, invweight0=invweight0(env.tree, params), **kw)
+        rows = [torch.cat(torch.autograd.grad(qacc[:, i].sum(), (q, v), retain_graph=True), -1)
+                for i in range(tree.nv)]
+        return qacc.detach(), torch.stack(rows, 1)
+
+    value, jacobian = qacc_and_jacobian(penalty)
+    exact_value, exact_jacobian = qacc_and_jacobian(exact)
+    smooth_value, smooth_jacobian = qacc_and_jacobian(smooth, implicit_damping_dt=tree.model.timestep)
+    assert torch.equal(value, exact_value)
+    torch.testing.assert_close(jacobian, smooth_jacobian, rtol=1e-10, atol=1e-8)
+    assert (smooth_value - exact_value).abs().max() > 1e-3  # the two models' values differ: not a tautology
+    assert (jacobian - exact_jacobian).abs().max() > 1e-3
+
+
 @pytest.mark.parametrize("mode", ["exact", "cfd", "smooth"])
 def test_the_surrogate_is_the_same_without_row_compaction(mode, monkeypatch):
     """On the CPU the solve drops the rows no env needs; on a GPU and under torch.compile it keeps
@@ -113,7 +147,7 @@ def test_the_surrogate_is_the_same_without_row_compaction(mode, monkeypatch):
 
 
 def test_contact_gradient_option_errors_name_what_is_valid():
-    with pytest.raises(ValueError, match="unknown mode 'soft'.*'exact', 'cfd', 'smooth'"):
+    with pytest.raises(ValueError, match="unknown mode 'soft'.*'exact', 'cfd', 'smooth', 'penalty'"):
         make_env("Hopper-v5", contact_gradient="soft")
     with pytest.raises(ValueError, match="unknown keys \\['width'\\]"):
         make_env("Hopper-v5", contact_gradient={"mode": "cfd", "width": 0.1})
@@ -123,4 +157,6 @@ def test_contact_gradient_option_errors_name_what_is_valid():
         make_env("Hopper-v5", contact_gradient={"distance": 0.05})
     with pytest.raises(ValueError, match="'smooth' contact model"):
         make_env("Hopper-v5", contact="smooth", contact_gradient="cfd")
+    with pytest.raises(ValueError, match="'smooth' contact model"):
+        make_env("Hopper-v5", contact="smooth", contact_gradient="penalty")
     assert make_env("Hopper-v5", contact_gradient={"mode": "cfd", "distance": 0.05}).contact_gradient.distance == 0.05

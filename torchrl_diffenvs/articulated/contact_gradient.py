@@ -10,7 +10,7 @@ from typing import NamedTuple
 
 __all__ = ["ContactGradient", "GRADIENT_MODES"]
 
-GRADIENT_MODES = ("exact", "cfd", "smooth")
+GRADIENT_MODES = ("exact", "cfd", "smooth", "penalty")
 
 
 class ContactGradient(NamedTuple):
@@ -31,11 +31,23 @@ class ContactGradient(NamedTuple):
       the solution if it were active (negative for an inactive one) and ``f_max`` the env's largest
       ``|f|``: rows near the switch count by half, and the gradient no longer jumps where a row
       switches. ``softness -> 0`` gives the exact gradient.
+    - ``"penalty"``: the gradient of the smooth penalty contact model (``contact="smooth"``,
+      :mod:`.contact`) at MuJoCo's state, in place of the solve's: straight through at the
+      accelerations (and the Ant's ``cfrc_ext``). The penalty force has a gradient wherever a geom
+      is within its width of the ground and none of the solve's switches; its parameters
+      (``contact_stiffness``, ``contact_damping``, ``contact_width``, ``friction_velocity``) join
+      the env's params and shape the backward only.
     """
 
     mode: str = "exact"
     distance: float = 0.02  # cfd: metres beyond the contact margin
     softness: float = 0.1  # smooth: the sigmoid's width, relative to the env's largest row force
+
+    @property
+    def shapes_solve(self) -> bool:
+        """Whether the mode is a surrogate of the constraint solve itself (``"penalty"`` replaces
+        the whole contact gradient, outside the solve)."""
+        return self.mode != "penalty"
 
     @classmethod
     def parse(cls, value) -> "ContactGradient":

@@ -13,6 +13,7 @@ import torch
 
 from .collision import collide
 from .constraint import constraint_rows, contact_frame_forces, solve
+from .contact_gradient import ContactGradient
 from .contact import _contact_points_and_forces, _pair_forces, body_contact_forces, contact_force, pair_contact_force
 from .forces import actuator_force, passive_force
 from .inertia import body_invweight0, dof_invweight0, mass_matrix_and_bias
@@ -99,8 +100,18 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     for a model without contacts), as ``(qacc, largest)``.
     """
     if tree.contact_model == "mujoco":
+        if tree.contact_gradient.mode == "penalty":
+            return _penalty_gradient_accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt, implicit_bias,
+                                                   invweight0, with_contact_force)
         return _constrained_accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt, implicit_bias,
                                           invweight0, with_contact_force)
+    return _smooth_accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt, implicit_bias, invweight0,
+                                 with_contact_force)
+
+
+def _smooth_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt, implicit_bias,
+                          invweight0, with_contact_force):
+    """The ``"smooth"`` contact model's ``qacc`` (see :func:`accelerations`)."""
     implicit = implicit_damping_dt is not None
     kin = forward_kinematics(tree, qpos)
     mass, bias, *bias_jacobian = mass_matrix_and_bias(tree, kin, qvel, params,
@@ -111,11 +122,32 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     if tree.limit_dof.numel():
         mass_inv = _inverse(mass)
         smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
+        if isinstance(invweight0, InvWeight0):  # a MuJoCo-contact caller's (the penalty gradient's surrogate)
+            invweight0 = invweight0.dof
         invweight0 = dof_invweight0(tree, params) if invweight0 is None else invweight0
         force = force + limit_force(tree, qpos, qvel, smooth_acc, mass_inv, invweight0)
     if implicit:
         mass = mass + implicit_damping_dt * damping
     qacc = _solve(mass, force)
+    return (qacc, largest) if with_contact_force else qacc
+
+
+def _penalty_gradient_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt,
+                                    implicit_bias, weights, with_contact_force):
+    """MuJoCo's ``qacc`` with the ``"smooth"`` contact model's gradient: the contact gradient mode
+    ``"penalty"`` (:class:`~.contact_gradient.ContactGradient`). Straight through: the value is
+    :func:`_constrained_accelerations`' (computed without a graph), to which the penalty model's
+    ``qacc`` minus itself detached adds an exact zero and its whole gradient (motors, bias and the
+    penalty contact, at MuJoCo's state)."""
+    with torch.no_grad():
+        exact = _constrained_accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt, implicit_bias,
+                                           weights, with_contact_force)
+    # the penalty force's velocity damping (friction and normal) is stiff: implicit at the physics step
+    # under every integrator, as the smooth model runs it, else its RK4 stages' Jacobian diverges
+    damping_dt = tree.model.timestep if implicit_damping_dt is None else implicit_damping_dt
+    surrogate = _smooth_accelerations(tree, qpos, qvel, ctrl, params, damping_dt, implicit_bias, weights, False)
+    qacc, largest = exact if with_contact_force else (exact, None)
+    qacc = qacc + (surrogate - surrogate.detach())
     return (qacc, largest) if with_contact_force else qacc
 
 
@@ -140,8 +172,8 @@ def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weigh
     qacc_smooth = _solve(mass, smooth_force)
     contacts = collide(slots, kin) if slots.count else None
     rows = constraint_rows(tree, slots, kin, contacts, qpos, qvel, params, weights.dof, weights.body)
-    solution = solve(mass, qacc_smooth, rows, tree.model.iterations, tree.model.tolerance,
-                     tree.contact_gradient)
+    gradient = tree.contact_gradient if tree.contact_gradient.shapes_solve else ContactGradient()
+    solution = solve(mass, qacc_smooth, rows, tree.model.iterations, tree.model.tolerance, gradient)
     return _MuJoCoForward(kin, mass, smooth_force, contacts, rows, solution, bias_jacobian[0] if bias_jacobian else None)
 
 
@@ -152,6 +184,15 @@ def body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params,
     (``"mujoco"``) or the smooth model's (``"smooth"``)."""
     if tree.contact_model != "mujoco":
         return body_contact_forces(tree, forward_kinematics(tree, qpos), qvel, params, about=about)
+    if tree.contact_gradient.mode == "penalty":  # MuJoCo's values, the penalty model's gradient (straight through)
+        with torch.no_grad():
+            exact = _mujoco_body_contact_wrenches(tree, qpos, qvel, ctrl, params, about, weights)
+        surrogate = body_contact_forces(tree, forward_kinematics(tree, qpos), qvel, params, about=about)
+        return exact + (surrogate - surrogate.detach())
+    return _mujoco_body_contact_wrenches(tree, qpos, qvel, ctrl, params, about, weights)
+
+
+def _mujoco_body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, about, weights):
     out = qvel.new_zeros(qvel.shape[0], tree.nbody, 6)
     slots = tree.contact_slots
     if not slots.count:

@@ -79,7 +79,8 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             ``"exact"`` (default): the implicit gradient of the solution. ``"cfd"`` (contacts
             from distance): contacts within ``distance`` beyond touching contribute a backward-only
             force, so a foot about to land has a gradient. ``"smooth"``: a soft active set in the
-            backward. A mapping sets the fields of
+            backward. ``"penalty"``: the smooth penalty contact model's gradient at MuJoCo's
+            state (its parameters join the params). A mapping sets the fields of
             :class:`~torchrl_diffenvs.articulated.contact_gradient.ContactGradient`, e.g.
             ``{"mode": "cfd", "distance": 0.05}``.
     """
@@ -136,7 +137,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         kinematics_at_qpos0(self.tree)  # kept on the tree: computed here, not inside a compiled step
         defaults = dict(default_params(model))
         if has_contacts(self.tree):
-            if contact == "smooth":
+            if contact == "smooth" or self.contact_gradient.mode == "penalty":  # the penalty model's
                 defaults.update(self.contact_params)
             defaults["contact_friction"] = torch.as_tensor(self.tree.contact_pair_friction)
         defaults.update(self.task_params)
