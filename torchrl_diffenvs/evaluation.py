@@ -149,7 +149,7 @@ def evaluate_in_gymnasium(policy, env_id: str, episodes: int = 16, seed: int = 0
 
     The policy reads ``observation_key`` from a TensorDict of the still-running episodes (converted
     to ``dtype`` on ``device``) and writes ``action_key``, as it does on our env; ``options`` are
-    our env's task options (:func:`gymnasium_kwargs`). Returns :func:`evaluate`'s ``return``,
+    our env's task options ([`gymnasium_kwargs`][torchrl_diffenvs.evaluation.gymnasium_kwargs]). Returns [`evaluate`][torchrl_diffenvs.evaluation.evaluate]'s ``return``,
     ``return_std``, ``return_min``, ``return_max``, ``episode_length`` and ``terminated``, and the
     per-episode ``returns`` and ``lengths``.
     """
@@ -197,7 +197,7 @@ def evaluate_in_gymnasium(policy, env_id: str, episodes: int = 16, seed: int = 0
 
 
 def evaluate_random(env, steps: int | None = None, seed: int | None = None) -> float:
-    """Mean return of uniformly random actions on the same start states as :func:`evaluate`."""
+    """Mean return of uniformly random actions on the same start states as [`evaluate`][torchrl_diffenvs.evaluation.evaluate]."""
     rollout = _rollout(env, uniform_random_policy(env), steps, seed, ExplorationType.RANDOM)
     return episode_returns(rollout, env.reward_key).double().mean().item()
 

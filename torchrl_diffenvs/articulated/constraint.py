@@ -10,7 +10,7 @@ the batch, a host read that costs nothing there).
 
 The solve minimises MuJoCo's convex primal over ``qacc``,
 ``1/2 (qacc - qacc_smooth)' M (qacc - qacc_smooth) + sum_i 1/2 D_i min(0, J_i qacc - aref_i)^2``,
-whose unique minimiser is what MuJoCo's Newton solver converges to. :func:`solve` finds it by
+whose unique minimiser is what MuJoCo's Newton solver converges to. [`solve`][torchrl_diffenvs.articulated.constraint.solve] finds it by
 Newton's method with an exact line search (the cost is piecewise quadratic along a line, so the
 search sorts the rows' breakpoints) without autograd, then takes one differentiable solve with
 the active set it found: the value is the minimiser, and the gradient is the implicit gradient of
@@ -59,7 +59,7 @@ _MINIMP, _MAXIMP = 0.0001, 0.9999  # MuJoCo's mjMINIMP, mjMAXIMP
 def _reference(pos, margin, velocity, solref, solimp, timestep: float):
     """``(aref, imp)`` of rows: MuJoCo's ``aref = -B v - K imp (pos - margin)`` with ``K, B`` from
     ``solref`` (its time constant at least two timesteps: ``refsafe``) and the impedance ``imp``
-    from ``solimp`` (:func:`~.limits._impedance`), clamped as MuJoCo's ``getsolparam`` does."""
+    from ``solimp`` (`_impedance`), clamped as MuJoCo's ``getsolparam`` does."""
     dmin, dmax, width, mid, power = solimp.unbind(-1)
     solimp = torch.stack([dmin.clamp(_MINIMP, _MAXIMP), dmax.clamp(_MINIMP, _MAXIMP), width.clamp_min(0.0),
                           mid.clamp(_MINIMP, _MAXIMP), power.clamp_min(1.0)], dim=-1)
@@ -87,8 +87,8 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
     """The constraint rows at a state: joint limits, then contacts (pyramidal cones).
 
     ``dof_weight [N, nv]`` and ``body_weight [N, nbody, 2]``: MuJoCo's ``dof_invweight0`` and
-    ``body_invweight0`` for these params (:func:`~.inertia.dof_invweight0`,
-    :func:`~.inertia.body_invweight0`), the scales of the regularisers (``mj_diagApprox``).
+    ``body_invweight0`` for these params (`dof_invweight0`,
+    `body_invweight0`), the scales of the regularisers (``mj_diagApprox``).
     """
     timestep = tree.model.timestep
     n, nv = qpos.shape[0], tree.nv
@@ -228,7 +228,7 @@ def _newton(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
 
 
 def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
-    """:func:`_newton` on the CPU, where reading the data costs nothing: envs without rows keep
+    """`_newton` on the CPU, where reading the data costs nothing: envs without rows keep
     ``qacc_smooth``, the others iterate on their existing rows only (the batch's largest count of
     them), each round on the envs that have not converged yet."""
     n = smooth.shape[0]
@@ -262,7 +262,7 @@ def _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations: i
 
     It runs eagerly under ``torch.compile`` (a graph break: the unrolled iterations would make the
     graph of a step hundreds of times larger); on the CPU on the compacted rows and envs
-    (:func:`_newton_compacted`), elsewhere the fixed, masked rounds (:func:`_newton`)."""
+    (`_newton_compacted`), elsewhere the fixed, masked rounds (`_newton`)."""
     m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
     newton = _newton_compacted if smooth.device.type == "cpu" else _newton
     qacc, used, converged = newton(m, smooth, j, w, ar, exists, iterations, tolerance)
@@ -305,7 +305,7 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
     its terms (at least ``1000 eps`` of the dtype). On the CPU the iterations stop once every env
     has; on other devices all ``iterations`` run (no host-device synchronisation), converged envs
     unchanged (a mask). ``gradient``: how the backward differentiates the solve
-    (:class:`ContactGradient`; the values are the same in every mode).
+    ([`ContactGradient`][torchrl_diffenvs.articulated.contact_gradient.ContactGradient]; the values are the same in every mode).
     """
     tolerance = max(tolerance, 1000 * torch.finfo(mass.dtype).eps)
     if rows.jacobian.shape[1] == 0:
@@ -330,7 +330,7 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
                                                 tolerance)
     # one differentiable solve with the active set: the value, and in the exact mode the gradient
     aw = weight * active
-    if gradient.mode == "exact":
+    if gradient.mode == "exact" or not torch.is_grad_enabled():  # no graph recorded: no surrogate to build
         qacc, force = _solve_with(mass, qacc_smooth, jacobian, aref, aw)
         return SolverResult(qacc, full(force, keep), full(active, keep), used, converged)
     with torch.no_grad():

@@ -1,7 +1,7 @@
 """How the backward differentiates MuJoCo's constraint solve: the contact gradient modes.
 
 The forward is MuJoCo's in every mode; a mode shapes the gradient only (a straight-through
-estimator in :func:`~.constraint.solve`). The modes, the measurements that compare them and the
+estimator in [`solve`][torchrl_diffenvs.articulated.constraint.solve]). The modes, the measurements that compare them and the
 learners' choice are in the simulator docs ("Gradients through MuJoCo's contact").
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ class ContactGradient(NamedTuple):
       ``|f|``: rows near the switch count by half, and the gradient no longer jumps where a row
       switches. ``softness -> 0`` gives the exact gradient.
     - ``"penalty"``: the gradient of the smooth penalty contact model (``contact="smooth"``,
-      :mod:`.contact`) at MuJoCo's state, in place of the solve's: straight through at the
+      `contact`) at MuJoCo's state, in place of the solve's: straight through at the
       accelerations (and the Ant's ``cfrc_ext``). The penalty force has a gradient wherever a geom
       is within its width of the ground and none of the solve's switches; its parameters
       (``contact_stiffness``, ``contact_damping``, ``contact_width``, ``friction_velocity``) join
@@ -51,7 +51,7 @@ class ContactGradient(NamedTuple):
 
     @classmethod
     def parse(cls, value) -> "ContactGradient":
-        """A :class:`ContactGradient` from itself, a mode name or a mapping of its fields (a config's
+        """A [`ContactGradient`][torchrl_diffenvs.articulated.contact_gradient.ContactGradient] from itself, a mode name or a mapping of its fields (a config's
         ``{mode: cfd, distance: 0.05}``); a clear error for anything else."""
         if isinstance(value, cls):
             gradient = value

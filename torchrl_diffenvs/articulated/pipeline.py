@@ -1,8 +1,8 @@
 """The forward dynamics in the order the simulator computes them, on one screen:
-:func:`accelerations`. Each stage lives in its own module.
+[`accelerations`][torchrl_diffenvs.articulated.accelerations]. Each stage lives in its own module.
 
-Two contact models (:meth:`~.tree.RigidBodyTree.use_contact_model`): ``"mujoco"`` (the default), MuJoCo's own pipeline
-(collision, constraint rows, the constraint solve: :func:`_constrained_accelerations`), and
+Two contact models ([`use_contact_model`][torchrl_diffenvs.articulated.RigidBodyTree.use_contact_model]): ``"mujoco"`` (the default), MuJoCo's own pipeline
+(collision, constraint rows, the constraint solve: `_constrained_accelerations`), and
 ``"smooth"``, a penalty force in the smooth forces with the joint limits solved on their own.
 """
 from __future__ import annotations
@@ -33,7 +33,7 @@ class InvWeight0(NamedTuple):
 
 
 def invweight0(tree: RigidBodyTree, params: Params):
-    """What :func:`accelerations` takes as ``invweight0`` for these params (None where nothing needs it)."""
+    """What [`accelerations`][torchrl_diffenvs.articulated.accelerations] takes as ``invweight0`` for these params (None where nothing needs it)."""
     if tree.contact_model == "mujoco":
         return InvWeight0(dof_invweight0(tree, params), body_invweight0(tree, params) if tree.contact_slots.count else None)
     return dof_invweight0(tree, params) if tree.limit_dof.numel() else None
@@ -51,7 +51,7 @@ def _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=False)
     """Motors + passive forces + contact - bias: every force but the joint limits.
 
     ``with_damping``: also ``D [N, nv, nv]``, the velocity damping of these forces that the
-    implicit Euler integrator uses (joint damping plus the contact's, see :func:`contact_force`).
+    implicit Euler integrator uses (joint damping plus the contact's, see `contact_force`).
     """
     force = actuator_force(tree, ctrl, tree.nv) + passive_force(tree, kin, qpos, qvel, params) - bias
     damping = torch.diag_embed(params["damping"]) if with_damping else None
@@ -76,16 +76,16 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     """``qacc [N, nv]`` of MuJoCo's forward dynamics: the simulator's pipeline, stage by stage.
 
     With the tree's ``"mujoco"`` contact model (the default), MuJoCo's own
-    (:func:`_constrained_accelerations`):
+    (`_constrained_accelerations`):
 
-    1. kinematics: body poses and dof motion axes (:mod:`.kinematics`);
-    2. inertia and bias: ``M`` and Coriolis, centrifugal and gravity forces (:mod:`.inertia`);
-    3. smooth forces: motors, springs, dampers, fluid (:mod:`.forces`), and ``qacc_smooth``;
-    4. collision (:mod:`.collision`), constraint rows of joint limits and contacts, and their
-       solve (:mod:`.constraint`).
+    1. kinematics: body poses and dof motion axes (`kinematics`);
+    2. inertia and bias: ``M`` and Coriolis, centrifugal and gravity forces (`inertia`);
+    3. smooth forces: motors, springs, dampers, fluid (`forces`), and ``qacc_smooth``;
+    4. collision ([`collision`][torchrl_diffenvs.articulated.collision]), constraint rows of joint limits and contacts, and their
+       solve ([`constraint`][torchrl_diffenvs.articulated.constraint]).
 
     With ``"smooth"``: stages 1-2, the smooth forces with a penalty ground contact
-    (:mod:`.contact`), the joint limits solved on their own (:mod:`.limits`), then
+    (`contact`), the joint limits solved on their own (`limits`), then
     ``M qacc = force``.
 
     ``implicit_damping_dt = h`` gives the acceleration of MuJoCo's Euler integrator, which solves
@@ -93,9 +93,9 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     velocity damping too (explicit contact friction and damping at 0.01 s steps would be unstable).
     ``implicit_bias=True`` (with ``implicit_damping_dt``): MuJoCo's ``implicit`` integrator, which
     also treats the Coriolis and centrifugal forces implicitly, ``M + h (D + d bias / d qvel)``
-    (:func:`~.inertia.bias_velocity_jacobian`): stable where a light body spins fast, where the
+    (`bias_velocity_jacobian`): stable where a light body spins fast, where the
     explicit velocity-product forces pump energy into it.
-    ``invweight0``: :func:`invweight0` of ``params`` when the caller has it (computed if not).
+    ``invweight0``: `invweight0` of ``params`` when the caller has it (computed if not).
     ``with_contact_force``: also return the largest contact normal force ``[N]`` (detached; None
     for a model without contacts), as ``(qacc, largest)``.
     """
@@ -111,7 +111,7 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
 
 def _smooth_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt, implicit_bias,
                           invweight0, with_contact_force):
-    """The ``"smooth"`` contact model's ``qacc`` (see :func:`accelerations`)."""
+    """The ``"smooth"`` contact model's ``qacc`` (see [`accelerations`][torchrl_diffenvs.articulated.accelerations])."""
     implicit = implicit_damping_dt is not None
     kin = forward_kinematics(tree, qpos)
     mass, bias, *bias_jacobian = mass_matrix_and_bias(tree, kin, qvel, params,
@@ -135,10 +135,13 @@ def _smooth_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params,
 def _penalty_gradient_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt,
                                     implicit_bias, weights, with_contact_force):
     """MuJoCo's ``qacc`` with the ``"smooth"`` contact model's gradient: the contact gradient mode
-    ``"penalty"`` (:class:`~.contact_gradient.ContactGradient`). Straight through: the value is
-    :func:`_constrained_accelerations`' (computed without a graph), to which the penalty model's
+    ``"penalty"`` ([`ContactGradient`][torchrl_diffenvs.articulated.contact_gradient.ContactGradient]). Straight through: the value is
+    `_constrained_accelerations`' (computed without a graph), to which the penalty model's
     ``qacc`` minus itself detached adds an exact zero and its whole gradient (motors, bias and the
     penalty contact, at MuJoCo's state)."""
+    if not torch.is_grad_enabled():  # no graph recorded (evaluation, collection): MuJoCo's forward only
+        return _constrained_accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt, implicit_bias,
+                                          weights, with_contact_force)
     with torch.no_grad():
         exact = _constrained_accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt, implicit_bias,
                                            weights, with_contact_force)
@@ -162,7 +165,7 @@ class _MuJoCoForward(NamedTuple):
 
 
 def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weights, with_bias_jacobian=False):
-    """MuJoCo's forward to the constraint solve, with its intermediates (see :func:`_constrained_accelerations`)."""
+    """MuJoCo's forward to the constraint solve, with its intermediates (see `_constrained_accelerations`)."""
     slots = tree.contact_slots
     if not isinstance(weights, InvWeight0):  # None, or a smooth-contact caller's dof_invweight0
         weights = invweight0(tree, params)
@@ -184,7 +187,7 @@ def body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params,
     (``"mujoco"``) or the smooth model's (``"smooth"``)."""
     if tree.contact_model != "mujoco":
         return body_contact_forces(tree, forward_kinematics(tree, qpos), qvel, params, about=about)
-    if tree.contact_gradient.mode == "penalty":  # MuJoCo's values, the penalty model's gradient (straight through)
+    if tree.contact_gradient.mode == "penalty" and torch.is_grad_enabled():  # MuJoCo's values, the penalty's gradient
         with torch.no_grad():
             exact = _mujoco_body_contact_wrenches(tree, qpos, qvel, ctrl, params, about, weights)
         surrogate = body_contact_forces(tree, forward_kinematics(tree, qpos), qvel, params, about=about)
@@ -207,13 +210,13 @@ def _mujoco_body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params:
 
 def _constrained_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt,
                                implicit_bias, weights, with_contact_force):
-    """MuJoCo's ``mj_forward`` from the smooth forces on (see :func:`accelerations`):
+    """MuJoCo's ``mj_forward`` from the smooth forces on (see [`accelerations`][torchrl_diffenvs.articulated.accelerations]):
 
     1. smooth dynamics: ``qacc_smooth = M^-1 (motors + passive - bias)``;
-    2. collision: the contacts of every geom pair (:func:`~.collision.collide`);
+    2. collision: the contacts of every geom pair ([`collide`][torchrl_diffenvs.articulated.collision.collide]);
     3. constraint rows: joint limits and contacts, their impedance and reference
-       (:func:`~.constraint.constraint_rows`);
-    4. the constraint solve (:func:`~.constraint.solve`): ``qacc``;
+       ([`constraint_rows`][torchrl_diffenvs.articulated.constraint.constraint_rows]);
+    4. the constraint solve ([`solve`][torchrl_diffenvs.articulated.constraint.solve]): ``qacc``;
     5. MuJoCo's Euler integrator then solves ``(M + h D) qacc = qfrc_smooth + qfrc_constraint``
        (joint damping implicit), and its ``implicit`` integrator adds ``h d bias / d qvel`` to ``D``.
     """

@@ -1,5 +1,5 @@
-"""The model as tensors: :class:`RigidBodyTree` (the constant part of a parsed MuJoCo model: tree
-structure, joint axes, contact points, limits) and :func:`default_params` (the per-env physical
+"""The model as tensors: [`RigidBodyTree`][torchrl_diffenvs.articulated.RigidBodyTree] (the constant part of a parsed MuJoCo model: tree
+structure, joint axes, contact points, limits) and [`default_params`][torchrl_diffenvs.articulated.default_params] (the per-env physical
 parameters a model file sets)."""
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ CONTACT_MODELS = ("mujoco", "smooth")
 
 @dataclass
 class RigidBodyTree:
-    """The constant (non-parameter) part of an :class:`ArticulatedModel`, as tensors.
+    """The constant (non-parameter) part of an [`ArticulatedModel`][torchrl_diffenvs.articulated.ArticulatedModel], as tensors.
 
     Built once per env (device, dtype); the per-env physical parameters travel separately.
     """
@@ -100,8 +100,8 @@ class RigidBodyTree:
 
     def use_contact_model(self, contact: str) -> RigidBodyTree:
         """Set how contacts are simulated: ``"mujoco"`` (MuJoCo's collision, constraint rows and
-        solve: :mod:`.collision`, :mod:`.constraint`; the default) or ``"smooth"`` (the penalty
-        model of :mod:`.contact`, an approximation of MuJoCo's). Returns the tree."""
+        solve: [`collision`][torchrl_diffenvs.articulated.collision], [`constraint`][torchrl_diffenvs.articulated.constraint]; the default) or ``"smooth"`` (the penalty
+        model of `contact`, an approximation of MuJoCo's). Returns the tree."""
         if contact not in CONTACT_MODELS:
             raise ValueError(f"{self.model.path}: unknown contact model {contact!r}; valid: "
                              f"{', '.join(repr(c) for c in CONTACT_MODELS)}")
@@ -112,7 +112,7 @@ class RigidBodyTree:
 
     def use_contact_gradient(self, gradient) -> RigidBodyTree:
         """Set how the backward differentiates MuJoCo's constraint solve: ``"exact"``, ``"cfd"``,
-        ``"smooth"``, a mapping of :class:`~.contact_gradient.ContactGradient`'s fields or one (the forward
+        ``"smooth"``, a mapping of [`ContactGradient`][torchrl_diffenvs.articulated.contact_gradient.ContactGradient]'s fields or one (the forward
         values are MuJoCo's in every mode). Only the ``"mujoco"`` contact model has the solve.
         Returns the tree."""
         gradient = ContactGradient.parse(gradient)
@@ -142,7 +142,7 @@ class RigidBodyTree:
     def from_model(cls, model: ArticulatedModel, dtype=torch.float64, device="cpu", contact: str | None = None
                    ) -> RigidBodyTree:
         """The tree of ``model`` on ``device`` in ``dtype``, simulating contact with ``contact``
-        (:meth:`use_contact_model`; ``None``: ``"mujoco"`` where MuJoCo's collision here covers
+        ([`use_contact_model`][torchrl_diffenvs.articulated.RigidBodyTree.use_contact_model]; ``None``: ``"mujoco"`` where MuJoCo's collision here covers
         every geom pair of the model that can touch, else ``"smooth"``)."""
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
         idx = lambda a: torch.as_tensor(np.asarray(a, dtype=np.int64), device=device)  # noqa: E731
@@ -318,7 +318,7 @@ def _root_subtree_mask(model: ArticulatedModel) -> np.ndarray:
 
 def _colliding_geom_pairs(model: ArticulatedModel) -> list[tuple[int, int]]:
     """The geom pairs (neither a plane; lower index first) that MuJoCo's collision filter lets
-    touch (:func:`~.collision.colliding_pairs`), for the smooth model's body-body contacts."""
+    touch ([`colliding_pairs`][torchrl_diffenvs.articulated.collision.colliding_pairs]), for the smooth model's body-body contacts."""
     out = []
     for g1, g2 in sorted(tuple(sorted(pair)) for pair in colliding_pairs(model)):
         if "plane" in (model.geom_type[g1], model.geom_type[g2]):

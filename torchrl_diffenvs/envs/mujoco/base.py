@@ -4,8 +4,8 @@ A task names its model file (one that ships with gymnasium, or a path), its ``fr
 task constants, and writes its reset noise, reward, termination and observation like Gymnasium's
 v5 class. By default the physics is MuJoCo's own (its collision, constraint solve and the model
 file's integrator: ``contact="mujoco"``); ``contact="smooth"`` swaps in a smooth penalty contact,
-an approximation. the model's physics (:mod:`torchrl_diffenvs.articulated`) and every TorchRL concern
-(:class:`~torchrl_diffenvs.envs.base.DiffEnv`) live elsewhere.
+an approximation. the model's physics ([`torchrl_diffenvs.articulated`][torchrl_diffenvs.articulated]) and every TorchRL concern
+([`DiffEnv`][torchrl_diffenvs.DiffEnv]) live elsewhere.
 
 State: MuJoCo's coordinates ``("state", "qpos")`` and ``("state", "qvel")`` ``[N, nq]``, plus
 task extras. Params (per env, float or ``[num_envs, ...]``): the model's ``body_mass [nbody]``,
@@ -51,16 +51,16 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
     """A batched, differentiable env simulating a MuJoCo model file (hinge and slide joints).
 
     Subclasses set ``name``, ``model_file``, ``frame_skip``, ``task_params`` (constants that are
-    per-env params too) and write ``initial_state``, ``transition`` (calling :meth:`simulate`)
+    per-env params too) and write ``initial_state``, ``transition`` (calling [`simulate`][torchrl_diffenvs.envs.MuJoCoModelEnv.simulate])
     and ``observation``; the action is MuJoCo's ``ctrl`` (its spec is the model's ctrlrange;
     MuJoCo clamps out-of-range controls, so their gradient is zero).
 
     Args:
-        num_envs, device, dtype, seed, max_episode_steps, params: as :class:`DiffEnv`.
+        num_envs: the envs in the batch, as [`DiffEnv`][torchrl_diffenvs.DiffEnv].
         contact: ``"mujoco"`` (the default): MuJoCo's own contact dynamics (its collision, the
             constraint rows of contacts and joint limits, and the solve, as ``mj_step``), with the
             model file's integrator: the task is Gymnasium's. ``"smooth"``: a smooth penalty
-            contact force instead (:mod:`~torchrl_diffenvs.articulated.contact`), an approximation
+            contact force instead (`contact`), an approximation
             whose trajectories differ from MuJoCo's once a body touches; ``None``: the task's
             ``default_contact``.
         integrator: ``None`` (default): the model file's with ``contact="mujoco"``, the task's
@@ -81,8 +81,10 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             force, so a foot about to land has a gradient. ``"smooth"``: a soft active set in the
             backward. ``"penalty"``: the smooth penalty contact model's gradient at MuJoCo's
             state (its parameters join the params). A mapping sets the fields of
-            :class:`~torchrl_diffenvs.articulated.contact_gradient.ContactGradient`, e.g.
+            [`ContactGradient`][torchrl_diffenvs.articulated.contact_gradient.ContactGradient], e.g.
             ``{"mode": "cfd", "distance": 0.05}``.
+        **kwargs: ``device``, ``dtype``, ``seed``, ``max_episode_steps`` and ``params``, as
+            [`DiffEnv`][torchrl_diffenvs.DiffEnv]; and the task's own options.
     """
 
     INTEGRATORS = ("model", "euler", "implicit", "rk4")
@@ -171,7 +173,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         """``frame_skip`` physics steps with ``ctrl = action`` (Gymnasium's ``do_simulation``), each
         as ``substeps`` steps of the chosen ``integrator``.
 
-        Returns the last step's :class:`~torchrl_diffenvs.articulated.dynamics.StepResult`: the new
+        Returns the last step's [`StepResult`][torchrl_diffenvs.articulated.StepResult]: the new
         ``qpos``/``qvel`` and the state MuJoCo's derived quantities belong to after ``mj_step``;
         its ``contact_force`` is the largest contact normal force over all the physics steps.
         """
