@@ -134,6 +134,7 @@ def speedup(reference_s: float, time_s: float) -> float | None:
     return reference_s / time_s
 
 
+GYMNASIUM_RETURN = "eval/gymnasium_return"  # eval.gymnasium=true: the final policy's return in Gymnasium's env
 LEVELS = (1.0, 0.95, 0.9)  # fractions of PPO's final improvement over the random policy
 
 
@@ -188,6 +189,10 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
                    "wall_s": C.spread([r["wall_time_s"] for r in group]),
                    "env_steps": C.spread([r["env_steps"] for r in group]),
                    "random_return": statistics.median(r["eval/random_return"] for r in group), "levels": {}}
+            if all(GYMNASIUM_RETURN in r for r in group):  # eval.gymnasium=true: the same policy scored in MuJoCo
+                row["mujoco_return"] = C.spread([r[GYMNASIUM_RETURN] for r in group])
+                row["transfer"] = C.spread([r[GYMNASIUM_RETURN] / r["eval/return"] if r["eval/return"] else math.nan
+                                            for r in group])
             for fraction, (level, ppo_time) in levels.items():
                 times = [first_time_at(r["curve"], level) for r in group]
                 row["levels"][fraction] = {
@@ -233,10 +238,19 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
     level_names = [f"{'PPO final' if f == 1.0 else f'{f:.0%} of PPO'}"
                    + (f" = {first['levels'][f]['return']:.3g}" if len(envs) == 1 else " (the env's own)")
                    for f in ppo_levels]
+    in_mujoco = any("mujoco_return" in r for r in summary)
+
+    def mujoco_cells(row):
+        if not in_mujoco:
+            return []
+        if "mujoco_return" not in row:
+            return ["-", "-"]
+        return [rng(row["mujoco_return"], "{:.3g}"), rng(row["transfer"], "{:.2f}")]
+
     table = C.print_table(
-        ["env", "loss", "final eval return", "random policy", "wall s", "env steps", *level_names,
-         *[f"return >= {level:g}" for level in fixed_levels]],
-        [[r["env"], r["loss"], rng(r["final_return"], "{:.3g}"), f"{r['random_return']:.3g}",
+        ["env", "loss", "final eval return", *(["in Gymnasium's env", "kept there"] if in_mujoco else []),
+         "random policy", "wall s", "env steps", *level_names, *[f"return >= {level:g}" for level in fixed_levels]],
+        [[r["env"], r["loss"], rng(r["final_return"], "{:.3g}"), *mujoco_cells(r), f"{r['random_return']:.3g}",
           rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}",
           *[level_cell(r, f) for f in ppo_levels], *[fixed_cell(r, lv) for lv in fixed_levels]]
          for r in summary],

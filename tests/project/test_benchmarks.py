@@ -144,6 +144,26 @@ def test_time_to_solve_quick(tmp_path):
         assert ppo["levels"][fraction]["return"] == pytest.approx(random_return + fraction * (final - random_return))
 
 
+def test_time_to_solve_reports_the_return_in_gymnasiums_env():
+    """Runs with ``eval.gymnasium=true`` carry their final policy's return in Gymnasium's env:
+    the summary gives it and the share kept there, per loss (hand-computed)."""
+    tts = load("time_to_solve")
+
+    def run(loss, seed, ours, theirs=None):
+        r = {"env": "Hopper-v5", "loss": loss, "seed": seed, "eval/return": ours, "eval/random_return": 10.0,
+             "wall_time_s": 100.0, "env_steps": 1000, "curve": [(0, 0.0, 10.0), (1000, 100.0, ours)]}
+        return r if theirs is None else {**r, "eval/gymnasium_return": theirs}
+
+    runs = [run("ppo", s, 1000.0) for s in range(3)]
+    runs += [run("ahac", 0, 2000.0, 1000.0), run("ahac", 1, 2000.0, 2000.0), run("ahac", 2, 1000.0, 900.0)]
+    summary, table = tts.summarise(runs, ["Hopper-v5"], ["ppo", "ahac"])
+    ppo, ahac = summary
+    assert "mujoco_return" not in ppo  # not scored there: a dash, not a number
+    assert ahac["mujoco_return"] == {"min": 900.0, "median": 1000.0, "max": 2000.0}
+    assert ahac["transfer"] == {"min": 0.5, "median": 0.9, "max": 1.0}
+    assert "in Gymnasium's env" in table and "0.90 [0.50, 1.00]" in table
+
+
 def test_time_to_solve_variants_and_fixed_levels(tmp_path):
     tts = load("time_to_solve")
     payload = tts.main(["quick=true", "losses=[shac]", 'variant=["default=","fast=loss.actor_lr=2e-2"]',
