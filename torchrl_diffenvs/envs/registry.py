@@ -104,8 +104,9 @@ def task_drawer(name: str):
 def env_config(name: str) -> dict:
     """The training script's ``env`` section for task ``name`` (``python sota_scripts/train.py env=<name>``)."""
     spec = _spec(name)
+    # backend: torchrl_diffenvs (this library's env) | gymnasium (Gymnasium's own, envs/gymnasium_backend.py)
     return {"name": name, "num_envs": spec.num_envs, "max_episode_steps": None, "options": dict(spec.options),
-            "params": {}, "randomize": {}}
+            "params": {}, "randomize": {}, "backend": "torchrl_diffenvs"}
 
 
 def make_env(name: str, num_envs: int = 1, **kwargs):

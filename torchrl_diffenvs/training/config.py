@@ -18,6 +18,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from ..checks import is_int as _is_int
 from ..checks import is_number
 from ..envs import env_config, is_multi_agent, list_envs, make_env
+from ..envs.gymnasium_backend import ENV_BACKENDS, GRADIENT_FREE_LOSSES, GymnasiumBackedEnv, gymnasium_env_problems
 from ..learners import LEARNERS
 from .settings import RUN_SECTIONS, register_run_configs
 from ..modules import privileged_inputs
@@ -26,6 +27,7 @@ __all__ = [
     "ConfigError",
     "register_env_configs",
     "DTYPES",
+    "ENV_BACKENDS",
     "LOGGERS",
     "LOSSES",
     "MODES",
@@ -33,6 +35,8 @@ __all__ = [
     "check_checkpoint_path",
     "check_gymnasium_eval",
     "check_group_choice",
+    "check_gymnasium_backend",
+    "env_backend",
     "check_resume_compatible",
     "env_kwargs",
     "make_env_from_config",
@@ -127,8 +131,21 @@ def randomized_params(ranges: Mapping, num_envs: int, seed: int) -> dict[str, to
     return values
 
 
+def env_backend(env_cfg: Mapping) -> str:
+    """``env.backend``: ``"torchrl_diffenvs"`` (this library's env; also for a section written
+    before the key existed) or ``"gymnasium"`` (Gymnasium's own env)."""
+    return env_cfg.get("backend") or "torchrl_diffenvs"
+
+
 def make_env_from_config(cfg: DictConfig, num_envs: int, seed: int):
-    """Builds the env named by ``cfg.env`` with ``num_envs`` envs on ``cfg.device`` in ``cfg.dtype``."""
+    """Builds the env named by ``cfg.env`` with ``num_envs`` envs on ``cfg.device`` in ``cfg.dtype``:
+    this library's, or with ``env.backend=gymnasium`` Gymnasium's own
+    (:class:`~torchrl_diffenvs.envs.gymnasium_backend.GymnasiumBackedEnv`)."""
+    if env_backend(cfg.env) == "gymnasium":
+        return GymnasiumBackedEnv(cfg.env.name, num_envs, device=resolve_device(cfg.device),
+                                  dtype=resolve_dtype(cfg.dtype), seed=seed,
+                                  max_episode_steps=cfg.env.get("max_episode_steps"),
+                                  options=_plain(cfg.env.get("options") or {}))
     kwargs = env_kwargs(cfg.env)
     ranges = cfg.env.get("randomize")
     if ranges:
@@ -239,6 +256,32 @@ def check_gymnasium_eval(env: DictConfig, problems: list[str]) -> None:
     theirs.close()
 
 
+def check_gymnasium_backend(cfg: DictConfig, problems: list[str]) -> None:
+    """``env.backend``: one of :data:`ENV_BACKENDS`; with ``gymnasium``, a gradient-free learner
+    (:data:`GRADIENT_FREE_LOSSES`) on one of Gymnasium's envs with continuous actions, its own
+    physics (no ``env.params`` / ``env.randomize``) and no ``compile=true``."""
+    backend = cfg.env.get("backend", "torchrl_diffenvs")
+    if backend not in ENV_BACKENDS:
+        problems.append(f"env.backend={backend!r}: unknown backend; valid: torchrl_diffenvs (this library's "
+                        "differentiable env, the default), gymnasium (Gymnasium's own env, for ppo and sac)")
+        return
+    if backend != "gymnasium":
+        return
+    loss = cfg.loss.get("name")
+    if loss not in GRADIENT_FREE_LOSSES:
+        problems.append(f"loss={loss} needs a differentiable env (its gradients flow through the simulation), and "
+                        f"env.backend=gymnasium runs Gymnasium's own env, which has none; with env.backend=gymnasium "
+                        f"train loss={' or loss='.join(GRADIENT_FREE_LOSSES)}, or drop env.backend=gymnasium")
+    problems.extend(gymnasium_env_problems(cfg.env.get("name"), _plain(cfg.env.get("options") or {})))
+    for key, what in (("params", "change the physics"), ("randomize", "change the physics per env")):
+        if cfg.env.get(key):
+            problems.append(f"env.backend=gymnasium: env.{key}={_plain(cfg.env[key])} {what}, and Gymnasium's env "
+                            f"runs its model file's; drop env.{key}")
+    if OmegaConf.select(cfg, "compile", default=False) is True:
+        problems.append("compile=true: env.backend=gymnasium steps Gymnasium's env, which torch cannot compile; "
+                        "drop compile=true")
+
+
 def validate_config(cfg: DictConfig) -> None:
     """Raises :class:`ConfigError` listing every problem of ``cfg``; returns ``None`` when it can run.
 
@@ -313,7 +356,9 @@ def validate_config(cfg: DictConfig) -> None:
 
     _check_randomize(cfg.env, problems)
     _check_params(cfg.env, problems)
-    if OmegaConf.select(cfg, "eval.gymnasium", default=False) is True and mode != "eval":
+    check_gymnasium_backend(cfg, problems)
+    gymnasium_backend = env_backend(cfg.env) == "gymnasium"
+    if OmegaConf.select(cfg, "eval.gymnasium", default=False) is True and mode != "eval" and not gymnasium_backend:
         check_gymnasium_eval(cfg.env, problems)  # mode=eval: on the checkpoint's env (eval_mode)
     refresh = OmegaConf.select(cfg, "selfplay.refresh_interval")
 
@@ -323,6 +368,10 @@ def validate_config(cfg: DictConfig) -> None:
             env = make_env_from_config(cfg, num_envs=1, seed=0)
         except (ValueError, TypeError, KeyError) as err:
             problems.append(f"env.options / env.params rejected by {env_name!r}: {err}")
+        except Exception as err:  # noqa: BLE001 - Gymnasium's own errors (a bad keyword, MuJoCo missing)
+            if not gymnasium_backend:
+                raise
+            problems.append(f"env.backend=gymnasium: Gymnasium could not build {env_name!r}: {err}")
         else:
             if env.max_episode_steps is None and cfg.eval.get("max_steps") is None:
                 problems.append(f"env {env_name!r} never truncates episodes: set eval.max_steps")
@@ -416,6 +465,8 @@ def check_resume_compatible(trained: DictConfig, cfg: DictConfig) -> None:
             defaults = OmegaConf.create(learner.default_config()["loss"])
             old = OmegaConf.to_container(OmegaConf.merge(defaults, old))
             new = OmegaConf.to_container(OmegaConf.merge(defaults, new))
+        if section == "env":  # a section written before env.backend existed trained this library's env
+            old["backend"], new["backend"] = env_backend(old), env_backend(new)
         for key in sorted(set(old) | set(new)):
             if old.get(key) != new.get(key):
                 problems.append(f"{section}.{key}: checkpoint {old.get(key)!r}, now {new.get(key)!r}")

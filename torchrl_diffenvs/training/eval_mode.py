@@ -13,10 +13,11 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from ..envs.gymnasium_backend import GymnasiumBackedEnv
 from ..evaluation import episode_returns, evaluate_in_gymnasium, evaluate_random, first_episode_ends, record_video
 from ..learners import LEARNERS
 from .checkpoint import load_checkpoint
-from .config import ConfigError, check_gymnasium_eval, make_env_from_config
+from .config import ConfigError, check_gymnasium_eval, env_backend, make_env_from_config
 
 __all__ = ["chunk_length", "evaluate_checkpoint", "exploration_of", "gymnasium_scores", "json_report", "write_video"]
 
@@ -89,10 +90,18 @@ def write_video(cfg: DictConfig, env, policy, steps: int, stem: Path) -> Path | 
         warnings.warn('eval.video_format=mp4 needs imageio-ffmpeg (pip install "torchrl_diffenvs[video]"); '
                       "writing a GIF instead", stacklevel=2)
         video_format = "gif"
+    video = dict(env_index=cfg.eval.gif_env_index, fps=cfg.eval.gif_fps, size=cfg.eval.gif_size,
+                 exploration_type=exploration_of(cfg))
+    if isinstance(env, GymnasiumBackedEnv):  # drawn by Gymnasium's own renderer (MuJoCo's needs OpenGL)
+        try:
+            return env.record_video(policy, steps, cfg.eval.seed, stem.with_suffix(f".{video_format}"), **video)
+        except Exception as err:  # noqa: BLE001 - MuJoCo's renderer fails in many ways without a display
+            warnings.warn(f"no video written: Gymnasium's renderer failed ({type(err).__name__}: {err}); on a "
+                          "machine without a display set MUJOCO_GL=egl (or osmesa), or pass eval.gif=false",
+                          stacklevel=2)
+            return None
     try:
-        return record_video(env, policy, steps, cfg.eval.seed, stem.with_suffix(f".{video_format}"),
-                            env_index=cfg.eval.gif_env_index, fps=cfg.eval.gif_fps, size=cfg.eval.gif_size,
-                            exploration_type=exploration_of(cfg))
+        return record_video(env, policy, steps, cfg.eval.seed, stem.with_suffix(f".{video_format}"), **video)
     except (ImportError, ValueError, KeyError) as err:
         warnings.warn(f"no video written ({type(err).__name__}: {err})", stacklevel=2)
         return None
@@ -139,7 +148,8 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
     cfg = cfg.copy()
     with open_dict(cfg):  # whole sections replaced, not merged: the trained env may have other options
         cfg.env, cfg.loss, cfg.dtype = env_section, trained.loss, trained.dtype
-    if cfg.eval.gymnasium:
+    in_gymnasium = env_backend(cfg.env) == "gymnasium"  # the env below is Gymnasium's own already
+    if cfg.eval.gymnasium and not in_gymnasium:
         problems: list[str] = []
         check_gymnasium_eval(cfg.env, problems)
         if problems:
@@ -176,7 +186,9 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
               "deterministic": bool(cfg.eval.get("deterministic", True)),
               "eval/random_return": evaluate_random(env, steps, cfg.eval.seed),
               **{f"eval/{k}": v for k, v in scores.items()}}
-    if cfg.eval.gymnasium:
+    if cfg.eval.gymnasium and in_gymnasium:  # the scores above are Gymnasium's own env's
+        result.update({f"eval/gymnasium_{k}": v for k, v in scores.items()})
+    elif cfg.eval.gymnasium:
         result.update(gymnasium_scores(cfg, policy, steps, games))
     run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.eval.gif:

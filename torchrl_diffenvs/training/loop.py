@@ -40,6 +40,7 @@ from tqdm.auto import tqdm
 
 from ..distributed import SINGLE_PROCESS, World, parameters_checksum, rank_seed
 from ..envs.fast_rollout import compile_report
+from ..envs.gymnasium_backend import GymnasiumBackedEnv
 from ..evaluation import evaluate, evaluate_random
 from ..learners import make_learner
 from .checkpoint import (
@@ -69,6 +70,8 @@ log = logging.getLogger("train")  # Hydra sends it to the console and <run dir>/
 
 # overrides of the command line that a checkpoint does not carry on to a resumed run
 _PER_INVOCATION = ("resume=", "mode=", "checkpoint=")
+# what evaluate_in_gymnasium reports (eval/gymnasium_<key>)
+GYMNASIUM_SCORES = ("return", "return_std", "return_min", "return_max", "episode_length", "terminated")
 
 
 def run(cfg: DictConfig, run_dir: str | Path, overrides: Sequence[str] = ()) -> dict:
@@ -259,8 +262,13 @@ class Trainer:
             score = last["eval/return"] = scores["return"]
             last["eval/episode_length"], last["eval/terminated"] = scores["episode_length"], scores["terminated"]
             self.log({f"eval/{k}": v for k, v in scores.items()})
-            if cfg.eval.gymnasium:  # the same policy in Gymnasium's own env (MuJoCo's forward)
+            if cfg.eval.gymnasium and isinstance(self.eval_env, GymnasiumBackedEnv):
+                # env.backend=gymnasium: the evaluation just played is Gymnasium's own env, from the
+                # seeds evaluate_in_gymnasium uses (env i from eval.seed + i): the same scores
+                theirs = {f"eval/gymnasium_{k}": v for k, v in scores.items() if k in GYMNASIUM_SCORES}
+            elif cfg.eval.gymnasium:  # the same policy in Gymnasium's own env (MuJoCo's forward)
                 theirs = gymnasium_scores(cfg, self.learner.policy, self.eval_steps)
+            if cfg.eval.gymnasium:
                 last["eval/gymnasium_return"] = theirs["eval/gymnasium_return"]
                 self.log(theirs)
         score = self.world.broadcast_object(score)
@@ -287,6 +295,8 @@ class Trainer:
         ranks = world.gather_object({
             "learner": learner.state_dict(), "rng": capture_rng_state({"env": self.env.rng}),
             "selfplay": self.selfplay.state_dict() if self.selfplay is not None else None,
+            # env.backend=gymnasium: the simulator state the collector's TensorDict does not hold
+            "env": self.env.simulator_state() if isinstance(self.env, GymnasiumBackedEnv) else None,
         })
         if not world.is_main:
             return None
@@ -367,6 +377,11 @@ class Trainer:
                 f"(torchrun --nproc_per_node={ckpt.get('world_size', 1)}), not {world.size}")
         mine = ckpt if world.is_main else ckpt["other_ranks"][world.rank - 1]
         self.learner.load_state_dict(mine["learner"])
+        if isinstance(self.env, GymnasiumBackedEnv):  # after the learner: its collector reset the envs when built
+            try:
+                self.env.load_simulator_state(mine.get("env"))
+            except ValueError as err:
+                raise CheckpointError(f"resume={str(path)!r}: {err}") from None
         if self.selfplay is not None:
             self.selfplay.load_state_dict(mine["selfplay"])
         self.progress.update(ckpt["progress"])
