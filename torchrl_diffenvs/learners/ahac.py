@@ -32,7 +32,7 @@ from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
 from ..modules import ObservationNormalizer, actor_from_config, critic_from_config
 from ..objectives import AHACLoss, AdaptiveHorizon, GradientGuard, NonFiniteEnvMonitor, TwinCritic
-from ..objectives._windows import window_contact_force
+from ..objectives.windows import window_contact_force
 from .base import (
     LR_SCHEDULES,
     ActorCriticCheckpoint,

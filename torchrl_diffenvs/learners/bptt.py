@@ -28,7 +28,7 @@ from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
 from ..modules import ObservationNormalizer, actor_from_config, observation_key_of
 from ..objectives import BPTTLoss, GradientGuard, NonFiniteEnvMonitor
-from ..objectives._windows import window_contact_force
+from ..objectives.windows import window_contact_force
 from .base import ActorNetworkConfig, LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["BPTTConfig", "BPTTLearner"]

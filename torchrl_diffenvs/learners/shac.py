@@ -39,7 +39,7 @@ from ..modules import (
     update_privileged_statistics,
 )
 from ..objectives import GradientGuard, NonFiniteEnvMonitor, SHACLoss
-from ..objectives._windows import window_contact_force
+from ..objectives.windows import window_contact_force
 from .base import (
     LR_SCHEDULES,
     ActorCriticCheckpoint,

@@ -15,7 +15,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from ._windows import CONTACT_FORCE_KEY, window_contact_force
+from .windows import CONTACT_FORCE_KEY, window_contact_force
 from .shac import SHACLoss
 
 __all__ = ["CONTACT_FORCE_KEY", "AHACLoss", "AdaptiveHorizon", "TwinCritic", "window_contact_force"]

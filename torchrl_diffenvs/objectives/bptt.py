@@ -8,7 +8,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
-from ._windows import like_agents, steps_since_start, window_entry
+from .windows import like_agents, steps_since_start, window_entry
 from .nonfinite import nonfinite_envs
 
 __all__ = ["BPTTLoss"]

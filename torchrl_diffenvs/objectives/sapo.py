@@ -10,7 +10,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import nn
 
-from ._windows import steps_since_start, window_entry
+from .windows import steps_since_start, window_entry
 from .ahac import AHACLoss
 from .shac import SHACLoss
 

@@ -12,7 +12,7 @@ from torch import nn
 from torchrl.objectives import LossModule, SoftUpdate
 from torchrl.objectives.value import TDLambdaEstimator
 
-from ._windows import like_agents, steps_since_start, window_entry
+from .windows import like_agents, steps_since_start, window_entry
 from .nonfinite import next_key, nonfinite_envs, now_and_next
 
 __all__ = ["SHACLoss"]

@@ -1,8 +1,11 @@
-"""Helpers shared by the window losses and learners (BPTT, SHAC, AHAC, SAPO)."""
+"""Reading rollout windows ``[N, H]``: what the window losses and the learners (BPTT, SHAC,
+AHAC, SAPO) share."""
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+
+__all__ = ["CONTACT_FORCE_KEY", "like_agents", "steps_since_start", "window_contact_force", "window_entry"]
 
 
 def steps_since_start(done: torch.Tensor) -> torch.Tensor:
