@@ -18,7 +18,7 @@ import math
 
 import torch
 
-__all__ = ["ENV_KEYS", "FLAG_KEYS", "NESTED_ENV_KEYS", "merge_reset", "nonfinite_envs", "physics_step"]
+__all__ = ["ENV_KEYS", "FLAG_KEYS", "NESTED_ENV_KEYS", "merge_reset", "nonfinite_rows", "physics_step"]
 
 # Entries the env owns at the root of a step TensorDict; everything else there ("action", a
 # policy's "loc"/"scale", a user's own entries) belongs to the policy or the user.
@@ -27,8 +27,10 @@ ENV_KEYS = ("observation", "state", "params", "episode_step", *FLAG_KEYS)
 NESTED_ENV_KEYS = ("state", "params")
 
 
-def nonfinite_envs(n: int, tensors, device=None) -> torch.Tensor:
-    """``[N]`` bool: the envs with a NaN or infinite value in any of ``tensors`` (``[N, ...]``).
+def nonfinite_rows(n: int, tensors, device=None) -> torch.Tensor:
+    """``[N]`` bool: the rows (envs) with a NaN or infinite value in any of the plain
+    ``tensors`` (``[N, ...]``), as one env step needs it (the learners' mask over a rollout's
+    entries is [`nonfinite_envs`][torchrl_diffenvs.objectives.nonfinite_envs]).
 
     One sum per entry: a NaN or inf anywhere in an env's values makes its sum non-finite (so
     does a sum that overflows, i.e. values near the dtype's largest: a diverged env too).
@@ -68,7 +70,7 @@ def physics_step(env, state: dict, params: dict, episode_step: torch.Tensor, act
     observation = env.observation(state, params)
     n, values = episode_step.shape[0], (*state.values(), reward)
     if all_false is None or (check and not _all_finite(values)):
-        nonfinite = nonfinite_envs(n, values, episode_step.device)
+        nonfinite = nonfinite_rows(n, values, episode_step.device)
         terminated = nonfinite if terminated is None else terminated | nonfinite
         observation, reward = (torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for x in (observation, reward))
     else:
