@@ -4,6 +4,9 @@
   TorchRL ``ProbabilisticActor``, usable by [`BPTTLoss`][torchrl_diffenvs.objectives.BPTTLoss],
   [`SHACLoss`][torchrl_diffenvs.objectives.SHACLoss] and TorchRL's PPO / SAC losses; or a
   deterministic tanh-MLP policy (Ivy Gym's ``optimize_policy`` demo).
+* [`make_sapo_actor`][torchrl_diffenvs.modules.make_sapo_actor]: SAPO's policy, a
+  [`SquashedNormalActor`][torchrl_diffenvs.modules.SquashedNormalActor] with a state-dependent
+  standard deviation that writes the exact log-probability of its samples.
 * [`make_critic`][torchrl_diffenvs.modules.make_critic]: a state-value network writing ``"state_value"``.
 * [`make_qvalue`][torchrl_diffenvs.modules.make_qvalue]: ``Q(observation, action)`` writing ``"state_action_value"`` (SAC).
 * [`actor_from_config`][torchrl_diffenvs.modules.actor_from_config], [`critic_from_config`][torchrl_diffenvs.modules.critic_from_config], [`qvalue_from_config`][torchrl_diffenvs.modules.qvalue_from_config]: the same
@@ -35,6 +38,7 @@ from .normalization import ObservationNormalizer
 __all__ = [
     "LeanModule",
     "ObservationNormalizer",
+    "SquashedNormalActor",
     "TanhNormalActor",
     "actor_from_config",
     "env_dims",
@@ -48,6 +52,8 @@ __all__ = [
     "make_critic",
     "make_mlp",
     "make_qvalue",
+    "make_sapo_actor",
+    "orthogonal_init_",
     "qvalue_from_config",
 ]
 
@@ -79,6 +85,15 @@ class LeanModule(TensorDictModuleBase):
         for key, value in zip(self.out_keys, outputs):
             tensordict.set(key, value)
         return tensordict
+
+
+def orthogonal_init_(module: nn.Module, gain: float) -> None:
+    """Every ``nn.Linear`` in ``module`` (nested ones included) gets orthogonal weights of
+    ``gain`` and zero biases, in place."""
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear):
+            nn.init.orthogonal_(layer.weight, gain=gain)
+            nn.init.zeros_(layer.bias)
 
 
 def make_mlp(
@@ -113,10 +128,7 @@ def make_mlp(
         layers.append(nn.Linear(in_dim, out_dim, dtype=dtype))
         net = nn.Sequential(*layers)
     if init == "orthogonal":
-        for layer in net:
-            if isinstance(layer, nn.Linear):
-                nn.init.orthogonal_(layer.weight, gain=math.sqrt(2))
-                nn.init.zeros_(layer.bias)
+        orthogonal_init_(net, math.sqrt(2))
     return net
 
 
@@ -204,11 +216,13 @@ def observation_key_of(policy, default="observation"):
     return in_keys[0] if len(in_keys) == 1 else default
 
 
-def _action_bounds(env) -> tuple[float, float]:
+def _action_bounds(env, who: str = "make_actor") -> tuple[float, float]:
+    """``(low, high)`` of ``env``'s action spec, the same for every action dimension (``who``:
+    the caller's name, for the error)."""
     spec = env.full_action_spec_unbatched[env.action_key]
     low, high = spec.space.low, spec.space.high
     if not (torch.all(low == low.flatten()[0]) and torch.all(high == high.flatten()[0])):
-        raise ValueError(f"make_actor: expected the same bounds for every action dimension, got {low} and {high}")
+        raise ValueError(f"{who}: expected the same bounds for every action dimension, got {low} and {high}")
     return float(low.flatten()[0]), float(high.flatten()[0])
 
 
@@ -339,6 +353,102 @@ def make_actor(
     module = LeanModule(head, in_keys=[in_key], out_keys=[keys.loc, keys.scale])
     return TanhNormalActor(module, low, high, spec=env.full_action_spec_unbatched[keys.action], out_keys=[keys.action],
                            return_log_prob=return_log_prob, log_prob_key=keys.log_prob)
+
+
+class _LocScale(nn.Module):
+    """Splits ``[..., 2A]`` into ``loc`` and ``scale = exp(clamp(log_std, low, high))``."""
+
+    def __init__(self, action_dim: int, min_log_std: float, max_log_std: float):
+        super().__init__()
+        self.action_dim, self.min_log_std, self.max_log_std = int(action_dim), float(min_log_std), float(max_log_std)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc, log_std = x.split(self.action_dim, dim=-1)
+        return loc, log_std.clamp(self.min_log_std, self.max_log_std).exp()
+
+
+class SquashedNormalActor(TanhNormalActor):
+    """A ``TanhNormal`` policy that writes the exact log-probability of the actions it samples.
+
+    TorchRL's ``TanhNormal.log_prob(action)`` inverts the squashing (``atanh`` of the action),
+    which loses the pre-tanh value once ``tanh`` rounds to +-1 (in float32 from about
+    ``|u| > 9``). When it samples (``ExplorationType.RANDOM``) this actor draws
+    ``u = loc + eps * scale`` (``rsample``: the same random stream as ``Normal.rsample``) and
+    writes ``action = squash(u)`` and its log-probability from ``u``::
+
+        sum_i [ -eps_i^2 / 2 - log scale_i - log(2 pi) / 2 - log(1 - tanh(u_i)^2) - log((high - low) / 2) ]
+
+    with ``log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u))`` (finite for every ``u``). In
+    ``DETERMINISTIC`` mode it writes ``squash(loc)``. Every other call, and ``get_dist``, is
+    ``ProbabilisticActor``'s.
+    """
+
+    def __init__(self, module, low: float, high: float, log_prob_key="action_log_prob", **kwargs):
+        super().__init__(module, low, high, return_log_prob=True, log_prob_key=log_prob_key, **kwargs)
+        self._log_prob_out = log_prob_key
+        self._log_half_range = math.log((float(high) - float(low)) / 2)
+
+    def log_prob_from_noise(self, eps: torch.Tensor, scale: torch.Tensor, pre_tanh: torch.Tensor) -> torch.Tensor:
+        """Log-probability ``[...]`` of ``squash(pre_tanh)`` with ``pre_tanh = loc + eps * scale``."""
+        normal = -0.5 * eps.pow(2) - scale.log() - 0.5 * math.log(2 * math.pi)
+        log_jacobian = 2 * (math.log(2) - pre_tanh - nn.functional.softplus(-2 * pre_tanh)) + self._log_half_range
+        return (normal - log_jacobian).sum(-1)
+
+    def forward(self, tensordict, tensordict_out=None, **kwargs):
+        mode = current_interaction_type()
+        if mode is None:
+            mode = self.module[-1].default_interaction_type
+        plain = tensordict_out is None and not kwargs and isinstance(tensordict, TensorDictBase)
+        if not plain or mode not in (InteractionType.RANDOM, InteractionType.DETERMINISTIC):
+            return super().forward(tensordict, tensordict_out, **kwargs)
+        tensordict = self.module[0](tensordict)  # "loc", "scale"
+        loc_key, scale_key = self.module[0].out_keys
+        loc = tensordict.get(loc_key)
+        if mode is InteractionType.DETERMINISTIC:
+            tensordict.set(self.module[-1].out_keys[0], self.squash(loc))
+            return tensordict
+        scale = tensordict.get(scale_key)
+        eps = standard_normal(loc.shape, dtype=loc.dtype, device=loc.device)
+        pre_tanh = loc + eps * scale
+        tensordict.set(self.module[-1].out_keys[0], self.squash(pre_tanh))
+        tensordict.set(self._log_prob_out, self.log_prob_from_noise(eps, scale, pre_tanh))
+        return tensordict
+
+
+def make_sapo_actor(
+    env,
+    hidden: Sequence[int] = (128, 64, 32),
+    activation: type[nn.Module] = nn.SiLU,
+    layer_norm: bool = True,
+    norm_after_activation: bool = False,
+    init: str = "orthogonal",
+    orthogonal_gain: float = 1.0,
+    min_log_std: float = -5.0,
+    max_log_std: float = 2.0,
+    normalizer: ObservationNormalizer | None = None,
+) -> SquashedNormalActor:
+    """SAPO's policy: an MLP writing ``loc`` and a state-dependent ``scale`` (log-std clamped to
+    ``[min_log_std, max_log_std]``), squashed into the action bounds
+    ([`SquashedNormalActor`][torchrl_diffenvs.modules.SquashedNormalActor], writing ``"action"`` and ``"action_log_prob"``).
+
+    The reference: ``[128, 64, 32]`` Linear-LayerNorm-SiLU, orthogonal weights of gain 1, log-std
+    in ``[-5, 2]``. ``init="orthogonal"`` uses ``orthogonal_gain``; ``"default"`` PyTorch's.
+    """
+    keys = policy_keys(env)
+    if keys.num_agents is not None:
+        raise ValueError(f"make_sapo_actor: {type(env).__name__} is multi-agent; SAPO is single-agent")
+    observation_dim, action_dim, dtype = env_dims(env, keys.observation)
+    low, high = _action_bounds(env, "make_sapo_actor")
+    net = make_mlp(observation_dim, 2 * action_dim, hidden, activation, layer_norm, dtype, norm_after_activation)
+    if init == "orthogonal":
+        orthogonal_init_(net, orthogonal_gain)
+    elif init != "default":
+        raise ValueError(f"make_sapo_actor: init must be 'default' or 'orthogonal', got {init!r}")
+    prefix = [normalizer] if normalizer is not None else []
+    head = nn.Sequential(*prefix, net, _LocScale(action_dim, min_log_std, max_log_std))
+    module = LeanModule(head, in_keys=[keys.observation], out_keys=[keys.loc, keys.scale])
+    return SquashedNormalActor(module, low, high, log_prob_key=keys.log_prob,
+                               spec=env.full_action_spec_unbatched[keys.action], out_keys=[keys.action])
 
 
 CRITIC_INPUTS = ("observation", "state")

@@ -5,7 +5,8 @@ multiphysics simulation"; reference: ``etaoxing/mineral``, ``agents/diffrl/shac.
 One iteration:
 
 1. collect a window ``[N, H]`` with the graph on; the actor (a tanh-squashed normal with a
-   state-dependent standard deviation, `make_sapo_actor`) writes the log-probability of
+   state-dependent standard deviation,
+   [`make_sapo_actor`][torchrl_diffenvs.modules.make_sapo_actor]) writes the log-probability of
    every action it samples;
 2. actor step on the soft bootstrapped return ([`SAPOLoss`][torchrl_diffenvs.objectives.SAPOLoss]:
    rewards plus ``alpha`` times the entropy estimate, bootstrapped by the mean of the two
@@ -20,34 +21,30 @@ One iteration:
 from __future__ import annotations
 
 import dataclasses
-import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from types import MappingProxyType
 
 import torch
-from tensordict import TensorDictBase
-from tensordict.nn import InteractionType
-from torch import nn
 
 from .. import checks
-from .._compat import current_interaction_type, standard_normal
 from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
 from ..modules import (
-    LeanModule,
     ObservationNormalizer,
-    TanhNormalActor,
+    SquashedNormalActor,
     critic_from_config,
     env_dims,
-    make_mlp,
+    make_sapo_actor,
     network_kwargs,
+    orthogonal_init_,
 )
 from ..objectives import GradientGuard, SAPOLoss, TwinCritic
 from .ahac import CRITIC_SHUFFLES, TwinCriticLearner
 from .base import LR_SCHEDULES, LearnerConfig, NetworkConfig, checked
 
+# the policy (SquashedNormalActor, make_sapo_actor) lives with the other networks in modules.py; importable
+# from here too (docs/learners/sapo.md)
 __all__ = ["SAPOConfig", "SAPOLearner", "SquashedNormalActor", "make_sapo_actor"]
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,118 +85,6 @@ class SAPOConfig(LearnerConfig):
         return []
 
 
-# ---------------------------------------------------------------------- the actor
-class _LocScale(nn.Module):
-    """Splits ``[..., 2A]`` into ``loc`` and ``scale = exp(clamp(log_std, low, high))``."""
-
-    def __init__(self, action_dim: int, min_log_std: float, max_log_std: float):
-        super().__init__()
-        self.action_dim, self.min_log_std, self.max_log_std = int(action_dim), float(min_log_std), float(max_log_std)
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc, log_std = x.split(self.action_dim, dim=-1)
-        return loc, log_std.clamp(self.min_log_std, self.max_log_std).exp()
-
-
-class SquashedNormalActor(TanhNormalActor):
-    """A ``TanhNormal`` policy that writes the exact log-probability of the actions it samples.
-
-    TorchRL's ``TanhNormal.log_prob(action)`` inverts the squashing (``atanh`` of the action),
-    which loses the pre-tanh value once ``tanh`` rounds to +-1 (in float32 from about
-    ``|u| > 9``). When it samples (``ExplorationType.RANDOM``) this actor draws
-    ``u = loc + eps * scale`` (``rsample``: the same random stream as ``Normal.rsample``) and
-    writes ``action = squash(u)`` and its log-probability from ``u``::
-
-        sum_i [ -eps_i^2 / 2 - log scale_i - log(2 pi) / 2 - log(1 - tanh(u_i)^2) - log((high - low) / 2) ]
-
-    with ``log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u))`` (finite for every ``u``). In
-    ``DETERMINISTIC`` mode it writes ``squash(loc)``. Every other call, and ``get_dist``, is
-    ``ProbabilisticActor``'s.
-    """
-
-    def __init__(self, module, low: float, high: float, log_prob_key="action_log_prob", **kwargs):
-        super().__init__(module, low, high, return_log_prob=True, log_prob_key=log_prob_key, **kwargs)
-        self._log_prob_out = log_prob_key
-        self._log_half_range = math.log((float(high) - float(low)) / 2)
-
-    def log_prob_from_noise(self, eps: torch.Tensor, scale: torch.Tensor, pre_tanh: torch.Tensor) -> torch.Tensor:
-        """Log-probability ``[...]`` of ``squash(pre_tanh)`` with ``pre_tanh = loc + eps * scale``."""
-        normal = -0.5 * eps.pow(2) - scale.log() - 0.5 * math.log(2 * math.pi)
-        log_jacobian = 2 * (math.log(2) - pre_tanh - nn.functional.softplus(-2 * pre_tanh)) + self._log_half_range
-        return (normal - log_jacobian).sum(-1)
-
-    def forward(self, tensordict, tensordict_out=None, **kwargs):
-        mode = current_interaction_type()
-        if mode is None:
-            mode = self.module[-1].default_interaction_type
-        plain = tensordict_out is None and not kwargs and isinstance(tensordict, TensorDictBase)
-        if not plain or mode not in (InteractionType.RANDOM, InteractionType.DETERMINISTIC):
-            return super().forward(tensordict, tensordict_out, **kwargs)
-        tensordict = self.module[0](tensordict)  # "loc", "scale"
-        loc_key, scale_key = self.module[0].out_keys
-        loc = tensordict.get(loc_key)
-        if mode is InteractionType.DETERMINISTIC:
-            tensordict.set(self.module[-1].out_keys[0], self.squash(loc))
-            return tensordict
-        scale = tensordict.get(scale_key)
-        eps = standard_normal(loc.shape, dtype=loc.dtype, device=loc.device)
-        pre_tanh = loc + eps * scale
-        tensordict.set(self.module[-1].out_keys[0], self.squash(pre_tanh))
-        tensordict.set(self._log_prob_out, self.log_prob_from_noise(eps, scale, pre_tanh))
-        return tensordict
-
-
-def _orthogonal_(module: nn.Module, gain: float) -> None:
-    for layer in module.modules():
-        if isinstance(layer, nn.Linear):
-            nn.init.orthogonal_(layer.weight, gain=gain)
-            nn.init.zeros_(layer.bias)
-
-
-def _action_bounds(env) -> tuple[float, float]:
-    spec = env.full_action_spec_unbatched[env.action_key]
-    low, high = spec.space.low, spec.space.high
-    if not (torch.all(low == low.flatten()[0]) and torch.all(high == high.flatten()[0])):
-        raise ValueError(f"make_sapo_actor: expected the same bounds for every action dimension, got {low} and {high}")
-    return float(low.flatten()[0]), float(high.flatten()[0])
-
-
-def make_sapo_actor(
-    env,
-    hidden: Sequence[int] = (128, 64, 32),
-    activation: type[nn.Module] = nn.SiLU,
-    layer_norm: bool = True,
-    norm_after_activation: bool = False,
-    init: str = "orthogonal",
-    orthogonal_gain: float = 1.0,
-    min_log_std: float = -5.0,
-    max_log_std: float = 2.0,
-    normalizer: ObservationNormalizer | None = None,
-) -> SquashedNormalActor:
-    """SAPO's policy: an MLP writing ``loc`` and a state-dependent ``scale`` (log-std clamped to
-    ``[min_log_std, max_log_std]``), squashed into the action bounds
-    (`SquashedNormalActor`, writing ``"action"`` and ``"action_log_prob"``).
-
-    The reference: ``[128, 64, 32]`` Linear-LayerNorm-SiLU, orthogonal weights of gain 1, log-std
-    in ``[-5, 2]``. ``init="orthogonal"`` uses ``orthogonal_gain``; ``"default"`` PyTorch's.
-    """
-    keys = policy_keys(env)
-    if keys.num_agents is not None:
-        raise ValueError(f"make_sapo_actor: {type(env).__name__} is multi-agent; SAPO is single-agent")
-    observation_dim, action_dim, dtype = env_dims(env, keys.observation)
-    low, high = _action_bounds(env)
-    net = make_mlp(observation_dim, 2 * action_dim, hidden, activation, layer_norm, dtype, norm_after_activation)
-    if init == "orthogonal":
-        _orthogonal_(net, orthogonal_gain)
-    elif init != "default":
-        raise ValueError(f"make_sapo_actor: init must be 'default' or 'orthogonal', got {init!r}")
-    prefix = [normalizer] if normalizer is not None else []
-    head = nn.Sequential(*prefix, net, _LocScale(action_dim, min_log_std, max_log_std))
-    module = LeanModule(head, in_keys=[keys.observation], out_keys=[keys.loc, keys.scale])
-    return SquashedNormalActor(module, low, high, log_prob_key=keys.log_prob,
-                               spec=env.full_action_spec_unbatched[keys.action], out_keys=[keys.action])
-
-
 # ---------------------------------------------------------------------- the learner
 class SAPOLearner(TwinCriticLearner):
     """Soft analytic policy optimisation.
@@ -207,7 +92,7 @@ class SAPOLearner(TwinCriticLearner):
     Args:
         env: a batched differentiable single-agent env.
         actor: a policy writing ``"action"`` and ``"action_log_prob"`` when sampling
-            (`make_sapo_actor`).
+            ([`make_sapo_actor`][torchrl_diffenvs.modules.make_sapo_actor]).
         critic: a [`TwinCritic`][torchrl_diffenvs.objectives.TwinCritic].
         config: [`SAPOConfig`][torchrl_diffenvs.learners.SAPOConfig].
         total_env_steps: the budget the learning-rate schedules run over.
@@ -273,7 +158,7 @@ class SAPOLearner(TwinCriticLearner):
         critics = [critic_from_config(loss_cfg.critic, env, normalizer) for _ in range(2)]
         if loss_cfg.critic.get("init") == "orthogonal":
             for critic in critics:  # make_critic's orthogonal init has gain sqrt(2)
-                _orthogonal_(critic, config.orthogonal_gain)
+                orthogonal_init_(critic, config.orthogonal_gain)
         return cls(env, actor, TwinCritic(*critics), config, total_env_steps, normalizer=normalizer, world=world)
 
     def update_temperature(self, entropy: torch.Tensor | float) -> dict[str, float]:
