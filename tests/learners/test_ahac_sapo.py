@@ -21,8 +21,7 @@ from torchrl.modules import TanhNormal
 
 from torchrl_diffenvs import make_env
 from torchrl_diffenvs.learners import LEARNERS, AHACConfig, AHACLearner, SAPOConfig, SAPOLearner, make_learner
-from torchrl_diffenvs.learners.sapo import make_sapo_actor
-from torchrl_diffenvs.modules import LeanModule, make_actor, make_critic
+from torchrl_diffenvs.modules import LeanModule, make_actor, make_critic, make_sapo_actor
 from torchrl_diffenvs.objectives import AHACLoss, AdaptiveHorizon, SAPOLoss, TwinCritic
 from _env_helpers import with_smooth_contact  # noqa: E402
 
