@@ -23,6 +23,10 @@ One file plus one registration line:
    ``compiles_windows``, ``unsupported_settings``;
 2. ``register_learner(MyLearner)`` at the end of this file.
 
+A learner of SHAC's family (a differentiable window, an actor step, critic passes) subclasses
+[`ShortHorizonLearner`][torchrl_diffenvs.learners.ShortHorizonLearner] and fills in its hooks, as
+SHAC, AHAC and SAPO do.
+
 ``python sota_scripts/train.py loss=<name>`` then works: the ``loss`` configuration group gets
 ``<name>`` (generated from the class, [`Learner.default_config`][torchrl_diffenvs.learners.Learner.default_config]), the settings are checked
 with the project's one-line errors ([`Learner.config_problems`][torchrl_diffenvs.learners.Learner.config_problems]), and the training loop,
@@ -43,6 +47,7 @@ from .ppo import PPOConfig, PPOLearner
 from .sac import SACConfig, SACLearner
 from .sapo import SAPOConfig, SAPOLearner
 from .shac import SHACConfig, SHACLearner
+from .short_horizon import ShortHorizonLearner, TwinCriticLearner
 
 LEARNERS: dict[str, type[Learner]] = {}
 
@@ -76,5 +81,6 @@ for _learner in (BPTTLearner, SHACLearner, PPOLearner, SACLearner, AHACLearner, 
 __all__ = [
     "ActorNetworkConfig", "AHACConfig", "AHACLearner", "BPTTConfig", "BPTTLearner", "LEARNERS", "LR_SCHEDULES",
     "Learner", "LearnerConfig", "NetworkConfig", "PPOConfig", "PPOLearner", "SACConfig", "SACLearner", "SAPOConfig",
-    "SAPOLearner", "SHACConfig", "SHACLearner", "lr_scheduler", "make_learner", "register_learner",
+    "SAPOLearner", "SHACConfig", "SHACLearner", "ShortHorizonLearner", "TwinCriticLearner", "lr_scheduler",
+    "make_learner", "register_learner",
 ]

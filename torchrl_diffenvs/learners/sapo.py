@@ -17,6 +17,10 @@ One iteration:
    two critics;
 5. ``critic_passes`` x ``critic_minibatches`` guarded AdamW steps of both critics (no target critic);
 6. update the observation normaliser; step the learning-rate schedules of actor and critics.
+
+The iteration is [`ShortHorizonLearner`][torchrl_diffenvs.learners.ShortHorizonLearner]'s (in
+``learners/short_horizon.py``, with SHAC and AHAC); SAPO fills in its hooks: the temperature step
+after the actor's, the soft critic targets with the new temperature.
 """
 from __future__ import annotations
 
@@ -39,8 +43,8 @@ from ..modules import (
     orthogonal_init_,
 )
 from ..objectives import GradientGuard, SAPOLoss, TwinCritic
-from .ahac import CRITIC_SHUFFLES, TwinCriticLearner
 from .base import LR_SCHEDULES, LearnerConfig, NetworkConfig, checked
+from .short_horizon import CRITIC_SHUFFLES, TwinCriticLearner
 
 # the policy (SquashedNormalActor, make_sapo_actor) lives with the other networks in modules.py; importable
 # from here too (docs/learners/sapo.md)
@@ -65,7 +69,7 @@ class SAPOConfig(LearnerConfig):
     lr_decay: float = checked(0.997, checks.in_interval(0.0, 1.0))  # per iteration, exponential schedule
     critic_passes: int = checked(16, checks.positive_int)
     critic_minibatches: int = checked(4, checks.positive_int)
-    critic_shuffle: str = checked("in_order", checks.one_of(CRITIC_SHUFFLES))  # minibatch order (learners/ahac.py)
+    critic_shuffle: str = checked("in_order", checks.one_of(CRITIC_SHUFFLES))  # minibatch order (learners/short_horizon.py)
     max_grad_norm: float | None = checked(0.5, checks.optional_positive)  # clips actor, critics and temperature
     skip_above: float | None = checked(1e6, checks.optional_positive)  # skip steps with a larger norm
     obs_norm: bool = checked(True, checks.boolean)  # running observation normalisation (from_config)
@@ -123,7 +127,7 @@ class SAPOLearner(TwinCriticLearner):
         super().__init__(env, actor, loss, config, total_env_steps, horizon=c.horizon, normalizer=normalizer,
                          reset_input=reset_input, world=world, optimizer=torch.optim.AdamW,
                          optimizer_kwargs={"weight_decay": c.weight_decay}, critic_max_grad_norm=c.max_grad_norm)
-        self.loss.set_keys(reward=self.keys.reward, value=self.keys.value, log_prob=self.keys.log_prob)
+        self.loss.set_keys(log_prob=self.keys.log_prob)  # (the reward and value keys: set by the skeleton)
         # the reference's temperature optimiser is the actor's class (AdamW) with its own settings
         self.alpha_optim = torch.optim.AdamW([self.loss.log_alpha], lr=c.alpha_lr, betas=c.betas,
                                              weight_decay=c.weight_decay)

@@ -24,32 +24,12 @@ import dataclasses
 from collections.abc import Mapping
 from types import MappingProxyType
 
-import torch
-
 from .. import checks
-from ..collectors import DiffWindowCollector
 from ..distributed import SINGLE_PROCESS, World
-from ..envs.multi_agent import policy_keys
-from ..modules import (
-    CRITIC_INPUTS,
-    ObservationNormalizer,
-    actor_from_config,
-    critic_from_config,
-    observation_key_of,
-    update_privileged_statistics,
-)
-from ..objectives import GradientGuard, NonFiniteEnvMonitor, SHACLoss
-from ..objectives.windows import window_contact_force
-from .base import (
-    LR_SCHEDULES,
-    ActorCriticCheckpoint,
-    ActorNetworkConfig,
-    Learner,
-    LearnerConfig,
-    NetworkConfig,
-    checked,
-    lr_scheduler,
-)
+from ..modules import CRITIC_INPUTS, ObservationNormalizer, actor_from_config, critic_from_config
+from ..objectives import SHACLoss
+from .base import LR_SCHEDULES, ActorNetworkConfig, LearnerConfig, NetworkConfig, checked
+from .short_horizon import ShortHorizonLearner
 
 __all__ = ["SHACConfig", "SHACLearner"]
 
@@ -82,7 +62,7 @@ class SHACConfig(LearnerConfig):
     centralised_critic: bool = checked(False, checks.boolean)
 
 
-class SHACLearner(ActorCriticCheckpoint, Learner):
+class SHACLearner(ShortHorizonLearner):
     """Short-horizon actor-critic.
 
     On a multi-agent env one parameter-shared actor acts for every agent; the critic gives one
@@ -114,27 +94,10 @@ class SHACLearner(ActorCriticCheckpoint, Learner):
 
     def __init__(self, env, actor, critic, config: SHACConfig = SHACConfig(), total_env_steps: int = 1_000_000, *,
                  normalizer: ObservationNormalizer | None = None, reset_input=None, world: World = SINGLE_PROCESS):
-        super().__init__(env, config, total_env_steps, reset_input=reset_input, world=world)
-        c = config
-        self.actor = self.policy = actor
-        self.normalizer = normalizer
-        self.collector = DiffWindowCollector(env, actor, horizon=c.horizon, reset_input=reset_input)
-        self.loss = SHACLoss(actor, critic, gamma=c.gamma, lmbda=c.lmbda)
-        self.keys = policy_keys(env)
-        self.loss.set_keys(reward=self.keys.reward, value=self.keys.value)  # ("agents", ...) on a multi-agent env
-        self.target_updater = self.loss.make_target_updater(tau=c.target_tau)
-        self.actor_params = [p for p in actor.parameters() if p.requires_grad]
-        self.critic_params = [p for p in self.loss.critic_network.parameters() if p.requires_grad]
-        # foreach: one kernel per Adam operation for all tensors (about 2x faster for small nets on CPU)
-        self.actor_optim = torch.optim.Adam(self.actor_params, lr=c.actor_lr, betas=c.betas, foreach=True)
-        self.critic_optim = torch.optim.Adam(self.critic_params, lr=c.critic_lr, betas=c.betas, foreach=True)
-        self.actor_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=c.skip_above)
-        self.critic_guard = GradientGuard(max_norm=c.max_grad_norm, skip_above=c.skip_above)
-        self.nonfinite = NonFiniteEnvMonitor(type(self).__name__)
-        self.schedules = [
-            lr_scheduler(optim, c.lr_schedule, lambda: self.total_iterations, min_lr=c.min_lr, decay=c.lr_decay)
-            for optim in (self.actor_optim, self.critic_optim)
-        ]
+        loss = SHACLoss(actor, critic, gamma=config.gamma, lmbda=config.lmbda)
+        super().__init__(env, actor, loss, config, total_env_steps, horizon=config.horizon, normalizer=normalizer,
+                         reset_input=reset_input, world=world, critic_max_grad_norm=config.max_grad_norm)
+        self.target_updater = self.loss.make_target_updater(tau=config.target_tau)
 
     @classmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> SHACLearner:
@@ -144,71 +107,5 @@ class SHACLearner(ActorCriticCheckpoint, Learner):
         return cls(env, actor, critic, cls.settings_from(loss_cfg), total_env_steps, normalizer=normalizer,
                    world=world)
 
-    @property
-    def steps_per_env(self) -> int:
-        return self.config.horizon
-
-    def train_iteration(self) -> dict[str, float]:
-        c = self.config
-        # 1. collect a window with the graph on
-        window = self.collector.rollout()
-        # 2. actor step on the bootstrapped return (also writes the critic targets: step 3)
-        out = self.loss(window)  # over the finite envs (the collector cut the others' gradient)
-        keep = self.loss.finite_envs(window)
-        nonfinite = self.nonfinite.update(~keep, self.iteration)
-        self.actor_optim.zero_grad(set_to_none=True)
-        if out["loss_actor"].requires_grad:  # False when nothing depends on the actions
-            out["loss_actor"].backward()
-        self.world.average_gradients(self.actor_params)
-        actor_info = self.actor_guard.step(self.actor_optim, self.actor_params, loss=out["loss_actor"],
-                                           context=self.nonfinite.describe)
-        metrics = {key: out[key].item() for key in ("loss_actor", "reward_mean", "value_mean")}
-        metrics["nonfinite_envs"] = nonfinite
-        # 3. the critic fits the detached window and its TD(lambda) targets (those of the finite envs)
-        data = window.detach()
-        del window, out  # the graph is spent
-        flat = data.select(*self.loss.critic_network.in_keys, self.loss.tensor_keys.value_target)
-        if keep.any():
-            flat = flat[keep].reshape(-1)
-        # 4. critic passes over shuffled minibatches; none when every env is non-finite (the env
-        # zeroes their rewards: there is nothing true to fit), each planned step counted as skipped
-        critic_losses = []
-        if not keep.any():
-            for _ in range(c.critic_passes * c.critic_minibatches):
-                self.critic_guard.skip(context=self.nonfinite.describe)
-        for critic_pass in range(c.critic_passes if keep.any() else 0):
-            if critic_pass == 0 or c.critic_shuffle == "every_pass":
-                split = torch.randperm(flat.shape[0]).chunk(c.critic_minibatches)
-            for batch in split:
-                critic_loss = self.loss.critic_loss(flat[batch])["loss_critic"]
-                self.critic_optim.zero_grad(set_to_none=True)
-                critic_loss.backward()
-                self.world.average_gradients(self.critic_params)
-                self.critic_guard.step(self.critic_optim, self.critic_params, loss=critic_loss,
-                                       context=self.nonfinite.describe)
-                critic_losses.append(critic_loss.item())
-        # 5. the target critic follows the critic
-        self.target_updater.step()
-        # 6. observation (and privileged-input) statistics, frozen during the window, move after it
-        if self.normalizer is not None:
-            self.normalizer.update(self.world.gather(data.get(observation_key_of(self.actor, self.keys.observation))))
-        update_privileged_statistics(self.loss.critic_network, data, self.world.gather)
-        metrics.update({
-            "reward": metrics.pop("reward_mean"),
-            "value": metrics.pop("value_mean"),
-            "loss_critic": sum(critic_losses) / len(critic_losses) if critic_losses else float("nan"),
-            "grad_norm_actor": actor_info["grad_norm"],
-            "skipped_actor": self.actor_guard.skipped,
-            "skipped_critic": self.critic_guard.skipped,
-            "lr_actor": self.actor_optim.param_groups[0]["lr"],
-        })
-        force = window_contact_force(data)  # envs with contacts report their largest normal force
-        if force is not None:
-            metrics["contact_force_max"] = force.max().item()
-        if self.collector.finished_returns:
-            metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
-        # 7. learning-rate schedules
-        for schedule in self.schedules:
-            schedule.step()
-        self.iteration += 1
-        return metrics
+    def _after_critic_fit(self) -> None:
+        self.target_updater.step()  # 5. the target critic follows the critic
