@@ -26,7 +26,7 @@ def test_installed_versions_are_those_compat_was_checked_against():
 
 def test_envbase_still_has_the_private_methods_the_lean_rollout_reimplements():
     for name in _compat.ENVBASE_STEP_METHODS:
-        assert callable(getattr(EnvBase, name, None)), f"EnvBase.{name} is gone: update fast_rollout.py"
+        assert callable(getattr(EnvBase, name, None)), f"EnvBase.{name} is gone: update torchrl_diffenvs/envs/rollout"
 
 
 def test_rollout_machinery_flags_are_where_torchrl_puts_them():

@@ -11,7 +11,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_diffenvs import compile_physics, list_envs, make_env
 from torchrl_diffenvs.collectors import DiffWindowCollector
-from torchrl_diffenvs.envs.fast_rollout import compile_report
+from torchrl_diffenvs.envs.rollout import compile_report
 from torchrl_diffenvs.modules import make_actor
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")]

@@ -14,7 +14,7 @@ from tensordict.nn import TensorDictModule
 
 from torchrl_diffenvs import compile_physics, eager_physics, make_env
 from torchrl_diffenvs.articulated import integrators
-from torchrl_diffenvs.envs.fast_rollout import compile_report
+from torchrl_diffenvs.envs.rollout import compile_report
 from _env_helpers import with_smooth_contact  # noqa: E402
 
 # written for the smooth contact option (MuJoCo's own: tests/simulator/test_mujoco_contact.py)

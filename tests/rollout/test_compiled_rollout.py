@@ -15,7 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_diffenvs import compile_physics, eager_physics, make_env
 from torchrl_diffenvs.collectors import DiffWindowCollector
-from torchrl_diffenvs.envs.fast_rollout import compile_report
+from torchrl_diffenvs.envs.rollout import compile_report
 from torchrl_diffenvs.modules import make_actor
 
 from _env_helpers import assert_same_tensordict

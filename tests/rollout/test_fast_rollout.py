@@ -17,7 +17,7 @@ from torchrl.modules import ProbabilisticActor, TanhNormal
 from _env_helpers import assert_same_tensordict, single_agent_envs
 
 from torchrl_diffenvs import make_env
-from torchrl_diffenvs.envs.fast_rollout import (
+from torchrl_diffenvs.envs.rollout import (
     compile_physics,
     compile_report,
     eager_physics,

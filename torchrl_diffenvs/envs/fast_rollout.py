@@ -1,6 +1,8 @@
-"""The lean rollout's public names, where they have always been imported from.
+"""The lean rollout's public names under their old import path: import them from
+`torchrl_diffenvs.envs.rollout`, where they live.
 
-The implementation lives in `torchrl_diffenvs.envs.rollout`.
+Kept only until ``torchrl_diffenvs/training/loop.py`` and the benchmarks (``gpu_throughput.py``,
+``compile_physics.py``, ``env_throughput.py``) import from there; then delete this file.
 """
 from .rollout import (
     FAST_ROLLOUT_KWARGS,
