@@ -28,7 +28,7 @@ import torch
 from .collision import Contacts, ContactSlots
 from .contact_gradient import ContactGradient
 from .kinematics import Kinematics
-from .limits import _impedance
+from .limits import _reference
 from .spatial import _MINVAL, Params, _cross
 from .tree import RigidBodyTree
 
@@ -51,27 +51,6 @@ class ConstraintRows(NamedTuple):
     def weight(self) -> torch.Tensor:
         """``efc_D = 1 / efc_R`` where the row exists, 0 elsewhere ``[N, R]``."""
         return torch.where(self.exists, 1.0 / self.regulariser, torch.zeros_like(self.regulariser))
-
-
-_MINIMP, _MAXIMP = 0.0001, 0.9999  # MuJoCo's mjMINIMP, mjMAXIMP
-
-
-def _reference(pos, margin, velocity, solref, solimp, timestep: float):
-    """``(aref, imp)`` of rows: MuJoCo's ``aref = -B v - K imp (pos - margin)`` with ``K, B`` from
-    ``solref`` (its time constant at least two timesteps: ``refsafe``) and the impedance ``imp``
-    from ``solimp`` (`_impedance`), clamped as MuJoCo's ``getsolparam`` does."""
-    dmin, dmax, width, mid, power = solimp.unbind(-1)
-    solimp = torch.stack([dmin.clamp(_MINIMP, _MAXIMP), dmax.clamp(_MINIMP, _MAXIMP), width.clamp_min(0.0),
-                          mid.clamp(_MINIMP, _MAXIMP), power.clamp_min(1.0)], dim=-1)
-    imp = _impedance(solimp, pos - margin)
-    timeconst, dampratio = solref.unbind(-1)
-    dmax = solimp[..., 1]
-    standard = timeconst > 0
-    timeconst = torch.where(standard, timeconst.clamp_min(2 * timestep), timeconst)
-    stiffness = torch.where(standard, 1 / (dmax * dmax * timeconst * timeconst * dampratio * dampratio).clamp_min(_MINVAL),
-                            -timeconst / (dmax * dmax).clamp_min(_MINVAL))
-    damping = torch.where(dampratio > 0, 2 / (dmax * timeconst).clamp_min(_MINVAL), -dampratio / dmax.clamp_min(_MINVAL))
-    return -damping * velocity - stiffness * imp * (pos - margin), imp
 
 
 def _point_jacobian(tree: RigidBodyTree, kin: Kinematics, body: torch.Tensor, point: torch.Tensor) -> torch.Tensor:

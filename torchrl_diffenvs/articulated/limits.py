@@ -1,5 +1,6 @@
-"""Joint limits as MuJoCo's soft constraints: impedance, reference acceleration, regulariser,
-and the exact complementarity solve of the rows that are active together."""
+"""MuJoCo's soft constraints: the impedance and reference acceleration of a row (shared by the
+constraint rows of :mod:`.constraint`), and the smooth contact model's joint limits: their
+regulariser and the exact complementarity solve of the rows that are active together."""
 from __future__ import annotations
 
 import torch
@@ -23,6 +24,27 @@ def _impedance(solimp: torch.Tensor, violation: torch.Tensor) -> torch.Tensor:
     return torch.where(flat, (dmin + dmax) / 2, imp)
 
 
+_MINIMP, _MAXIMP = 0.0001, 0.9999  # MuJoCo's mjMINIMP, mjMAXIMP
+
+
+def _reference(pos, margin, velocity, solref, solimp, timestep: float):
+    """``(aref, imp)`` of rows: MuJoCo's ``aref = -B v - K imp (pos - margin)`` with ``K, B`` from
+    ``solref`` (its time constant at least two timesteps: ``refsafe``) and the impedance ``imp``
+    from ``solimp`` (`_impedance`), clamped as MuJoCo's ``getsolparam`` does."""
+    dmin, dmax, width, mid, power = solimp.unbind(-1)
+    solimp = torch.stack([dmin.clamp(_MINIMP, _MAXIMP), dmax.clamp(_MINIMP, _MAXIMP), width.clamp_min(0.0),
+                          mid.clamp(_MINIMP, _MAXIMP), power.clamp_min(1.0)], dim=-1)
+    imp = _impedance(solimp, pos - margin)
+    timeconst, dampratio = solref.unbind(-1)
+    dmax = solimp[..., 1]
+    standard = timeconst > 0
+    timeconst = torch.where(standard, timeconst.clamp_min(2 * timestep), timeconst)
+    stiffness = torch.where(standard, 1 / (dmax * dmax * timeconst * timeconst * dampratio * dampratio).clamp_min(_MINVAL),
+                            -timeconst / (dmax * dmax).clamp_min(_MINVAL))
+    damping = torch.where(dampratio > 0, 2 / (dmax * timeconst).clamp_min(_MINVAL), -dampratio / dmax.clamp_min(_MINVAL))
+    return -damping * velocity - stiffness * imp * (pos - margin), imp
+
+
 def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight0) -> torch.Tensor:
     """``[N, nv]`` joint-limit forces: MuJoCo's soft constraint, one row per active limit side.
 
@@ -39,12 +61,8 @@ def limit_force(tree: RigidBodyTree, qpos, qvel, smooth_acc, mass_inv, invweight
     dof, sign = tree.limit_dof, tree.limit_sign
     dist = sign * (qpos[:, tree.dof_qpos[dof]] - tree.limit_value)
     active = dist < tree.limit_margin
-    imp = _impedance(tree.limit_solimp, dist - tree.limit_margin)
-    timeconst, dampratio = tree.limit_solref.unbind(-1)
-    dmax = tree.limit_solimp[:, 1]
-    stiffness = 1 / (dmax * dmax * timeconst * timeconst * dampratio * dampratio).clamp(min=_MINVAL)
-    damping = 2 / (dmax * timeconst).clamp(min=_MINVAL)
-    aref = -damping * sign * qvel[:, dof] - stiffness * imp * (dist - tree.limit_margin)
+    aref, imp = _reference(dist, tree.limit_margin, sign * qvel[:, dof], tree.limit_solref, tree.limit_solimp,
+                           tree.model.timestep)
     regulariser = torch.clamp((1 - imp) * invweight0[:, dof] / imp, min=_MINVAL)
     offset = sign * smooth_acc[:, dof] - aref  # a0 - aref
     diagonal = mass_inv.diagonal(dim1=-2, dim2=-1)[:, dof] + regulariser  # of A + R
