@@ -78,7 +78,7 @@ def test_articulated_tasks_compile_one_physics_step_with_values_and_gradients_of
     eager, compiled, report = eager_and_compiled_windows(env, steps, chunk)
     assert report["fallback_reason"] is None, report
     assert f"physics step ({integrator}), with grad" in report["first_call_seconds"], report
-    assert not integrators._STEPPERS, "the compiled step must be active only inside a chunk"
+    assert integrators.physics_stepper(env.tree) is None, "the compiled step must be active only inside a chunk"
     for key in ("observation", "reward"):
         torch.testing.assert_close(compiled[0]["next", key], eager[0]["next", key], rtol=1e-10, atol=1e-10)
     for got, want in zip(compiled[1], eager[1]):
@@ -109,3 +109,41 @@ def test_inductor_compiled_physics_step_matches_eager():
     torch.testing.assert_close(compiled["action"], eager["action"], rtol=0, atol=0)
     for key in ("observation", "reward"):
         torch.testing.assert_close(compiled["next", key], eager["next", key], rtol=1e-4, atol=1e-5)
+
+
+def test_the_compiled_step_is_held_by_the_tree_and_the_env():
+    """``stepping_with`` sets the tree's own stepper for its block and restores the enclosing
+    one; ``compile_physics`` gives the env its compiled physics, which a wrapper of the env does
+    not share and ``eager_physics`` takes away."""
+    from torchrl.envs import StepCounter, TransformedEnv
+
+    env = make_env("Hopper-v5", num_envs=2, seed=0)
+    state = env.initial_state(env.params, 2)
+    calls = []
+
+    def counting(name):
+        def stepper(tree, *args):
+            calls.append(name)
+            return integrators.eager_step(tree, *args)
+        return stepper
+
+    def one_step():
+        return integrators.step(env.tree, state["qpos"], state["qvel"], torch.zeros(2, 3), env.params, 0.002,
+                                "euler")
+
+    assert integrators.physics_stepper(env.tree) is None
+    with integrators.stepping_with(env.tree, counting("outer")):
+        with integrators.stepping_with(env.tree, counting("inner")):
+            inner = one_step()
+        outer = one_step()
+    assert calls == ["inner", "outer"] and integrators.physics_stepper(env.tree) is None
+    torch.testing.assert_close(inner.qvel, one_step().qvel, rtol=0, atol=0)
+    torch.testing.assert_close(outer.qvel, one_step().qvel, rtol=0, atol=0)
+
+    assert compile_report(env) is None
+    compile_physics(env, steps_per_chunk=2)
+    assert compile_report(env)["steps_per_chunk"] == 2
+    assert compile_report(TransformedEnv(env, StepCounter())) is None  # forwarded attributes are the env's
+    eager_physics(env)
+    assert compile_report(env) is None
+    eager_physics(env)  # again: nothing to undo

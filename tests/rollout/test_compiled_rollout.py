@@ -16,6 +16,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_diffenvs import compile_physics, eager_physics, make_env
 from torchrl_diffenvs.collectors import DiffWindowCollector
 from torchrl_diffenvs.envs.rollout import compile_report
+from torchrl_diffenvs.envs.rollout.compiled import compiled_physics
 from torchrl_diffenvs.modules import make_actor
 
 from _env_helpers import assert_same_tensordict
@@ -138,7 +139,7 @@ def test_a_chunk_with_an_unexpected_termination_is_cut_after_it():
 
     eager, eager_episodes = rollout()
     compile_physics(env, steps_per_chunk=4, backend=BOOKKEEPING)
-    env.__dict__["_compiled_physics"].expect_resets = False  # the first chunk runs without start states
+    compiled_physics(env).expect_resets = False  # the first chunk runs without start states
     try:
         compiled, compiled_episodes = rollout()
     finally:

@@ -13,7 +13,7 @@ from .pipeline import accelerations, invweight0 as constraint_scales
 from .spatial import Params
 from .tree import RigidBodyTree
 
-__all__ = ['StepResult', 'eager_step', 'step', 'stepping_with']
+__all__ = ['StepResult', 'eager_step', 'physics_stepper', 'step', 'stepping_with']
 
 
 class StepResult(NamedTuple):
@@ -26,42 +26,43 @@ class StepResult(NamedTuple):
     contact_force: torch.Tensor | None = None  # [N] the largest contact normal force at the evaluated state
 
 
-#: id(tree) -> the function that runs its physics steps instead of `eager_step` (see
-#: `stepping_with`): how ``compile_physics`` runs one compiled physics step at a time
-_STEPPERS: dict[int, Callable] = {}
-
-
 class stepping_with:  # noqa: N801 (a context manager, used as a function)
     """Within ``with stepping_with(tree, stepper):``, [`step`][torchrl_diffenvs.articulated.step] on ``tree`` calls ``stepper``
     (same arguments, same result) instead of `eager_step`: how
     [`compile_physics`][torchrl_diffenvs.compile_physics] runs the articulated tasks, whose env step is
     ``frame_skip`` physics steps, through one compiled physics step reused at every step (a
     graph ``frame_skip`` times smaller than the env step's, and the same graph for every step of
-    a chunk). Code being traced by ``torch.compile`` always takes the eager step (no nesting)."""
+    a chunk). Code being traced by ``torch.compile`` always takes the eager step (no nesting).
+
+    The stepper is the tree's own ``physics_stepper`` attribute while the block runs (``None``
+    outside, or the enclosing block's): no state outside the tree.
+    """
 
     def __init__(self, tree: RigidBodyTree, stepper: Callable):
-        self.key, self.stepper = id(tree), stepper
+        self.tree, self.stepper = tree, stepper
 
     def __enter__(self):
-        self.previous = _STEPPERS.get(self.key)
-        _STEPPERS[self.key] = self.stepper
+        self.previous = physics_stepper(self.tree)
+        self.tree.physics_stepper = self.stepper
         return self
 
     def __exit__(self, *exc):
-        if self.previous is None:
-            _STEPPERS.pop(self.key, None)
-        else:
-            _STEPPERS[self.key] = self.previous
+        self.tree.physics_stepper = self.previous
         return False
+
+
+def physics_stepper(tree: RigidBodyTree) -> Callable | None:
+    """The function that runs ``tree``'s physics steps instead of `eager_step` (set by
+    `stepping_with`), or ``None``."""
+    return getattr(tree, "physics_stepper", None)
 
 
 def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,
          invweight0=None) -> StepResult:
     """One physics step (`eager_step`, or the stepper `stepping_with` set for ``tree``)."""
-    if _STEPPERS and not torch.compiler.is_compiling():
-        stepper = _STEPPERS.get(id(tree))
-        if stepper is not None:
-            return stepper(tree, qpos, qvel, ctrl, params, dt, integrator, invweight0)
+    stepper = physics_stepper(tree)
+    if stepper is not None and not torch.compiler.is_compiling():
+        return stepper(tree, qpos, qvel, ctrl, params, dt, integrator, invweight0)
     return eager_step(tree, qpos, qvel, ctrl, params, dt, integrator, invweight0)
 
 

@@ -17,7 +17,8 @@ from ...articulated.tree import RigidBodyTree
 from .step import ENV_KEYS, FLAG_KEYS, merge_reset, physics_step
 from .support import fast_rollout_unsupported
 
-__all__ = ["chunk_inputs", "chunk_steps", "compile_physics", "compile_report", "eager_physics"]
+__all__ = ["CompiledPhysics", "chunk_inputs", "chunk_steps", "compile_physics", "compile_report", "compiled_physics",
+           "eager_physics"]
 
 
 def chunk_steps(env: EnvBase, policy, chunk: int, root: dict, extras: dict, actions: list | None,
@@ -285,8 +286,16 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
     if why_not is not None:  # the compiled chunks replace the lean loop: without it nothing would compile
         raise ValueError(f"compile_physics: {type(env).__name__}'s rollouts cannot take the lean path that the "
                          f"compiled chunks replace ({why_not}); multi-agent envs roll out through EnvBase.rollout")
-    env.__dict__["_compiled_physics"] = CompiledPhysics(env, steps_per_chunk, compile_kwargs)
+    env._compiled_physics = CompiledPhysics(env, steps_per_chunk, compile_kwargs)
     return env
+
+
+def compiled_physics(env: EnvBase) -> CompiledPhysics | None:
+    """The `CompiledPhysics` that [`compile_physics`][torchrl_diffenvs.compile_physics] gave ``env`` (its ``_compiled_physics``
+    attribute), or ``None``: its rollouts run eagerly. A wrapper that forwards attributes to the
+    env it wraps (``TransformedEnv``) has none of its own."""
+    compiled = getattr(env, "_compiled_physics", None)
+    return compiled if compiled is not None and compiled.env_ref() is env else None
 
 
 def compile_report(env: EnvBase) -> dict | None:
@@ -299,7 +308,7 @@ def compile_report(env: EnvBase) -> dict | None:
     that called it; the backward's compilation happens in the first ``backward()`` instead),
     and why compiled chunks were given up, if they were.
     """
-    compiled = env.__dict__.get("_compiled_physics")
+    compiled = compiled_physics(env)
     if compiled is None:
         return None
     return {"steps_per_chunk": compiled.steps_per_chunk, "granularity": compiled.granularity,
@@ -309,5 +318,6 @@ def compile_report(env: EnvBase) -> dict | None:
 
 def eager_physics(env: EnvBase) -> EnvBase:
     """Undoes [`compile_physics`][torchrl_diffenvs.compile_physics]; returns ``env``."""
-    env.__dict__.pop("_compiled_physics", None)
+    if compiled_physics(env) is not None:
+        del env._compiled_physics
     return env

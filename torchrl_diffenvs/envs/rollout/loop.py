@@ -24,7 +24,7 @@ from ..._compat import (
     make_compatible_policy,
 )
 from .actions import RandomActions
-from .compiled import chunk_inputs
+from .compiled import chunk_inputs, compiled_physics
 from .output import as_tensordict, build_output, entries_of, set_truncated_last_step
 from .step import ENV_KEYS, merge_reset, physics_step
 from .support import FAST_ROLLOUT_KWARGS, fast_rollout_unsupported  # noqa: F401  (re-exported)
@@ -113,7 +113,7 @@ class _Loop:
         self.bs = env.batch_size
         self.device = env.device
         self.all_false = torch.zeros(self.n, dtype=torch.bool, device=self.device)
-        self.compiled = env.__dict__.get("_compiled_physics")
+        self.compiled = compiled_physics(env)
         self.chunk = 1 if self.compiled is None else self.compiled.steps_per_chunk
         self.check_actions = not isinstance(action_source, RandomActions) or policy is not None  # (ours are valid)
         self.start_table = _StartTable(self)
@@ -138,12 +138,12 @@ class _Loop:
         # value is not finite are the same actions stepped again from the start, with checks (an
         # env that did that once checks every step from then on).
         deferred = (self.policy is None and not break_when_any_done and self.compiled is None
-                    and not self.env.__dict__.get("_nonfinite_seen", False))
+                    and not getattr(self.env, "_nonfinite_seen", False))
         episodes = self.env.episodes
         roots, nexts = self.steps(td0, root, extras, max_steps, break_when_any_done, check=not deferred)
         out_td = build_output(roots, nexts, return_contiguous, self.bs, self.device)
         if deferred and not _output_finite(out_td):
-            self.env.__dict__["_nonfinite_seen"] = True
+            self.env._nonfinite_seen = True  # the env's own flag: it checks every step from now on
             self.env.rng.episodes = episodes
             self.start_table = _StartTable(self)
             self.replay = iter([r["action"] for r in roots])
