@@ -71,7 +71,8 @@ class ContactForceFromState(Transform):
         self.tree = env.tree
 
     def _call(self, tensordict):
-        from torchrl_diffenvs.articulated.dynamics import _contact_points_and_forces, forward_kinematics
+        from torchrl_diffenvs.articulated.contact import _contact_points_and_forces
+        from torchrl_diffenvs.articulated.dynamics import forward_kinematics
 
         with torch.no_grad():
             qpos, qvel = tensordict.get(("state", "qpos")), tensordict.get(("state", "qvel"))

@@ -201,7 +201,7 @@ class _OpenLoop(torch.nn.Module):
 def test_coupled_joint_limits_gradcheck():
     """Swimmer-v5 with both motor joints pushed past their limits at once (two rows solved jointly,
     each pushing): one step's gradient w.r.t. the state, the action and the masses."""
-    from torchrl_diffenvs.articulated.dynamics import _complementary_forces
+    from torchrl_diffenvs.articulated.limits import _complementary_forces
 
     env = make_env("Swimmer-v5", num_envs=2, dtype=torch.float64, seed=0)
     state = env.initial_state(env.params, 2)
@@ -236,8 +236,8 @@ def test_contact_damping_matrix_is_built_from_the_point_jacobians(name):
     kinematics (of the position reached by moving with qvel ``v`` for unit time, at ``v = 0``; the
     Ant's free joint turns in 3D), ``a`` the normal damping while pushing, ``b = mu f_n / slip``;
     C is symmetric positive semi-definite."""
-    from torchrl_diffenvs.articulated.dynamics import (_contact_points_and_forces, contact_force, forward_kinematics,
-                                                       integrate_position)
+    from torchrl_diffenvs.articulated.contact import _contact_points_and_forces
+    from torchrl_diffenvs.articulated.dynamics import contact_force, forward_kinematics, integrate_position
 
     env = make_env(name, num_envs=3, dtype=torch.float64, seed=0)
     tree, params = env.tree, env.params

@@ -333,7 +333,7 @@ def test_jointly_solved_limit_forces_match_brute_force_enumeration():
     path (only coupled envs pivot, early exit) and the fixed-round one torch.compile takes."""
     import itertools
 
-    from torchrl_diffenvs.articulated.dynamics import _complementary_forces, _pivot
+    from torchrl_diffenvs.articulated.limits import _complementary_forces, _pivot
 
     gen = torch.Generator().manual_seed(0)
     n, rows = 200, 6
