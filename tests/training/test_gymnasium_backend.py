@@ -13,7 +13,7 @@ import torch
 gym = pytest.importorskip("gymnasium")
 pytest.importorskip("mujoco")
 
-from _train_helpers import STEPS_PER_ITER, read_jsonl, tiny_cfg, train_script  # noqa: E402
+from _train_helpers import STEPS_PER_ITER, make_cfg, read_jsonl, tiny_cfg, train_script  # noqa: E402
 
 from torchrl_diffenvs.envs.gymnasium_backend import GymnasiumBackedEnv  # noqa: E402
 from torchrl_diffenvs.evaluation import evaluate_in_gymnasium  # noqa: E402
@@ -76,6 +76,12 @@ def test_ppo_trains_on_gymnasium_and_its_evaluation_is_gymnasiums_return(tmp_pat
     policy.load_state_dict(load_checkpoint(tmp_path / "checkpoints" / "last.pt")["policy"])
     theirs = evaluate_in_gymnasium(policy, "HalfCheetah-v5", cfg.eval.num_envs, cfg.eval.seed, 12)  # episodes of 12
     assert final["eval/return"] == pytest.approx(theirs["return"], rel=1e-5)  # TorchRL's float32 rewards
+    # mode=eval plays the checkpoint in Gymnasium's env again (the backend is in its env section)
+    replay = train_script.run(make_cfg("mode=eval", f"checkpoint={tmp_path / 'checkpoints' / 'last.pt'}",
+                                       "logger=none", "eval.gif=false", "eval.num_envs=2", "eval.max_steps=40",
+                                       "eval.gymnasium=true"), tmp_path / "eval")
+    assert replay["eval/return"] == replay["eval/gymnasium_return"]
+    assert replay["eval/return"] == pytest.approx(final["eval/return"], rel=1e-6)  # summed in float32 there
 
 
 def test_a_resumed_run_continues_exactly(tmp_path):
