@@ -90,6 +90,7 @@ def train(s: BaselineSettings) -> dict:
     train_script = _train_script()
     runs, rows = [], []
     root = Path(tempfile.mkdtemp(prefix="gymnasium_baseline_"))
+    print(f"# run directories (metrics, checkpoints): {root}", flush=True)
     for seed in s.seeds:
         for env in s.envs:
             for backend in s.backends:
