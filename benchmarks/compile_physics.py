@@ -69,7 +69,7 @@ def measure(task: str, n: int, mode: str, args) -> dict:
     import torch
 
     from torchrl_diffenvs import compile_physics, make_env
-    from torchrl_diffenvs.envs.fast_rollout import compile_report
+    from torchrl_diffenvs.envs.rollout import compile_report
 
     quick = args.quick
     steps = args.steps or (8 if quick else 32)

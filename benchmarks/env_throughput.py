@@ -207,7 +207,7 @@ def main(argv=None) -> dict:
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     from torchrl_diffenvs import list_envs, make_env
-    from torchrl_diffenvs.envs.fast_rollout import compile_physics
+    from torchrl_diffenvs.envs.rollout import compile_physics
     from torchrl_diffenvs.modules import make_actor
 
     quick = args.quick

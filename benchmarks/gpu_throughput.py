@@ -125,7 +125,7 @@ def measure(task: str, n: int, mode: str, kind: str, args) -> dict:
     import torch
 
     from torchrl_diffenvs import compile_physics, make_env
-    from torchrl_diffenvs.envs.fast_rollout import compile_report
+    from torchrl_diffenvs.envs.rollout import compile_report
 
     row = {"task": task, "N": n, "mode": mode, "kind": kind}
     if mode == "cudagraphs" and kind == "bptt":  # compile_physics compiles windows with gradient without them

@@ -39,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from tqdm.auto import tqdm
 
 from ..distributed import SINGLE_PROCESS, World, parameters_checksum, rank_seed
-from ..envs.fast_rollout import compile_report
+from ..envs.rollout import compile_report
 from ..envs.gymnasium_backend import GymnasiumBackedEnv
 from ..evaluation import evaluate, evaluate_random
 from ..learners import make_learner
