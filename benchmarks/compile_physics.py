@@ -127,7 +127,7 @@ def measure(task: str, n: int, mode: str, args) -> dict:
             "compiled_steps_per_s": rate["compiled"], "ratio": C.median_ratio(cpu["eager"], cpu["compiled"]),
             "first_call_s": first, "steady_call_s": steady, "compile_s": first - steady,
             "first_calls": report["first_call_seconds"], "fallback_reason": report["fallback_reason"],
-            "granularity": envs["compiled"].__dict__["_compiled_physics"].granularity,
+            "granularity": report["granularity"],
             "max_abs_diff": diff, "max_abs_diff_first_step": first_diff, "grad_rel_diff": grad_diff,
             "grad_rel_diff_rounding": rounding_grad_diff, "dtype": args.dtype, "rounds": rounds,
             "cpu_s": {name: C.spread(cpu[name]) for name in cpu}}

@@ -54,7 +54,7 @@ class stepping_with:  # noqa: N801 (a context manager, used as a function)
 def physics_stepper(tree: RigidBodyTree) -> Callable | None:
     """The function that runs ``tree``'s physics steps instead of `eager_step` (set by
     `stepping_with`), or ``None``."""
-    return getattr(tree, "physics_stepper", None)
+    return tree.physics_stepper
 
 
 def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,

@@ -3,6 +3,7 @@ structure, joint axes, contact points, limits) and [`default_params`][torchrl_di
 parameters a model file sets)."""
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,6 +98,8 @@ class RigidBodyTree:
     contact_slots: ContactSlots | None = None
     # how the backward differentiates MuJoCo's constraint solve (see use_contact_gradient)
     contact_gradient: ContactGradient = ContactGradient()
+    # the physics step the integrators call while a compiled rollout runs (see integrators.stepping_with); None: eager
+    physics_stepper: Callable | None = None
 
     def use_contact_model(self, contact: str) -> RigidBodyTree:
         """Set how contacts are simulated: ``"mujoco"`` (MuJoCo's collision, constraint rows and

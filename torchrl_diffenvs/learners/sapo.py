@@ -46,9 +46,8 @@ from ..objectives import GradientGuard, SAPOLoss, TwinCritic
 from .base import LR_SCHEDULES, LearnerConfig, NetworkConfig, checked
 from .short_horizon import CRITIC_SHUFFLES, TwinCriticLearner
 
-# the policy (SquashedNormalActor, make_sapo_actor) lives with the other networks in modules.py; importable
-# from here too (docs/learners/sapo.md)
-__all__ = ["SAPOConfig", "SAPOLearner", "SquashedNormalActor", "make_sapo_actor"]
+# the policy (SquashedNormalActor, make_sapo_actor) lives with the other networks in modules.py
+__all__ = ["SAPOConfig", "SAPOLearner"]
 
 
 @dataclasses.dataclass(frozen=True)
