@@ -4,6 +4,10 @@
   benchmark that measured it), followed by its date, machine and command. Numbers are never
   pasted into the pages: re-running the benchmark rewrites the data file and the next build
   shows the new measurement.
+* ``{{ curves DIR }}`` (or ``{{ curves DIR:FILTER }}``, only the result files whose name holds
+  ``FILTER``) becomes a figure per env of the evaluation returns against env steps of every run
+  in the result files of ``docs/data/runs/DIR/`` (``time_to_solve.py out=``), one line per run,
+  one colour per learner: an inline SVG, drawn here from the runs' curves.
 * ``{{ config_reference }}`` becomes the reference of every learner's settings, read from the
   settings dataclasses themselves (field, default, accepted values, description).
 
@@ -20,6 +24,7 @@ from pathlib import Path
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 TABLE = re.compile(r"\{\{\s*table\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?\s*\}\}")
+CURVES = re.compile(r"\{\{\s*curves\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?\s*\}\}")
 CONFIG_REFERENCE = re.compile(r"\{\{\s*config_reference\s*\}\}")
 DATA_FIELDS = ("measured", "machine", "command", "tables")
 TABLE_FIELDS = ("title", "columns", "rows")
@@ -110,6 +115,92 @@ def render_table(name: str, key: str | None, data_link: str) -> str:
     return note + "\n".join(lines) + "\n\n" + caption + "\n"
 
 
+# --------------------------------------------------------------------------- learning curves
+
+COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f")
+WIDTH, HEIGHT, LEFT, RIGHT, TOP, BOTTOM = 640, 300, 60, 130, 28, 40
+
+
+def load_runs(directory: str, only: str | None) -> list[dict]:
+    """The runs of the result files in ``docs/data/runs/<directory>/`` (whose name holds ``only``)."""
+    folder = DATA_DIR / "runs" / directory
+    files = sorted(p for p in folder.glob("*.json") if only is None or only in p.name) if folder.is_dir() else []
+    if not files:
+        valid = ", ".join(sorted(p.name for p in (DATA_DIR / "runs").iterdir() if p.is_dir()))
+        raise ValueError(f"{{{{ curves {directory} }}}}: no result files in {folder}"
+                         + (f" holding {only!r}" if only else "") + f"; valid folders: {valid}")
+    runs = []
+    for path in files:
+        for run in json.loads(path.read_text()).get("runs", []):
+            if not run.get("curve"):
+                raise ValueError(f"{path}: run {run.get('loss')} seed {run.get('seed')} has no evaluation curve")
+            runs.append(run)
+    return runs
+
+
+def _ticks(low: float, high: float, count: int = 5) -> list[float]:
+    """About ``count`` round values spanning ``[low, high]``."""
+    raw = (high - low) / max(count - 1, 1) or 1.0
+    magnitude = 10 ** int(f"{raw:e}".split("e")[1])
+    step = next(m * magnitude for m in (1, 2, 2.5, 5, 10) if m * magnitude >= raw)
+    first = step * -(-low // step)
+    return [first + i * step for i in range(int((high - first) // step) + 1)]
+
+
+def _label(value: float) -> str:
+    return f"{value / 1000:g}k" if abs(value) >= 1000 else f"{value:g}"
+
+
+def render_curves(directory: str, only: str | None) -> str:
+    """``{{ curves DIR }}``: per env, an SVG of every run's evaluation return against env steps."""
+    runs = load_runs(directory, only)
+    figures = []
+    for env in dict.fromkeys(r["env"] for r in runs):
+        group = [r for r in runs if r["env"] == env]
+        labels = list(dict.fromkeys(f"{r['loss']}:{r['variant']}" if r.get("variant") else r["loss"] for r in group))
+        colour = {label: COLOURS[i % len(COLOURS)] for i, label in enumerate(labels)}
+        xs = [p[0] for r in group for p in r["curve"]]
+        ys = [p[2] for r in group for p in r["curve"]]
+        x_ticks, y_ticks = _ticks(0, max(xs)), _ticks(min(ys), max(ys))
+        x_low, x_high = 0, max(max(xs), x_ticks[-1])
+        y_low, y_high = min(min(ys), y_ticks[0]), max(max(ys), y_ticks[-1])
+        width, height = WIDTH - LEFT - RIGHT, HEIGHT - TOP - BOTTOM
+
+        def x(value):
+            return LEFT + width * (value - x_low) / ((x_high - x_low) or 1)
+
+        def y(value):
+            return TOP + height * (1 - (value - y_low) / ((y_high - y_low) or 1))
+
+        parts = [f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {WIDTH} {HEIGHT}" role="img" '
+                 f'style="max-width:{WIDTH}px;width:100%;font:11px sans-serif">',
+                 f'<title>{env}: evaluation return against env steps, every run</title>',
+                 f'<text x="{LEFT}" y="16" font-weight="bold">{env}</text>']
+        for tick in y_ticks:
+            parts.append(f'<line x1="{LEFT}" x2="{LEFT + width}" y1="{y(tick):.1f}" y2="{y(tick):.1f}" stroke="#ddd"/>'
+                         f'<text x="{LEFT - 6}" y="{y(tick) + 4:.1f}" text-anchor="end">{_label(tick)}</text>')
+        for tick in x_ticks:
+            parts.append(f'<text x="{x(tick):.1f}" y="{TOP + height + 16}" text-anchor="middle">{_label(tick)}</text>')
+        parts.append(f'<text x="{LEFT + width / 2}" y="{HEIGHT - 6}" text-anchor="middle">env steps</text>')
+        parts.append(f'<text transform="translate(14 {TOP + height / 2}) rotate(-90)" text-anchor="middle">'
+                     'evaluation return</text>')
+        for run in group:
+            label = f"{run['loss']}:{run['variant']}" if run.get("variant") else run["loss"]
+            points = " ".join(f"{x(p[0]):.1f},{y(p[2]):.1f}" for p in run["curve"])
+            parts.append(f'<polyline points="{points}" fill="none" stroke="{colour[label]}" stroke-width="1.5" '
+                         f'stroke-opacity="0.8"><title>{label}, seed {run["seed"]}</title></polyline>')
+        for i, label in enumerate(labels):
+            top = TOP + 14 * i
+            parts.append(f'<line x1="{LEFT + width + 12}" x2="{LEFT + width + 30}" y1="{top + 6}" y2="{top + 6}" '
+                         f'stroke="{colour[label]}" stroke-width="2"/>'
+                         f'<text x="{LEFT + width + 34}" y="{top + 10}">{label}</text>')
+        parts.append("</svg>")
+        seeds = len({r["seed"] for r in group})
+        figures.append("".join(parts) + f"\n\n*{env}: the evaluation return of every run against its env steps "
+                       f"({seeds} seed{'s' if seeds > 1 else ''} per learner; one line per run).*\n")
+    return "\n".join(figures)
+
+
 # --------------------------------------------------------------------------- config reference
 
 def _field_comments(cls) -> dict[str, str]:
@@ -198,6 +289,7 @@ def render_config_reference() -> str:
 def on_page_markdown(markdown: str, page, config, files) -> str:
     data_link = "../" * page.file.src_uri.count("/") + "data/"
     markdown = TABLE.sub(lambda m: render_table(m.group(1), m.group(2), data_link), markdown)
+    markdown = CURVES.sub(lambda m: render_curves(m.group(1), m.group(2)), markdown)
     if CONFIG_REFERENCE.search(markdown):
         markdown = CONFIG_REFERENCE.sub(lambda m: render_config_reference(), markdown)
     return markdown
