@@ -321,7 +321,7 @@ def test_gradient_health_quick(tmp_path):
 def test_gradient_health_reports_each_contact_gradient_mode(tmp_path):
     rows = load("gradient_health").main(["quick=true", "mode=contact_gradients", "tasks=[HalfCheetah-v5]",
                                          f"out={tmp_path / 'g.json'}", "data=none"])
-    assert [r[1] for r in rows] == ["exact", "cfd", "smooth"]
+    assert [r[1] for r in rows] == ["exact", "cfd", "smooth", "penalty"]
     assert all(0 < float(r[2]) < float("inf") for r in rows)
     assert len({r[4] for r in rows}) == 1  # the same forward: the same largest contact force in every mode
 
