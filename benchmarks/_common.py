@@ -278,3 +278,27 @@ def tanh_mlp_policy(env, dtype, seed: int = 0):
     net = net.to(device=env.device, dtype=dtype)
     scale = float(env.action_spec.space.high.flatten()[0])
     return net, TensorDictModule(lambda obs: net(obs) * scale, in_keys=["observation"], out_keys=["action"])
+
+
+TRAIN_SCRIPT = Path(__file__).resolve().parent.parent / "sota_scripts" / "train.py"
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+def load_train_script():
+    """``sota_scripts/train.py`` as a module: its ``run(cfg, run_dir, overrides)`` trains one configuration."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("train_script", TRAIN_SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def compose(overrides: list[str]):
+    """The training script's configuration for these command-line overrides, composed by Hydra as the
+    command line composes it (after :func:`load_train_script` has registered the generated sections)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return hydra_compose(config_name="config", overrides=overrides)

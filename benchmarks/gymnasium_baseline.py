@@ -31,7 +31,6 @@ Arguments are ``key=value`` (lists as ``[a,b]``). Results: ``benchmarks/results/
 from __future__ import annotations
 
 import functools
-import importlib.util
 import json
 import statistics
 import sys
@@ -48,9 +47,6 @@ from torchrl_diffenvs import checks  # noqa: E402
 from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 from torchrl_diffenvs.envs.gymnasium_backend import ENV_BACKENDS  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
-SCRIPT = ROOT / "sota_scripts" / "train.py"
-CONFIGS = ROOT / "configs"
 HEADERS = ["env", "backend", "seed", "env steps", "wall s", "steps/s", "train steps/s", "CPU s", "steps/CPU s",
            "eval return", "Gymnasium return"]
 
@@ -70,24 +66,9 @@ class BaselineSettings(C.BenchmarkSettings):
     candidate: int | None = None  # internal: the batching a child process times
 
 
-def _train_script():
-    spec = importlib.util.spec_from_file_location("train_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def compose(overrides: list[str]):
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return hydra_compose(config_name="config", overrides=overrides)
-
-
 def train(s: BaselineSettings) -> dict:
     """``mode=train``: every (seed, env, backend) run, back to back; returns the JSON payload."""
-    train_script = _train_script()
+    train_script = C.load_train_script()
     runs, rows = [], []
     root = Path(tempfile.mkdtemp(prefix="gymnasium_baseline_"))
     print(f"# run directories (metrics, checkpoints): {root}", flush=True)
@@ -101,7 +82,7 @@ def train(s: BaselineSettings) -> dict:
                     overrides += ["env.num_envs=4", "loss.rollout_len=8", "eval.num_envs=2", "eval.max_steps=20",
                                   "train.total_env_steps=64"]
                 run_dir = root / f"{env}_{backend}_seed{seed}"
-                cfg, results = compose(overrides), []
+                cfg, results = C.compose(overrides), []
                 wall, cpu = C.timed(lambda: results.append(train_script.run(cfg, run_dir, overrides)))
                 result = results[0]
                 history = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]

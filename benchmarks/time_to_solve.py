@@ -36,7 +36,6 @@ median of a race whose PPO runs are not among the summarised files::
 """
 from __future__ import annotations
 
-import importlib.util
 import itertools
 import math
 import shutil
@@ -53,9 +52,7 @@ import _common as C  # noqa: E402
 from torchrl_diffenvs import checks  # noqa: E402
 from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
-SCRIPT = ROOT / "sota_scripts" / "train.py"
-CONFIGS = ROOT / "configs"
+SCRIPT = C.TRAIN_SCRIPT
 LOSSES = ("shac", "bptt", "ppo", "sac", "ahac", "sapo")
 DEFAULT_LOSSES = ("shac", "bptt", "ppo", "sac")  # the swing-up race; AHAC and SAPO need contact or time
 
@@ -79,18 +76,7 @@ QUICK = {
 def load_train_script():
     if not SCRIPT.exists():
         raise SystemExit(f"time_to_solve: waiting on the training script: {SCRIPT} does not exist yet")
-    spec = importlib.util.spec_from_file_location("train_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def compose(overrides: list[str]):
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return hydra_compose(config_name="config", overrides=overrides)
+    return C.load_train_script()
 
 
 def eval_curve(run_dir: Path) -> list[tuple[int, float, float]]:
@@ -389,7 +375,7 @@ def main(argv=None) -> dict:
                 overrides += args.override + variant_overrides
                 run_dir = runs_root / f"{env}_{loss}{'_' + variant if variant else ''}_seed{seed}"
                 try:
-                    cfg = compose(overrides)
+                    cfg = C.compose(overrides)
                 except Exception as error:  # Hydra's composition errors name the override
                     raise SystemExit(f"time_to_solve: the run {env} {loss} {variant or ''} seed {seed} does not "
                                      f"compose ({' '.join(overrides)}): {error}") from None

@@ -373,3 +373,14 @@ def test_compile_physics_renders_one_data_file_from_earlier_runs(tmp_path):
     assert rows[0][-2] == "still compiling after 5 s"
     assert rows[1][3:7] == ["float64", "400", "720", "1.8x"]
     assert rows[1][-1] == "9.1e-12 / 0.091"
+
+
+def test_gymnasium_baseline_quick_trains_on_both_backends(tmp_path):
+    """Tuned PPO on our env and on Gymnasium's own, back to back: the gymnasium-backed run's
+    evaluation is Gymnasium's return, so its ``eval/gymnasium_return`` is its ``eval/return``."""
+    payload = load("gymnasium_baseline").main(["quick=true", f"out={tmp_path / 'gb.json'}"])
+    runs = {r["backend"]: r for r in payload["runs"]}
+    assert set(runs) == {"torchrl_diffenvs", "gymnasium"}
+    for run in runs.values():
+        assert run["env_steps"] == 64 and run["steps_per_s"] > 0
+    assert runs["gymnasium"]["eval/gymnasium_return"] == runs["gymnasium"]["eval/return"]
