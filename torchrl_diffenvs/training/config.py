@@ -20,7 +20,7 @@ from ..checks import is_number
 from ..envs import env_config, is_multi_agent, list_envs, make_env
 from ..envs.gymnasium_backend import ENV_BACKENDS, GRADIENT_FREE_LOSSES, GymnasiumBackedEnv, gymnasium_env_problems
 from ..learners import LEARNERS
-from .settings import RUN_SECTIONS, register_run_configs
+from .settings import LOGGERS, RUN_SECTIONS, WANDB_MODES, LoggerSettings, register_run_configs
 from ..modules import privileged_inputs
 
 __all__ = [
@@ -47,8 +47,6 @@ __all__ = [
 ]
 
 LOSSES = tuple(LEARNERS)  # the built-in learners (register_learner adds to LEARNERS)
-LOGGERS = ("wandb", "csv", "none")
-WANDB_MODES = ("offline", "online", "disabled")
 MODES = ("train", "eval")
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -307,11 +305,11 @@ def validate_config(cfg: DictConfig) -> None:
     loss_name = cfg.loss.get("name")
     if loss_name not in LEARNERS:
         problems.append(f"loss.name={loss_name!r}: unknown loss; valid: {', '.join(LEARNERS)}")
-    backend = cfg.logger.get("backend")
-    if backend not in LOGGERS:
-        problems.append(f"logger.backend={backend!r}: valid: {', '.join(LOGGERS)}")
-    elif backend == "wandb" and cfg.logger.get("mode") not in WANDB_MODES:
-        problems.append(f"logger.mode={cfg.logger.get('mode')!r}: valid: {', '.join(WANDB_MODES)}")
+    logger = cfg.get("logger")
+    if isinstance(logger, (DictConfig, Mapping)):
+        problems.extend(LoggerSettings.problems(_plain(logger), "logger."))
+    else:
+        problems.append(f"logger={logger!r}: expected a section of settings ({', '.join(LoggerSettings.defaults())})")
 
     for resolver, key in ((resolve_device, "device"), (resolve_dtype, "dtype")):
         try:

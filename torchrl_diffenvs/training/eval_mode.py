@@ -18,6 +18,7 @@ from ..evaluation import episode_returns, evaluate_in_gymnasium, evaluate_random
 from ..learners import LEARNERS
 from .checkpoint import load_checkpoint
 from .config import ConfigError, check_gymnasium_eval, env_backend, make_env_from_config
+from .settings import EvalSettings, RunSettings
 
 __all__ = ["chunk_length", "evaluate_checkpoint", "exploration_of", "gymnasium_scores", "json_report", "write_video"]
 
@@ -29,19 +30,19 @@ def chunk_length(steps: int, longest: int = 8) -> int:
     return max(k for k in range(1, longest + 1) if steps % k == 0)
 
 
-def exploration_of(cfg: DictConfig) -> ExplorationType:
+def exploration_of(settings: EvalSettings) -> ExplorationType:
     """``eval.deterministic``: the mean action (default) or sampled actions."""
-    return ExplorationType.DETERMINISTIC if cfg.eval.get("deterministic", True) else ExplorationType.RANDOM
+    return ExplorationType.DETERMINISTIC if settings.deterministic else ExplorationType.RANDOM
 
 
-def gymnasium_scores(cfg: DictConfig, policy, steps: int, episodes: int | None = None) -> dict:
-    """``eval.gymnasium=true``: ``policy`` played in Gymnasium's own env of ``cfg.env`` (for a MuJoCo
-    task, MuJoCo's forward), ``episodes`` (default ``eval.num_envs``) full episodes from seeds
-    ``eval.seed + i``: ``{"eval/gymnasium_return": ..., "eval/gymnasium_return_std": ..., ...}``."""
-    options = OmegaConf.to_container(cfg.env.options, resolve=True) if cfg.env.get("options") else {}
-    scores = evaluate_in_gymnasium(policy, cfg.env.name, episodes or cfg.eval.num_envs, cfg.eval.seed, steps,
-                                   options=options, dtype=getattr(torch, cfg.dtype), device=cfg.device,
-                                   exploration_type=exploration_of(cfg))
+def gymnasium_scores(run: RunSettings, env_options: Mapping, policy, steps: int, episodes: int | None = None) -> dict:
+    """``eval.gymnasium=true``: ``policy`` played in Gymnasium's own env of the run's task with its
+    ``env.options`` (for a MuJoCo task, MuJoCo's forward), ``episodes`` (default ``eval.num_envs``)
+    full episodes from seeds ``eval.seed + i``: ``{"eval/gymnasium_return": ...,
+    "eval/gymnasium_return_std": ..., ...}``."""
+    scores = evaluate_in_gymnasium(policy, run.env_name, episodes or run.eval.num_envs, run.eval.seed, steps,
+                                   options=dict(env_options), dtype=run.torch_dtype, device=run.device,
+                                   exploration_type=exploration_of(run.eval))
     return {f"eval/gymnasium_{k}": v for k, v in scores.items() if k not in ("returns", "lengths")}
 
 
@@ -79,29 +80,29 @@ def json_report(result: Mapping, reasons: Mapping[str, str] | None = None) -> st
     return json.dumps(clean, indent=2, allow_nan=False) + "\n"
 
 
-def write_video(cfg: DictConfig, env, policy, steps: int, stem: Path) -> Path | None:
+def write_video(settings: EvalSettings, env, policy, steps: int, stem: Path) -> Path | None:
     """The policy's video, ``<stem>.gif`` or ``<stem>.mp4`` (``eval.video_format``; MP4 falls back to
     GIF with a warning when imageio-ffmpeg is missing); a failure to draw (e.g. Pillow missing)
     warns instead of losing the run."""
     from ..rendering import mp4_available  # lazy: Pillow is an optional extra
 
-    video_format = cfg.eval.get("video_format", "gif")
+    video_format = settings.video_format
     if video_format == "mp4" and not mp4_available():
         warnings.warn('eval.video_format=mp4 needs imageio-ffmpeg (pip install "torchrl_diffenvs[video]"); '
                       "writing a GIF instead", stacklevel=2)
         video_format = "gif"
-    video = dict(env_index=cfg.eval.gif_env_index, fps=cfg.eval.gif_fps, size=cfg.eval.gif_size,
-                 exploration_type=exploration_of(cfg))
+    video = dict(env_index=settings.gif_env_index, fps=settings.gif_fps, size=settings.gif_size,
+                 exploration_type=exploration_of(settings))
     if isinstance(env, GymnasiumBackedEnv):  # drawn by Gymnasium's own renderer (MuJoCo's needs OpenGL)
         try:
-            return env.record_video(policy, steps, cfg.eval.seed, stem.with_suffix(f".{video_format}"), **video)
+            return env.record_video(policy, steps, settings.seed, stem.with_suffix(f".{video_format}"), **video)
         except Exception as err:  # noqa: BLE001 - MuJoCo's renderer fails in many ways without a display
             warnings.warn(f"no video written: Gymnasium's renderer failed ({type(err).__name__}: {err}); on a "
                           "machine without a display set MUJOCO_GL=egl (or osmesa), or pass eval.gif=false",
                           stacklevel=2)
             return None
     try:
-        return record_video(env, policy, steps, cfg.eval.seed, stem.with_suffix(f".{video_format}"), **video)
+        return record_video(env, policy, steps, settings.seed, stem.with_suffix(f".{video_format}"), **video)
     except (ImportError, ValueError, KeyError) as err:
         warnings.warn(f"no video written ({type(err).__name__}: {err})", stacklevel=2)
         return None
@@ -148,28 +149,30 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
     cfg = cfg.copy()
     with open_dict(cfg):  # whole sections replaced, not merged: the trained env may have other options
         cfg.env, cfg.loss, cfg.dtype = env_section, trained.loss, trained.dtype
+    run = RunSettings.from_config(cfg)
+    evaluation = run.eval
     in_gymnasium = env_backend(cfg.env) == "gymnasium"  # the env below is Gymnasium's own already
-    if cfg.eval.gymnasium and not in_gymnasium:
+    if evaluation.gymnasium and not in_gymnasium:
         problems: list[str] = []
         check_gymnasium_eval(cfg.env, problems)
         if problems:
-            raise ConfigError(f"checkpoint={str(cfg.checkpoint)!r}: " + "; ".join(problems))
+            raise ConfigError(f"checkpoint={run.checkpoint!r}: " + "; ".join(problems))
     try:
-        env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed)
+        env = make_env_from_config(cfg, evaluation.num_envs, seed=evaluation.seed)
     except (ValueError, TypeError, KeyError) as err:
-        raise ConfigError(f"env overrides {changed} rejected by env {cfg.env.name!r} of checkpoint="
-                          f"{str(cfg.checkpoint)!r}: {err}") from None
-    steps = cfg.eval.max_steps or env.max_episode_steps
-    policy = LEARNERS[cfg.loss.name].policy_from_config(cfg.loss, env)
+        raise ConfigError(f"env overrides {changed} rejected by env {run.env_name!r} of checkpoint="
+                          f"{run.checkpoint!r}: {err}") from None
+    steps = evaluation.max_steps or env.max_episode_steps
+    policy = LEARNERS[run.loss_name].policy_from_config(cfg.loss, env)
     policy.load_state_dict(ckpt["policy"])
-    if cfg.get("compile"):
+    if run.compile:
         compile_physics(env, steps_per_chunk=chunk_length(steps))
     # rl_games' player: eval.games_num episodes, played eval.num_envs at a time from successive seeds
-    games = int(cfg.eval.get("games_num") or cfg.eval.num_envs)
+    games = evaluation.games_num or evaluation.num_envs
     returns, lengths, terminated = [], [], []
-    for round_index in range(-(-games // cfg.eval.num_envs)):
-        env.set_seed(cfg.eval.seed + round_index)
-        with torch.no_grad(), set_exploration_type(exploration_of(cfg)):
+    for round_index in range(-(-games // evaluation.num_envs)):
+        env.set_seed(evaluation.seed + round_index)
+        with torch.no_grad(), set_exploration_type(exploration_of(evaluation)):
             rollout = env.rollout(steps, policy, break_when_any_done=False)
         returns.extend(episode_returns(rollout, env.reward_key).double().tolist())
         length, ended = first_episode_ends(rollout)
@@ -179,25 +182,27 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
     scores = {"return": returns.mean().item(), "return_std": returns.std(unbiased=False).item(),
               "return_min": returns.min().item(), "return_max": returns.max().item(),
               "episode_length": sum(lengths[:games]) / games, "terminated": sum(terminated[:games]) / games}
-    result = {"env": cfg.env.name, "loss": cfg.loss.name, "checkpoint": str(cfg.checkpoint),
+    result = {"env": run.env_name, "loss": run.loss_name, "checkpoint": run.checkpoint,
               "trained_env_steps": ckpt["progress"]["env_steps"], "eval_steps": steps, "games": games,
               "env_overrides": changed,
               "returns": returns.tolist(), "episode_lengths": lengths[:games],
-              "deterministic": bool(cfg.eval.get("deterministic", True)),
-              "eval/random_return": evaluate_random(env, steps, cfg.eval.seed),
+              "deterministic": evaluation.deterministic,
+              "eval/random_return": evaluate_random(env, steps, evaluation.seed),
               **{f"eval/{k}": v for k, v in scores.items()}}
-    if cfg.eval.gymnasium and in_gymnasium:  # the scores above are Gymnasium's own env's
+    if evaluation.gymnasium and in_gymnasium:  # the scores above are Gymnasium's own env's
         result.update({f"eval/gymnasium_{k}": v for k, v in scores.items()})
-    elif cfg.eval.gymnasium:
-        result.update(gymnasium_scores(cfg, policy, steps, games))
+    elif evaluation.gymnasium:
+        options = cfg.env.get("options")
+        options = OmegaConf.to_container(options, resolve=True) if options else {}
+        result.update(gymnasium_scores(run, options, policy, steps, games))
     run_dir.mkdir(parents=True, exist_ok=True)
-    if cfg.eval.gif:
-        video = write_video(cfg, env, policy, steps, run_dir / "eval")
+    if evaluation.gif:
+        video = write_video(evaluation, env, policy, steps, run_dir / "eval")
         result["video"] = str(video) if video else None
     (run_dir / "eval_metrics.json").write_text(json_report(result))
     in_gymnasium = (f"; in Gymnasium's own env {result['eval/gymnasium_return']:.4g}"
                     if "eval/gymnasium_return" in result else "")
-    log.info(f"{cfg.env.name} {cfg.loss.name} ({cfg.checkpoint}): eval return {scores['return']:.4g} "
+    log.info(f"{run.env_name} {run.loss_name} ({run.checkpoint}): eval return {scores['return']:.4g} "
              f"+- {scores['return_std']:.3g} over {games} games (random policy "
              f"{result['eval/random_return']:.4g}){in_gymnasium}; outputs in {run_dir}")
     return result

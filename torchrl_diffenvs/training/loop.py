@@ -25,6 +25,7 @@ message; a second Ctrl-C stops at once (the last checkpoint written stays the on
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -63,6 +64,7 @@ from .eval_mode import chunk_length, evaluate_checkpoint, gymnasium_scores, json
 from .interrupts import StopRequests, TrainingInterrupted
 from .run_logger import RunLogger, plot_learning_curve, read_history
 from .selfplay import SelfPlay
+from .settings import RunSettings
 
 __all__ = ["Trainer", "TrainingInterrupted", "run", "seed_everything", "train"]
 
@@ -88,7 +90,7 @@ def run(cfg: DictConfig, run_dir: str | Path, overrides: Sequence[str] = ()) -> 
     validate_config(cfg)
     world = join_world(cfg)
     try:
-        if cfg.mode == "eval":
+        if RunSettings.from_config(cfg).mode == "eval":
             result = evaluate_checkpoint(cfg, Path(run_dir), overrides) if world.is_main else None
             return world.broadcast_object(result)
         return train(cfg, Path(run_dir), overrides, world)
@@ -105,7 +107,8 @@ def join_world(cfg: DictConfig) -> World:
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and in_multirun:
         raise ConfigError("a multirun (-m) cannot run under torchrun: launch one torchrun per configuration, or "
                           "sweep single-process runs with a launcher (hydra/launcher=joblib or submitit_local)")
-    return World.from_environment(resolve_device(cfg.device), timeout_s=float(cfg.distributed.timeout_s))
+    run = RunSettings.from_config(cfg)
+    return World.from_environment(resolve_device(run.device), timeout_s=run.distributed.timeout_s)
 
 
 def seed_everything(seed: int) -> None:
@@ -136,31 +139,36 @@ class Trainer:
 
     def __init__(self, cfg: DictConfig, run_dir: Path, overrides: Sequence[str] = (), world: World = SINGLE_PROCESS):
         world.check_same(OmegaConf.to_yaml(cfg, resolve=True), "configuration")
+        # what this loop reads, typed; cuda -> cuda:<local rank>
+        run = RunSettings.from_config(cfg)
+        self.settings = run = dataclasses.replace(run, device=str(world.device(resolve_device(run.device))))
         cfg = cfg.copy()
         with open_dict(cfg):  # recorded in the checkpoints' config and the logger's hyperparameters
             cfg.distributed.world_size, cfg.distributed.backend = world.size, world.backend
-            cfg.device = str(world.device(resolve_device(cfg.device)))  # cuda -> cuda:<local rank>
+            cfg.device = run.device
         self.cfg, self.run_dir, self.world = cfg, Path(run_dir), world
+        options = cfg.env.get("options")
+        self.env_options = OmegaConf.to_container(options, resolve=True) if options else {}  # eval.gymnasium
         self.overrides = [o for o in overrides if not o.startswith(_PER_INVOCATION)]
         self.ckpt_dir = self.run_dir / "checkpoints"
         self.logger: RunLogger | None = None
 
         # ------------------------------------------------------------ envs, learner, opponents
-        seed_everything(cfg.seed)  # the same networks on every rank
-        self.env = make_env_from_config(cfg, cfg.env.num_envs, seed=rank_seed(cfg.seed, world.rank))
-        self.learner = make_learner(cfg.loss, self.env, cfg.train.total_env_steps, world)
+        seed_everything(run.seed)  # the same networks on every rank
+        self.env = make_env_from_config(cfg, cfg.env.num_envs, seed=rank_seed(run.seed, world.rank))
+        self.learner = make_learner(cfg.loss, self.env, run.train.total_env_steps, world)
         world.check_same(parameters_checksum(self.learner.policy.state_dict().values()), "initial policy")
         if not world.is_main:  # its own exploration noise and minibatch order (rank 0 goes on as one process would)
-            seed_everything(rank_seed(cfg.seed, world.rank))
+            seed_everything(rank_seed(run.seed, world.rank))
         self.selfplay = None
-        if cfg.selfplay.refresh_interval is not None:  # the opponent: snapshots of the policy (rl_games' self-play)
-            self.selfplay = SelfPlay(self.env, self.learner.policy, cfg.selfplay.refresh_interval,
-                                     cfg.selfplay.pool_size, seed=cfg.seed)
-        self.eval_env = make_env_from_config(cfg, cfg.eval.num_envs, seed=cfg.eval.seed) if world.is_main else None
-        self.eval_steps = cfg.eval.max_steps or (self.eval_env or self.env).max_episode_steps
-        if cfg.get("compile"):
+        if run.selfplay.refresh_interval is not None:  # the opponent: snapshots of the policy (rl_games' self-play)
+            self.selfplay = SelfPlay(self.env, self.learner.policy, run.selfplay.refresh_interval,
+                                     run.selfplay.pool_size, seed=run.seed)
+        self.eval_env = make_env_from_config(cfg, run.eval.num_envs, seed=run.eval.seed) if world.is_main else None
+        self.eval_steps = run.eval.max_steps or (self.eval_env or self.env).max_episode_steps
+        if run.compile:
             self._compile()
-        self.total = int(cfg.train.total_env_steps)
+        self.total = run.train.total_env_steps
         if world.size > 1:
             log.info(f"data parallel: {world.size} ranks ({world.backend}), env.num_envs={cfg.env.num_envs} per rank "
                      f"({cfg.env.num_envs * world.size} in all), "
@@ -168,28 +176,29 @@ class Trainer:
 
         # ------------------------------------------------------------ counters (saved in checkpoints)
         self.progress = {"iteration": 0, "env_steps": 0, "wall_time_s": 0.0, "next_eval": 0,
-                         "next_checkpoint": int(cfg.train.checkpoint_interval), "logged_rows": 0,
+                         "next_checkpoint": run.train.checkpoint_interval, "logged_rows": 0,
                          "last": {"eval/return": math.nan, "train/return": math.nan}}
         history, wandb_run_id = [], None
         if world.is_main:
             remove_stale_temp_files(self.ckpt_dir)
-        if cfg.get("resume"):
+        if run.resume:
             try:
-                history, wandb_run_id = self._resume(Path(cfg.resume))
+                history, wandb_run_id = self._resume(Path(run.resume))
             except BaseException:
                 self.learner.close()  # its collector, if any, before the error leaves
                 raise
         if world.is_main:  # rank 0 alone writes the run directory
-            self.logger = RunLogger(cfg, self.run_dir, history, wandb_run_id)
+            self.logger = RunLogger(run.logger, self.run_dir, history, wandb_run_id,
+                                    hyperparameters=OmegaConf.to_container(cfg, resolve=True))
 
     # ------------------------------------------------------------------ the loop
     def fit(self) -> dict:
         """Trains until the budget is spent (or ``train.score_to_win`` is reached); returns the
         final metrics."""
-        cfg, progress, last = self.cfg, self.progress, self.progress["last"]
+        run, progress, last = self.settings, self.progress, self.progress["last"]
         bar = tqdm(total=self.total, initial=min(progress["env_steps"], self.total), unit="step", unit_scale=True,
-                   dynamic_ncols=True, disable=not (cfg.train.progress_bar and self.world.is_main),
-                   desc=f"{cfg.env.name} {cfg.loss.name}")
+                   dynamic_ncols=True, disable=not (run.train.progress_bar and self.world.is_main),
+                   desc=f"{run.env_name} {run.loss_name}")
         start = time.perf_counter() - progress["wall_time_s"]
         with StopRequests() as stop, bar:
             try:
@@ -197,10 +206,10 @@ class Trainer:
                     if progress["env_steps"] >= progress["next_eval"]:
                         self.evaluate()
                         while progress["next_eval"] <= progress["env_steps"]:
-                            progress["next_eval"] += int(cfg.eval.interval)
+                            progress["next_eval"] += run.eval.interval
                     if progress["env_steps"] >= progress["next_checkpoint"]:
                         while progress["next_checkpoint"] <= progress["env_steps"]:
-                            progress["next_checkpoint"] += int(cfg.train.checkpoint_interval)
+                            progress["next_checkpoint"] += run.train.checkpoint_interval
                         self.checkpoint()
                     if progress["env_steps"] >= self.total or progress.get("won"):
                         break
@@ -239,10 +248,10 @@ class Trainer:
             metrics.update(self.selfplay.metrics())
         progress["iteration"] += 1
         progress["env_steps"] += self.learner.env_steps_per_iteration  # all ranks'
-        logging_now = progress["iteration"] % self.cfg.train.log_interval == 0
+        logging_now = progress["iteration"] % self.settings.train.log_interval == 0
         if logging_now:  # a collective: only when a row is logged
             metrics = self.world.mean_metrics(metrics)
-        if self.cfg.get("compile") and progress["iteration"] == 1 and self.world.is_main:
+        if self.settings.compile and progress["iteration"] == 1 and self.world.is_main:
             self._report_compile(time.perf_counter() - tic)
         return metrics, logging_now
 
@@ -252,33 +261,33 @@ class Trainer:
 
     def evaluate(self) -> None:
         """Rank 0 evaluates; every rank learns its verdicts (best so far? won?) and acts on them."""
-        cfg, progress, last = self.cfg, self.progress, self.progress["last"]
+        run, progress, last = self.settings, self.progress, self.progress["last"]
         score = None
         if self.world.is_main:
             if "eval/random_return" not in last:
-                last["eval/random_return"] = evaluate_random(self.eval_env, self.eval_steps, cfg.eval.seed)
+                last["eval/random_return"] = evaluate_random(self.eval_env, self.eval_steps, run.eval.seed)
                 self.log({"eval/random_return": last["eval/random_return"]})
-            scores = evaluate(self.eval_env, self.learner.policy, self.eval_steps, cfg.eval.seed)
+            scores = evaluate(self.eval_env, self.learner.policy, self.eval_steps, run.eval.seed)
             score = last["eval/return"] = scores["return"]
             last["eval/episode_length"], last["eval/terminated"] = scores["episode_length"], scores["terminated"]
             self.log({f"eval/{k}": v for k, v in scores.items()})
-            if cfg.eval.gymnasium and isinstance(self.eval_env, GymnasiumBackedEnv):
+            if run.eval.gymnasium and isinstance(self.eval_env, GymnasiumBackedEnv):
                 # env.backend=gymnasium: the evaluation just played is Gymnasium's own env, from the
                 # seeds evaluate_in_gymnasium uses (env i from eval.seed + i): the same scores
                 theirs = {f"eval/gymnasium_{k}": v for k, v in scores.items() if k in GYMNASIUM_SCORES}
-            elif cfg.eval.gymnasium:  # the same policy in Gymnasium's own env (MuJoCo's forward)
-                theirs = gymnasium_scores(cfg, self.learner.policy, self.eval_steps)
-            if cfg.eval.gymnasium:
+            elif run.eval.gymnasium:  # the same policy in Gymnasium's own env (MuJoCo's forward)
+                theirs = gymnasium_scores(run, self.env_options, self.learner.policy, self.eval_steps)
+            if run.eval.gymnasium:
                 last["eval/gymnasium_return"] = theirs["eval/gymnasium_return"]
                 self.log(theirs)
         score = self.world.broadcast_object(score)
         progress["last_eval"] = progress["env_steps"]
-        best_after = cfg.train.get("save_best_after")
+        best_after = run.train.save_best_after
         if best_after is not None and progress["env_steps"] >= best_after and \
                 score > progress.get("best_eval_return", -math.inf):
             progress["best_eval_return"] = score  # set first: best.pt records itself as the best
             self.checkpoint("best.pt")
-        win = cfg.train.get("score_to_win")
+        win = run.train.score_to_win
         if win is not None and score >= win and not progress.get("won"):
             progress["won"] = True
             log.info(f"evaluation return {score:.4g} >= train.score_to_win={win}: stopping at env step "
@@ -316,7 +325,7 @@ class Trainer:
         path = save_checkpoint(state, self.ckpt_dir / f"ckpt_{self.progress['env_steps']:012d}.pt")
         atomic_copy(path, self.ckpt_dir / "last.pt")
         numbered = sorted(self.ckpt_dir.glob("ckpt_*.pt"))
-        for old in numbered[: len(numbered) - self.cfg.train.keep_checkpoints]:  # the newest keep_checkpoints stay
+        for old in numbered[: len(numbered) - self.settings.train.keep_checkpoints]:  # the newest keep_checkpoints stay
             old.unlink()
         self.logger.write_csv()
         return path
@@ -324,22 +333,22 @@ class Trainer:
     def finish(self) -> dict:
         """The last evaluation and checkpoint, the video, the learning curve and
         ``final_metrics.json``; returns the final metrics (rank 0's, on every rank)."""
-        cfg, progress, last, world = self.cfg, self.progress, self.progress["last"], self.world
+        run, progress, last, world = self.settings, self.progress, self.progress["last"], self.world
         if progress.get("last_eval") != progress["env_steps"]:
             self.evaluate()
         self.checkpoint()
         if not world.is_main:
             return world.broadcast_object(None)
         files = {}
-        if cfg.eval.gif:
-            files["final_gif"] = write_video(cfg, self.eval_env, self.learner.policy, self.eval_steps,
+        if run.eval.gif:
+            files["final_gif"] = write_video(run.eval, self.eval_env, self.learner.policy, self.eval_steps,
                                              self.run_dir / "final")
         curve = plot_learning_curve(self.logger.rows, self.run_dir / "learning_curve.png",
-                                    title=f"{cfg.env.name} - {cfg.loss.name} - seed {cfg.seed}")
+                                    title=f"{run.env_name} - {run.loss_name} - seed {run.seed}")
         self.logger.log_files(images={"learning_curve": curve} if curve else {},
                               gifs={"final_gif": files["final_gif"]} if files.get("final_gif") else {})
         result = {
-            "env": cfg.env.name, "loss": cfg.loss.name, "seed": cfg.seed, "world_size": world.size,
+            "env": run.env_name, "loss": run.loss_name, "seed": run.seed, "world_size": world.size,
             "env_steps": progress["env_steps"], "iterations": progress["iteration"],
             "wall_time_s": progress["wall_time_s"],
             "steps_per_s": progress["env_steps"] / max(progress["wall_time_s"], 1e-9),
@@ -353,7 +362,7 @@ class Trainer:
         (self.run_dir / "final_metrics.json").write_text(json_report(result, reasons={
             "train/return": "no training episode finished (the episodes are longer than the run, or the returns "
                             "diverged)"}))
-        log.info(f"{cfg.env.name} {cfg.loss.name}: eval return {result['eval/return']:.4g} "
+        log.info(f"{run.env_name} {run.loss_name}: eval return {result['eval/return']:.4g} "
                  f"(random policy {result['eval/random_return']:.4g}) after {progress['env_steps']:,} env steps "
                  f"in {progress['wall_time_s']:.0f} s; outputs in {self.run_dir}")
         return world.broadcast_object(result)

@@ -18,8 +18,9 @@ import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-from omegaconf import DictConfig
 from torchrl.record.loggers import get_logger
+
+from .settings import LoggerSettings
 
 __all__ = ["RunLogger", "plot_learning_curve", "read_history"]
 
@@ -34,42 +35,44 @@ class RunLogger:
     """Logs rows of scalar metrics to the run directory and to the configured TorchRL logger.
 
     Args:
-        cfg: the run's configuration (``cfg.logger`` selects the backend; the whole config is
-            logged as hyperparameters).
+        settings: the run's ``logger`` section (its backend, name and W&B keys).
         run_dir: the Hydra run directory.
         history: rows logged before a resume (:func:`read_history`); they are written again so
             the run directory always holds the whole run.
         wandb_run_id: the W&B run id to continue (resume), or ``None`` for a new run.
+        hyperparameters: logged once to the backend (the training loop passes the whole
+            configuration).
     """
 
     def __init__(
         self,
-        cfg: DictConfig,
+        settings: LoggerSettings,
         run_dir: str | Path,
         history: Iterable[Mapping] = (),
         wandb_run_id: str | None = None,
+        hyperparameters: Mapping | None = None,
     ):
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.rows: list[dict] = [dict(row) for row in history]
-        self.backend_name = cfg.logger.backend
-        self.backend = self._make_backend(cfg, wandb_run_id)
+        self.backend_name = settings.backend
+        self.backend = self._make_backend(settings, wandb_run_id)
         self._jsonl = open(self.run_dir / "metrics.jsonl", "w")
         for row in self.rows:
             self._write_jsonl(row)
-        if self.backend is not None:
-            self.backend.log_hparams(cfg)
+        if self.backend is not None and hyperparameters is not None:
+            self.backend.log_hparams(dict(hyperparameters))
 
-    def _make_backend(self, cfg: DictConfig, wandb_run_id: str | None):
-        name = cfg.logger.exp_name
+    def _make_backend(self, settings: LoggerSettings, wandb_run_id: str | None):
+        name = settings.exp_name
         if self.backend_name == "wandb":
             wandb_kwargs = {
-                "project": cfg.logger.project,
-                "entity": cfg.logger.entity,
-                "group": cfg.logger.group,
-                "tags": list(cfg.logger.tags or []),
+                "project": settings.project,
+                "entity": settings.entity,
+                "group": settings.group,
+                "tags": list(settings.tags),
                 # passed to wandb.init: "offline" never opens a connection
-                "mode": cfg.logger.mode,
+                "mode": settings.mode,
                 "log_env_packages": False,
             }
             if wandb_run_id is not None:

@@ -16,9 +16,12 @@ from .. import checks
 from ..checks import Settings, checked
 
 __all__ = [
-    "DistributedSettings", "EvalSettings", "RUN_SECTIONS", "SelfPlaySettings", "TrainSettings", "register_run_configs",
-    "run_defaults",
+    "DistributedSettings", "EvalSettings", "LOGGERS", "LoggerSettings", "RUN_SECTIONS", "RunSettings",
+    "SelfPlaySettings", "TrainSettings", "WANDB_MODES", "register_run_configs", "run_defaults",
 ]
+
+LOGGERS = ("wandb", "csv", "none")
+WANDB_MODES = ("offline", "online", "disabled")
 
 
 def _optional(check: checks.Check, what: str) -> checks.Check:
@@ -104,6 +107,33 @@ class DistributedSettings(Settings):
     timeout_s: float = checked(300.0, checks.positive)  # a rank that waits this long for another fails with an error
 
 
+def _strings(value) -> str | None:
+    ok = isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value)
+    return None if ok else "expected a list of strings"
+
+
+def _name(value) -> str | None:
+    return None if isinstance(value, str) and value else "expected a non-empty string"
+
+
+def _optional_string(value) -> str | None:
+    return None if value is None or isinstance(value, str) else "expected a string, or null"
+
+
+@dataclasses.dataclass(frozen=True)
+class LoggerSettings(Settings):
+    """``logger.*``: where the metrics go besides the run directory (``configs/logger/<backend>.yaml``
+    holds each backend's defaults; the W&B keys only matter to ``backend=wandb``)."""
+
+    backend: str = checked("wandb", checks.one_of(LOGGERS))
+    exp_name: str = checked("run", _name)  # the run's name (configs/config.yaml: env_loss_seed)
+    mode: str = checked("offline", checks.one_of(WANDB_MODES))  # W&B: offline never opens a connection
+    project: str | None = checked(None, _optional_string)
+    entity: str | None = checked(None, _optional_string)
+    group: str | None = checked(None, _optional_string)
+    tags: tuple[str, ...] = checked((), _strings)
+
+
 RUN_SECTIONS: dict[str, type[Settings]] = {
     "train": TrainSettings, "eval": EvalSettings, "selfplay": SelfPlaySettings, "distributed": DistributedSettings,
 }
@@ -120,3 +150,56 @@ def register_run_configs() -> None:
     from hydra.core.config_store import ConfigStore
 
     ConfigStore.instance().store(name="run_settings", node=run_defaults())
+
+
+def _section(values) -> dict:
+    from omegaconf import DictConfig, OmegaConf
+
+    return OmegaConf.to_container(values, resolve=True) if isinstance(values, DictConfig) else dict(values or {})
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSettings:
+    """The typed view of a composed (and checked) training configuration that the training loop,
+    ``mode=eval`` and the logger read: the run's sections as their settings classes, plus the
+    top-level keys. The env and loss sections stay configuration: they are handed whole to the
+    env and learner builders, which check them (:func:`~torchrl_diffenvs.training.config.validate_config`).
+
+    Built with :meth:`from_config`; every value is checked again on the way (a configuration
+    that skipped ``validate_config`` fails here with the key and what is valid).
+    """
+
+    mode: str
+    seed: int
+    device: str
+    dtype: str
+    compile: bool
+    resume: str | None
+    checkpoint: str | None
+    env_name: str
+    loss_name: str
+    train: TrainSettings
+    eval: EvalSettings
+    selfplay: SelfPlaySettings
+    distributed: DistributedSettings
+    logger: LoggerSettings
+
+    @classmethod
+    def from_config(cls, cfg) -> RunSettings:
+        """From a composed configuration (Hydra's ``DictConfig`` or a mapping)."""
+        sections = {name: settings.from_mapping(_section(cfg.get(name))) for name, settings in RUN_SECTIONS.items()}
+        return cls(
+            mode=str(cfg.get("mode", "train")), seed=int(cfg.get("seed", 0)), device=str(cfg.get("device", "cpu")),
+            dtype=str(cfg.get("dtype", "float32")), compile=bool(cfg.get("compile", False)),
+            resume=None if cfg.get("resume") is None else str(cfg.get("resume")),
+            checkpoint=None if cfg.get("checkpoint") is None else str(cfg.get("checkpoint")),
+            env_name=str(cfg["env"]["name"]), loss_name=str(cfg["loss"]["name"]),
+            logger=LoggerSettings.from_mapping(_section(cfg.get("logger"))), **sections,
+        )
+
+    @property
+    def torch_dtype(self):
+        """``dtype`` as a ``torch.dtype``."""
+        import torch
+
+        return getattr(torch, self.dtype)
