@@ -8,6 +8,9 @@
   ``FILTER``) becomes a figure per env of the evaluation returns against env steps of every run
   in the result files of ``docs/data/runs/DIR/`` (``time_to_solve.py out=``), one line per run,
   one colour per learner: an inline SVG, drawn here from the runs' curves.
+* ``{{ scaling NAME:TABLE:COLUMNS }}`` becomes a log-log figure of the rate columns ``COLUMNS``
+  (comma-separated) of table ``TABLE`` of ``docs/data/NAME.json`` against its ``N`` column (the
+  number of envs), one line per task and column: an inline SVG, drawn from the data file.
 * ``{{ config_reference }}`` becomes the reference of every learner's settings, read from the
   settings dataclasses themselves (field, default, accepted values, description).
 
@@ -18,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
+import math
 import re
 import warnings
 from pathlib import Path
@@ -25,6 +29,7 @@ from pathlib import Path
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 TABLE = re.compile(r"\{\{\s*table\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?\s*\}\}")
 CURVES = re.compile(r"\{\{\s*curves\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?\s*\}\}")
+SCALING = re.compile(r"\{\{\s*scaling\s+([A-Za-z0-9_.-]+):([A-Za-z0-9_.-]+):([^}]+?)\s*\}\}")
 CONFIG_REFERENCE = re.compile(r"\{\{\s*config_reference\s*\}\}")
 DATA_FIELDS = ("measured", "machine", "command", "tables")
 TABLE_FIELDS = ("title", "columns", "rows")
@@ -201,6 +206,94 @@ def render_curves(directory: str, only: str | None) -> str:
     return "\n".join(figures)
 
 
+# --------------------------------------------------------------------------- throughput against N
+
+RATE = re.compile(r"^(\d+(?:\.\d+)?)([kM]?)$")
+
+
+def _rate(cell) -> float | None:
+    """``"3.27k"`` -> 3270.0, ``"1.2M"`` -> 1.2e6; ``None`` for a cell without a measurement (``-``)."""
+    match = RATE.match(str(cell).strip())
+    if match is None:
+        return None
+    return float(match.group(1)) * {"": 1, "k": 1e3, "M": 1e6}[match.group(2)]
+
+
+def _decades(low: float, high: float) -> list[float]:
+    """The powers of ten spanning ``[low, high]``."""
+    first, last = math.floor(math.log10(low)), math.ceil(math.log10(high))
+    return [10.0 ** k for k in range(first, last + 1)]
+
+
+def render_scaling(name: str, key: str, columns: str, data_link: str) -> str:
+    """``{{ scaling NAME:TABLE:COLUMNS }}``: a log-log SVG of rate columns against ``N``, per task."""
+    data = load_data(name)
+    if key not in data["tables"]:
+        raise ValueError(f"{{{{ scaling {name}:{key} }}}}: no table {key!r}; valid: {', '.join(data['tables'])}")
+    table = data["tables"][key]
+    wanted = [c.strip() for c in columns.split(",")]
+    missing = [c for c in ["task", "N", *wanted] if c not in table["columns"]]
+    if missing:
+        raise ValueError(f"{{{{ scaling {name}:{key} }}}}: no column(s) {', '.join(map(repr, missing))}; "
+                         f"valid: {', '.join(table['columns'])}")
+    at = {c: table["columns"].index(c) for c in ["task", "N", *wanted]}
+    lines: dict[str, list[tuple[float, float]]] = {}
+    for row in table["rows"]:
+        n = _rate(row[at["N"]])
+        for column in wanted:
+            rate = _rate(row[at[column]])
+            if n is not None and rate is not None:
+                label = row[at["task"]] + (f" ({column})" if len(wanted) > 1 else "")
+                lines.setdefault(label, []).append((n, rate))
+    if not lines:
+        raise ValueError(f"{{{{ scaling {name}:{key}:{columns} }}}}: no measured rates to draw")
+    xs = [p[0] for points in lines.values() for p in points]
+    ys = [p[1] for points in lines.values() for p in points]
+    x_ticks, y_ticks = _decades(min(xs), max(xs)), _decades(min(ys), max(ys))
+    width, height = WIDTH - LEFT - RIGHT - 60, HEIGHT - TOP - BOTTOM
+    log_x = (math.log10(x_ticks[0]), math.log10(x_ticks[-1]))
+    log_y = (math.log10(y_ticks[0]), math.log10(y_ticks[-1]))
+
+    def x(value):
+        return LEFT + width * (math.log10(value) - log_x[0]) / ((log_x[1] - log_x[0]) or 1)
+
+    def y(value):
+        return TOP + height * (1 - (math.log10(value) - log_y[0]) / ((log_y[1] - log_y[0]) or 1))
+
+    title = f"{table['title']}: env steps per second against N"
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {WIDTH} {HEIGHT}" role="img" '
+             f'style="max-width:{WIDTH}px;width:100%;font:11px sans-serif"><title>{title}</title>']
+    for tick in y_ticks:
+        parts.append(f'<line x1="{LEFT}" x2="{LEFT + width}" y1="{y(tick):.1f}" y2="{y(tick):.1f}" stroke="#ddd"/>'
+                     f'<text x="{LEFT - 6}" y="{y(tick) + 4:.1f}" text-anchor="end">{_si(tick)}</text>')
+    for tick in x_ticks:
+        parts.append(f'<line x1="{x(tick):.1f}" x2="{x(tick):.1f}" y1="{TOP}" y2="{TOP + height}" stroke="#eee"/>'
+                     f'<text x="{x(tick):.1f}" y="{TOP + height + 16}" text-anchor="middle">{_si(tick)}</text>')
+    parts.append(f'<text x="{LEFT + width / 2}" y="{HEIGHT - 6}" text-anchor="middle">N (envs in the batch)</text>')
+    parts.append(f'<text transform="translate(14 {TOP + height / 2}) rotate(-90)" text-anchor="middle">'
+                 'env steps / s</text>')
+    for i, (label, points) in enumerate(lines.items()):
+        colour = COLOURS[i % len(COLOURS)]
+        path = " ".join(f"{x(n):.1f},{y(rate):.1f}" for n, rate in sorted(points))
+        parts.append(f'<polyline points="{path}" fill="none" stroke="{colour}" stroke-width="1.8">'
+                     f'<title>{label}</title></polyline>')
+        parts.extend(f'<circle cx="{x(n):.1f}" cy="{y(rate):.1f}" r="2.5" fill="{colour}"/>' for n, rate in points)
+        top = TOP + 14 * i
+        parts.append(f'<line x1="{LEFT + width + 12}" x2="{LEFT + width + 30}" y1="{top + 6}" y2="{top + 6}" '
+                     f'stroke="{colour}" stroke-width="2"/><text x="{LEFT + width + 34}" y="{top + 10}">{label}</text>')
+    parts.append("</svg>")
+    return ("".join(parts) + f"\n\n*{table['title']}: env steps per second against the number of envs "
+            f"({', '.join(wanted)}; log-log). Measured {data['measured']} on {data['machine']} "
+            f"([data]({data_link}{name}.json)).*\n")
+
+
+def _si(value: float) -> str:
+    for unit, scale in (("M", 1e6), ("k", 1e3)):
+        if value >= scale:
+            return f"{value / scale:g}{unit}"
+    return f"{value:g}"
+
+
 # --------------------------------------------------------------------------- config reference
 
 def _field_comments(cls) -> dict[str, str]:
@@ -290,6 +383,7 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
     data_link = "../" * page.file.src_uri.count("/") + "data/"
     markdown = TABLE.sub(lambda m: render_table(m.group(1), m.group(2), data_link), markdown)
     markdown = CURVES.sub(lambda m: render_curves(m.group(1), m.group(2)), markdown)
+    markdown = SCALING.sub(lambda m: render_scaling(m.group(1), m.group(2), m.group(3), data_link), markdown)
     if CONFIG_REFERENCE.search(markdown):
         markdown = CONFIG_REFERENCE.sub(lambda m: render_config_reference(), markdown)
     return markdown

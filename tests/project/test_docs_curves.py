@@ -43,3 +43,31 @@ def test_curves_errors_name_what_is_valid(hook):
         hook.render_curves("missing", None)
     with pytest.raises(ValueError, match="holding 'Ant'"):
         hook.render_curves("race", "Ant")
+
+
+def _throughput(tmp_path):
+    table = {"title": "rates", "columns": ["task", "N", "ours", "theirs"],
+             "rows": [["Hopper-v5", "1", "10", "-"], ["Hopper-v5", "100", "1k", "2.5k"],
+                      ["Hopper-v5", "10000", "1M", "3k"]]}
+    data = {"measured": "2026-01-01", "machine": "m", "command": "c", "tables": {"rates": table}}
+    (tmp_path / "rates.json").write_text(json.dumps(data))
+
+
+def test_scaling_figure_is_log_log_in_the_rates_of_the_table(hook, tmp_path):
+    _throughput(tmp_path)
+    svg = hook.render_scaling("rates", "rates", "ours", "../data/")
+    (points,) = re.findall(r'<polyline points="([^"]+)"', svg)
+    # x: N 1..10000 over 60..450 (four decades); y: 10..1M over 260..28 (five decades)
+    assert points == "60.0,260.0 255.0,167.2 450.0,28.0"
+    assert "[data](../data/rates.json)" in svg
+    both = hook.render_scaling("rates", "rates", "ours,theirs", "")
+    assert len(re.findall("<polyline", both)) == 2 and "Hopper-v5 (theirs)" in both  # the "-" cell is left out
+
+
+def test_scaling_figure_names_what_is_valid(hook, tmp_path):
+    _throughput(tmp_path)
+    with pytest.raises(ValueError, match="no column.*'speed'.*valid: task, N, ours, theirs"):
+        hook.render_scaling("rates", "rates", "speed", "")
+    with pytest.raises(ValueError, match="no table 'other'; valid: rates"):
+        hook.render_scaling("rates", "other", "ours", "")
+    assert hook._rate("3.27k") == 3270.0 and hook._rate("1.2M") == 1.2e6 and hook._rate("-") is None
