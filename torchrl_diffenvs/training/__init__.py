@@ -28,10 +28,11 @@ from .eval_mode import evaluate_checkpoint
 from .interrupts import TrainingInterrupted
 from .loop import Trainer, run, train
 from .run_logger import RunLogger, plot_learning_curve
-from .settings import DistributedSettings, EvalSettings, SelfPlaySettings, TrainSettings
+from .settings import DistributedSettings, EvalSettings, LoggerSettings, RunSettings, SelfPlaySettings, TrainSettings
 
 __all__ = [
-    "CheckpointError", "ConfigError", "DistributedSettings", "EvalSettings", "RunLogger", "SelfPlaySettings",
+    "CheckpointError", "ConfigError", "DistributedSettings", "EvalSettings", "LoggerSettings", "RunLogger",
+    "RunSettings", "SelfPlaySettings",
     "TrainSettings", "Trainer", "TrainingInterrupted",
     "capture_rng_state", "evaluate_checkpoint", "load_checkpoint",
     "make_env_from_config", "merge_overrides", "plot_learning_curve", "remove_stale_temp_files", "resolve_device",
