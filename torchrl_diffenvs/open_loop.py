@@ -6,7 +6,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-from .modules import _action_bounds, _ScaledTanh
+from .modules.actors import _action_bounds, _ScaledTanh
 
 __all__ = ["OpenLoopActor"]
 
