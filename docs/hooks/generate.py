@@ -8,9 +8,10 @@
   ``FILTER``) becomes a figure per env of the evaluation returns against env steps of every run
   in the result files of ``docs/data/runs/DIR/`` (``time_to_solve.py out=``), one line per run,
   one colour per learner: an inline SVG, drawn here from the runs' curves.
-* ``{{ scaling NAME:TABLE:COLUMNS }}`` becomes a log-log figure of the rate columns ``COLUMNS``
-  (comma-separated) of table ``TABLE`` of ``docs/data/NAME.json`` against its ``N`` column (the
-  number of envs), one line per task and column: an inline SVG, drawn from the data file.
+* ``{{ scaling NAME:TABLE:COLUMNS }}`` (or ``{{ scaling NAME:TABLE:COLUMNS:TASKS }}``, only those
+  tasks) becomes a log-log figure of the rate columns ``COLUMNS`` (comma-separated) of table
+  ``TABLE`` of ``docs/data/NAME.json`` against its ``N`` column (the number of envs), one line per
+  task and column: an inline SVG, drawn from the data file.
 * ``{{ config_reference }}`` becomes the reference of every learner's settings, read from the
   settings dataclasses themselves (field, default, accepted values, description).
 
@@ -226,7 +227,9 @@ def _decades(low: float, high: float) -> list[float]:
 
 
 def render_scaling(name: str, key: str, columns: str, data_link: str) -> str:
-    """``{{ scaling NAME:TABLE:COLUMNS }}``: a log-log SVG of rate columns against ``N``, per task."""
+    """``{{ scaling NAME:TABLE:COLUMNS[:TASKS] }}``: a log-log SVG of rate columns against ``N``, per task."""
+    columns, _, tasks = columns.partition(":")
+    only = {t.strip() for t in tasks.split(",")} if tasks else None
     data = load_data(name)
     if key not in data["tables"]:
         raise ValueError(f"{{{{ scaling {name}:{key} }}}}: no table {key!r}; valid: {', '.join(data['tables'])}")
@@ -239,11 +242,17 @@ def render_scaling(name: str, key: str, columns: str, data_link: str) -> str:
     at = {c: table["columns"].index(c) for c in ["task", "N", *wanted]}
     lines: dict[str, list[tuple[float, float]]] = {}
     for row in table["rows"]:
+        if only is not None and row[at["task"]] not in only:
+            continue
         n = _rate(row[at["N"]])
         for column in wanted:
             rate = _rate(row[at[column]])
             if n is not None and rate is not None:
-                label = row[at["task"]] + (f" ({column})" if len(wanted) > 1 else "")
+                task = row[at["task"]]
+                if only is not None and len(only) == 1:  # one task: the columns name the lines
+                    label = column
+                else:
+                    label = f"{task} ({column})" if len(wanted) > 1 else task
                 lines.setdefault(label, []).append((n, rate))
     if not lines:
         raise ValueError(f"{{{{ scaling {name}:{key}:{columns} }}}}: no measured rates to draw")
@@ -282,8 +291,9 @@ def render_scaling(name: str, key: str, columns: str, data_link: str) -> str:
         parts.append(f'<line x1="{LEFT + width + 12}" x2="{LEFT + width + 30}" y1="{top + 6}" y2="{top + 6}" '
                      f'stroke="{colour}" stroke-width="2"/><text x="{LEFT + width + 34}" y="{top + 10}">{label}</text>')
     parts.append("</svg>")
+    which = ", ".join(wanted) + (f"; {', '.join(sorted(only))}" if only else "")
     return ("".join(parts) + f"\n\n*{table['title']}: env steps per second against the number of envs "
-            f"({', '.join(wanted)}; log-log). Measured {data['measured']} on {data['machine']} "
+            f"({which}; log-log). Measured {data['measured']} on {data['machine']} "
             f"([data]({data_link}{name}.json)).*\n")
 
 

@@ -71,3 +71,11 @@ def test_scaling_figure_names_what_is_valid(hook, tmp_path):
     with pytest.raises(ValueError, match="no table 'other'; valid: rates"):
         hook.render_scaling("rates", "other", "ours", "")
     assert hook._rate("3.27k") == 3270.0 and hook._rate("1.2M") == 1.2e6 and hook._rate("-") is None
+
+
+def test_scaling_figure_of_one_task_names_its_lines_by_column(hook, tmp_path):
+    _throughput(tmp_path)
+    svg = hook.render_scaling("rates", "rates", "ours,theirs:Hopper-v5", "")
+    assert ">ours</text>" in svg and ">theirs</text>" in svg and "(ours, theirs; Hopper-v5; log-log)" in svg
+    with pytest.raises(ValueError, match="no measured rates"):
+        hook.render_scaling("rates", "rates", "ours:Ant-v5", "")
