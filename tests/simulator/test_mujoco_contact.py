@@ -335,3 +335,56 @@ def test_contact_option_defaults_and_errors():
         make_env("Hopper-v5", contact="soft")
     with pytest.raises(ValueError, match=r"'table' \(plane\).*cylinder.*contact='smooth'"):
         make_env("Pusher-v5", contact="mujoco")
+
+
+def _mujoco_converged(mm, data) -> bool:
+    """MuJoCo's own verdict after mj_forward: its solver stopped before ``opt.iterations``, or its
+    last iteration met the tolerance (engine_solver.c: scaled improvement or gradient below it)."""
+    used = int(data.solver_niter[0])
+    last = data.solver[used - 1]
+    return used < mm.opt.iterations or last.improvement < mm.opt.tolerance or last.gradient < mm.opt.tolerance
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("filename", ["half_cheetah.xml", "hopper.xml", "ant.xml"])
+def test_solver_convergence_report_follows_mujocos_termination(filename):
+    """``accelerations(..., with_contact_force=True)`` reports whether the constraint solve converged:
+    as MuJoCo's solver decides at the model file's iterations (every state converges), and in (almost)
+    every state when both are cut to 1-5 iterations (the two Newton iterates differ in rounding, so a
+    state right at the tolerance may fall either side)."""
+    import dataclasses
+
+    model, mm, data, tree, params = setup(filename)
+    states = trajectory_states(mm, data, 300, seed=3, every=15)
+    agree, total = 0, 0
+    for iterations in (1, 2, 3, 5, model.iterations):
+        tree.model = dataclasses.replace(model, iterations=iterations)
+        mm.opt.iterations = iterations
+        for qpos, qvel, ctrl in states:
+            forward(mm, data, qpos, qvel, ctrl)
+            if data.solver_niter[0] == 0:  # no constraint active: nothing to solve
+                continue
+            _, report = accelerations(tree, *t64(qpos, qvel, ctrl), params, with_contact_force=True)
+            ours, theirs = bool(report.solver_converged[0]), _mujoco_converged(mm, data)
+            if iterations == model.iterations:
+                assert ours and theirs
+            agree, total = agree + (ours == theirs), total + 1
+    assert total > 40 and agree >= 0.9 * total, f"{agree} of {total} verdicts agree"
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_env_flags_the_envs_whose_solve_did_not_converge():
+    import dataclasses
+
+    env = make_env("HalfCheetah-v5", num_envs=8, dtype=torch.float64, seed=0)
+    td = env.rollout(30)
+    assert not td["next", "state", "solver_unconverged"].any()  # MuJoCo's 100 iterations suffice
+    env.tree.model = dataclasses.replace(env.tree.model, iterations=1)
+    td = env.rollout(30)
+    flags = td["next", "state", "solver_unconverged"]
+    assert flags.dtype == torch.bool and flags.any() and not td["state", "solver_unconverged"][:, 0].any()
+    assert torch.isfinite(td["next", "state", "qvel"]).all()  # the last iterate is taken: flagged, not raised
+    from torchrl_diffenvs.objectives.windows import window_solver_unconverged
+
+    assert window_solver_unconverged(td) == flags.sum().item() / flags.numel()  # what the learners log
+    assert "solver_unconverged" not in make_env("HalfCheetah-v5", contact="smooth").reset()["state"].keys()

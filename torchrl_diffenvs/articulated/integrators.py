@@ -24,6 +24,9 @@ class StepResult(NamedTuple):
     eval_qpos: torch.Tensor
     eval_qvel: torch.Tensor
     contact_force: torch.Tensor | None = None  # [N] the largest contact normal force at the evaluated state
+    # [N] bool: MuJoCo's constraint solve at the evaluated state converged within the model's iterations
+    # (None: no iterative solve, the smooth contact model or no constraints)
+    solver_converged: torch.Tensor | None = None
 
 
 class stepping_with:  # noqa: N801 (a context manager, used as a function)
@@ -73,18 +76,19 @@ def eager_step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float,
     Besides the new state, returns the state at which MuJoCo evaluated the forward dynamics last
     (the start state for Euler and implicit, the fourth stage for RK4): after ``mj_step`` MuJoCo's derived
     quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
-    observations and rewards read some of them, and the largest contact normal force there
-    (``contact_force [N]``, detached; None without contacts). ``invweight0``:
+    observations and rewards read some of them, the largest contact normal force there
+    (``contact_force [N]``, detached; None without contacts) and whether MuJoCo's constraint
+    solve there converged (``solver_converged [N]``; None without one). ``invweight0``:
     `invweight0` of ``params``, if the caller has it.
     """
     # the params are the same at every stage: the constraints' regulariser scales are computed once
     # (callers stepping several times with the same params pass them in: see MuJoCoModelEnv.simulate)
     w0 = constraint_scales(tree, params) if invweight0 is None else invweight0
     if integrator in ("euler", "implicit"):
-        qacc, largest = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt,
-                                      implicit_bias=integrator == "implicit", invweight0=w0, with_contact_force=True)
+        qacc, report = accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt=dt,
+                                     implicit_bias=integrator == "implicit", invweight0=w0, with_contact_force=True)
         new_qvel = qvel + dt * qacc
-        return StepResult(integrate_position(tree, qpos, new_qvel, dt), new_qvel, qpos, qvel, largest)
+        return StepResult(integrate_position(tree, qpos, new_qvel, dt), new_qvel, qpos, qvel, *report)
     if integrator != "rk4":
         raise ValueError(f"unknown integrator {integrator!r}; valid: 'euler', 'implicit', 'rk4'")
     # MuJoCo's mj_RungeKutta with the classic tableau
@@ -95,7 +99,7 @@ def eager_step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float,
     acc3 = accelerations(tree, integrate_position(tree, qpos, vel2, 0.5 * dt), vel3, ctrl, params, invweight0=w0)
     vel4 = qvel + dt * acc3
     pos4 = integrate_position(tree, qpos, vel3, dt)
-    acc4, largest = accelerations(tree, pos4, vel4, ctrl, params, invweight0=w0, with_contact_force=True)
+    acc4, report = accelerations(tree, pos4, vel4, ctrl, params, invweight0=w0, with_contact_force=True)
     new_qpos = integrate_position(tree, qpos, (qvel + 2 * vel2 + 2 * vel3 + vel4) / 6, dt)
     new_qvel = qvel + dt / 6 * (acc1 + 2 * acc2 + 2 * acc3 + acc4)
-    return StepResult(new_qpos, new_qvel, pos4, vel4, largest)
+    return StepResult(new_qpos, new_qvel, pos4, vel4, *report)

@@ -22,7 +22,7 @@ from .limits import limit_force
 from .spatial import Params, _cross, _inverse, _solve
 from .tree import RigidBodyTree
 
-__all__ = ['accelerations', 'body_contact_wrenches', 'constraint_force', 'invweight0', 'InvWeight0']
+__all__ = ['ForwardReport', 'accelerations', 'body_contact_wrenches', 'constraint_force', 'invweight0', 'InvWeight0']
 
 class InvWeight0(NamedTuple):
     """MuJoCo's ``dof_invweight0 [N, nv]`` and ``body_invweight0 [N, nbody, 2]`` for a batch of
@@ -96,8 +96,10 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     (`bias_velocity_jacobian`): stable where a light body spins fast, where the
     explicit velocity-product forces pump energy into it.
     ``invweight0``: `invweight0` of ``params`` when the caller has it (computed if not).
-    ``with_contact_force``: also return the largest contact normal force ``[N]`` (detached; None
-    for a model without contacts), as ``(qacc, largest)``.
+    ``with_contact_force``: also return what ``mjData`` reports of this forward besides ``qacc``,
+    as ``(qacc, ForwardReport)``: the largest contact normal force ``[N]`` (detached; None for a
+    model without contacts) and whether MuJoCo's constraint solve converged (``[N]`` bool; None
+    for the smooth model, which has no iterative solve).
     """
     if tree.contact_model == "mujoco":
         if tree.contact_gradient.mode == "penalty":
@@ -107,6 +109,14 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
                                           invweight0, with_contact_force)
     return _smooth_accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt, implicit_bias, invweight0,
                                  with_contact_force)
+
+
+class ForwardReport(NamedTuple):
+    """What a forward reports besides ``qacc`` (``accelerations(..., with_contact_force=True)``),
+    as ``mjData`` holds it after ``mj_forward``."""
+
+    contact_force: torch.Tensor | None  # [N] the largest contact normal force (detached); None without contacts
+    solver_converged: torch.Tensor | None  # [N] bool: the constraint solve converged; None without a solve
 
 
 def _smooth_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt, implicit_bias,
@@ -129,7 +139,7 @@ def _smooth_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params,
     if implicit:
         mass = mass + implicit_damping_dt * damping
     qacc = _solve(mass, force)
-    return (qacc, largest) if with_contact_force else qacc
+    return (qacc, ForwardReport(largest, None)) if with_contact_force else qacc
 
 
 def _penalty_gradient_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt,
@@ -149,9 +159,9 @@ def _penalty_gradient_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, param
     # under every integrator, as the smooth model runs it, else its RK4 stages' Jacobian diverges
     damping_dt = tree.model.timestep if implicit_damping_dt is None else implicit_damping_dt
     surrogate = _smooth_accelerations(tree, qpos, qvel, ctrl, params, damping_dt, implicit_bias, weights, False)
-    qacc, largest = exact if with_contact_force else (exact, None)
+    qacc, report = exact if with_contact_force else (exact, None)
     qacc = qacc + (surrogate - surrogate.detach())
-    return (qacc, largest) if with_contact_force else qacc
+    return (qacc, report) if with_contact_force else qacc
 
 
 class _MuJoCoForward(NamedTuple):
@@ -239,7 +249,7 @@ def _constrained_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Pa
         normal = torch.cat([solution.force[:, limits:limits + pyramid].unflatten(1, (-1, 4)).sum(-1),
                             solution.force[:, limits + pyramid:]], dim=1)  # each contact's normal force
         largest = normal.detach().amax(-1)
-    return qacc, largest
+    return qacc, ForwardReport(largest, solution.converged)
 
 
 def constraint_force(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params) -> torch.Tensor:

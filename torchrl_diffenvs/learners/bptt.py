@@ -28,7 +28,7 @@ from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
 from ..modules import ObservationNormalizer, actor_from_config, observation_key_of
 from ..objectives import BPTTLoss, GradientGuard, NonFiniteEnvMonitor
-from ..objectives.windows import window_contact_force
+from ..objectives.windows import window_contact_force, window_solver_unconverged
 from .base import ActorNetworkConfig, LR_SCHEDULES, Learner, LearnerConfig, checked, load_lr_scheduler, lr_scheduler
 
 __all__ = ["BPTTConfig", "BPTTLearner"]
@@ -133,6 +133,9 @@ class BPTTLearner(Learner):
         force = window_contact_force(window)  # envs with contacts report their largest normal force
         if force is not None:
             metrics["contact_force_max"] = force.max().item()
+        unconverged = window_solver_unconverged(window)  # MuJoCo's contact: solves cut at the model's iterations
+        if unconverged is not None:
+            metrics["solver_unconverged"] = unconverged
         if self.collector.finished_returns:
             metrics["return"] = sum(self.collector.finished_returns) / len(self.collector.finished_returns)
         # 3. observation statistics, frozen during the window, move after it

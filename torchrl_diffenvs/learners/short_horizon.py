@@ -31,7 +31,7 @@ from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
 from ..modules import ObservationNormalizer, observation_key_of, update_privileged_statistics
 from ..objectives import GradientGuard, NonFiniteEnvMonitor
-from ..objectives.windows import window_contact_force
+from ..objectives.windows import window_contact_force, window_solver_unconverged
 from .base import ActorCriticCheckpoint, Learner, LearnerConfig, lr_scheduler
 
 __all__ = ["CRITIC_SHUFFLES", "ShortHorizonLearner", "TwinCriticLearner"]
@@ -176,6 +176,9 @@ class ShortHorizonLearner(ActorCriticCheckpoint, Learner):
         force = window_contact_force(data)  # envs with contacts report their largest normal force
         if force is not None:
             metrics["contact_force_max"] = force.max().item()
+        unconverged = window_solver_unconverged(data)  # MuJoCo's contact: solves cut at the model's iterations
+        if unconverged is not None:
+            metrics["solver_unconverged"] = unconverged
         # 6. the learner's own end-of-window update
         metrics.update(self._after_window(data, keep))
         if self.collector.finished_returns:

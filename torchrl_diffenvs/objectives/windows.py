@@ -5,7 +5,8 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["CONTACT_FORCE_KEY", "like_agents", "steps_since_start", "window_contact_force", "window_entry"]
+__all__ = ["CONTACT_FORCE_KEY", "SOLVER_UNCONVERGED_KEY", "like_agents", "steps_since_start", "window_contact_force",
+           "window_entry", "window_solver_unconverged"]
 
 
 def steps_since_start(done: torch.Tensor) -> torch.Tensor:
@@ -47,6 +48,15 @@ def like_agents(flags: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
 
 
 CONTACT_FORCE_KEY = ("state", "contact_force")  # where the MuJoCo contact tasks report it
+SOLVER_UNCONVERGED_KEY = ("state", "solver_unconverged")  # the MuJoCo contact tasks' unconverged solves
+
+
+def window_solver_unconverged(window: TensorDictBase) -> float | None:
+    """The share of a window's env steps ``[N, H]`` whose constraint solve did not converge within
+    the model file's iterations (``("next", "state", "solver_unconverged")``, written by the tasks
+    with MuJoCo's contact model); ``None`` when the window has no such entry."""
+    flags = window.get(("next", *SOLVER_UNCONVERGED_KEY), None)
+    return None if flags is None else flags.float().mean().item()
 
 
 def window_contact_force(window: TensorDictBase, who: str | None = None) -> torch.Tensor | None:

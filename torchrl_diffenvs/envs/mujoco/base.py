@@ -136,6 +136,8 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         self.contact_gradient = self.tree.contact_gradient
         if has_contacts(self.tree):
             self.reading_state_keys = ("contact_force",)  # see reports_contact_force
+            if self.tree.contact_model == "mujoco":  # an iterative constraint solve
+                self.reading_state_keys += ("solver_unconverged",)
         kinematics_at_qpos0(self.tree)  # kept on the tree: computed here, not inside a compiled step
         defaults = dict(default_params(model))
         if has_contacts(self.tree):
@@ -158,12 +160,23 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
 
     def contact_state(self, result: StepResult | None, n: int) -> dict:
         """``{"contact_force": [N]}`` of a step's result (``None``: after a reset) for a model with
-        contacts, else ``{}``: what a task adds to its state."""
+        contacts, else ``{}``: what a task adds to its state. With MuJoCo's contact model also
+        ``"solver_unconverged"`` ``[N]`` bool: some constraint solve of the step used all of the
+        model file's ``iterations`` without reaching its ``tolerance`` (MuJoCo's ``solver_niter``
+        at its limit). The step still takes the solver's last iterate, as MuJoCo's does; the flag
+        says which envs to distrust (False after a reset)."""
         if not self.reports_contact_force:
             return {}
+        mujoco_solve = "solver_unconverged" in self.reading_state_keys
         if result is None:
-            return {"contact_force": torch.zeros(n, dtype=self.float_dtype, device=self.device)}
-        return {"contact_force": result.contact_force.detach()}
+            out = {"contact_force": torch.zeros(n, dtype=self.float_dtype, device=self.device)}
+            if mujoco_solve:
+                out["solver_unconverged"] = torch.zeros(n, dtype=torch.bool, device=self.device)
+            return out
+        out = {"contact_force": result.contact_force.detach()}
+        if mujoco_solve:
+            out["solver_unconverged"] = ~result.solver_converged
+        return out
 
     def init_qpos(self, n: int) -> torch.Tensor:
         """MuJoCo's ``qpos0`` (Gymnasium's ``init_qpos``) for ``n`` envs."""
@@ -175,16 +188,19 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
 
         Returns the last step's [`StepResult`][torchrl_diffenvs.articulated.StepResult]: the new
         ``qpos``/``qvel`` and the state MuJoCo's derived quantities belong to after ``mj_step``;
-        its ``contact_force`` is the largest contact normal force over all the physics steps.
+        its ``contact_force`` is the largest contact normal force over all the physics steps, its
+        ``solver_converged`` whether every constraint solve of them converged.
         """
         qpos, qvel = state["qpos"], state["qvel"]
         # the constraints' regulariser scales depend on the params only: once per env step, not per physics step
         weights = invweight0(self.tree, params)
-        largest = None
+        largest = converged = None
         for _ in range(self.frame_skip * self.substeps):
             result = step(self.tree, qpos, qvel, action, params, self.model.timestep / self.substeps,
                           self.integrator, weights)
             qpos, qvel = result.qpos, result.qvel
             if result.contact_force is not None:
                 largest = result.contact_force if largest is None else torch.maximum(largest, result.contact_force)
-        return result._replace(contact_force=largest)
+            if result.solver_converged is not None:
+                converged = result.solver_converged if converged is None else converged & result.solver_converged
+        return result._replace(contact_force=largest, solver_converged=converged)
