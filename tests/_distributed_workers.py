@@ -55,13 +55,13 @@ def without_action_noise() -> None:
     loss is a deterministic function of its batch, whichever process draws."""
     import torch.distributions.normal
 
-    import torchrl_diffenvs.modules
+    import torchrl_diffenvs.modules.actors
 
     def zeros(shape, dtype, device):
         return torch.zeros(shape, dtype=dtype, device=device)
 
     torch.distributions.normal._standard_normal = zeros
-    torchrl_diffenvs.modules.standard_normal = zeros
+    torchrl_diffenvs.modules.actors.standard_normal = zeros  # where the policies draw their noise
 
 
 # ---------------------------------------------------------------------- workers

@@ -386,5 +386,5 @@ def test_env_flags_the_envs_whose_solve_did_not_converge():
     assert torch.isfinite(td["next", "state", "qvel"]).all()  # the last iterate is taken: flagged, not raised
     from torchrl_diffenvs.objectives.windows import window_solver_unconverged
 
-    assert window_solver_unconverged(td) == flags.sum().item() / flags.numel()  # what the learners log
+    assert window_solver_unconverged(td) == pytest.approx(flags.sum().item() / flags.numel())  # what the learners log
     assert "solver_unconverged" not in make_env("HalfCheetah-v5", contact="smooth").reset()["state"].keys()

@@ -126,8 +126,8 @@ def test_the_averaged_gradient_is_the_gradient_of_the_concatenated_batch(loss, t
 
     monkeypatch.setattr(torch.distributions.normal, "_standard_normal", lambda shape, dtype, device:
                         torch.zeros(shape, dtype=dtype, device=device))
-    import torchrl_diffenvs.modules
-    monkeypatch.setattr(torchrl_diffenvs.modules, "standard_normal", lambda shape, dtype, device:
+    import torchrl_diffenvs.modules.actors
+    monkeypatch.setattr(torchrl_diffenvs.modules.actors, "standard_normal", lambda shape, dtype, device:
                         torch.zeros(shape, dtype=dtype, device=device))
     reference = workers.build(loss, 4, 0, **settings)
     params = workers.step_parameters(reference, loss)
