@@ -116,3 +116,72 @@ def test_rendering_from_cuda_tensors():
     on_cpu = make_env("HalfCheetah-v5", num_envs=2, seed=0).render(last.cpu(), size=64)
     assert on_cuda.shape == (64, 64, 3) and on_cuda.std() > 0  # a drawn scene, not a blank frame
     assert (on_cuda == on_cpu).all()
+
+
+def _sync_sites(fn) -> list[str]:
+    """The Python lines that synchronised host and device while ``fn`` ran."""
+    import warnings
+    from pathlib import Path
+
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            fn()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    return [f"{'/'.join(Path(w.filename).parts[-3:])}:{w.lineno}" for w in caught
+            if "synchronizing" in str(w.message) and "prototype" not in str(w.message)
+            and "torchrl_diffenvs" in w.filename]  # ours (TorchRL's own reset bookkeeping is not)
+
+
+@pytest.mark.parametrize("name,contact", [("HalfCheetah-v5", "mujoco"), ("HalfCheetah-v5", "smooth"),
+                                          ("Ant-v5", "mujoco"), ("pendulum", None)])
+def test_an_env_step_and_a_partial_reset_never_synchronise_host_and_device(name, contact):
+    """The step (physics, contacts and constraint solve, reward, termination) and the reset of some
+    envs run without a host-device synchronisation in this library's code: masks, not
+    data-dependent branches."""
+    env = make_env(name, num_envs=64, seed=0, device="cuda", **({"contact": contact} if contact else {}))
+    td = env.rand_step(env.reset())  # warm-up: caches, lazily built buffers
+    td = env.rand_action(td.get("next").exclude("reward", "done", "terminated", "truncated"))
+    with torch.no_grad():
+        assert _sync_sites(lambda: env.step(td)) == []
+        partial = td.select(*env.state_spec.keys(True, True)).set(
+            "_reset", torch.arange(64, device="cuda").remainder(2).bool().unsqueeze(-1))
+        assert _sync_sites(lambda: env.reset(partial)) == []
+
+
+def test_the_cuda_solve_stops_once_the_host_sees_every_env_converged(monkeypatch):
+    """MuJoCo's Newton solve on CUDA: the host stops issuing rounds a few rounds after every env
+    converged (read without waiting), with the result of all the model's rounds."""
+    from torchrl_diffenvs.articulated import constraint
+
+    env = make_env("HalfCheetah-v5", num_envs=256, seed=0, dtype=torch.float64, device="cuda")
+    state = env.rollout(20)[:, -1]["next", "state"]  # on the floor: contacts active
+    rounds = []
+    original = constraint._newton_round
+
+    def counted(*args):
+        rounds.append(1)
+        return original(*args)
+
+    monkeypatch.setattr(constraint, "_newton_round", counted)
+
+    def one_step():
+        from torchrl_diffenvs.articulated import step
+
+        rounds.clear()
+        ctrl = torch.zeros(256, env.action_dim, dtype=torch.float64, device="cuda")
+        with torch.no_grad():
+            result = step(env.tree, state["qpos"], state["qvel"], ctrl, dict(env.params.items()), env.model.timestep,
+                          env.integrator)
+        return result, len(rounds)
+
+    watched, watched_rounds = one_step()
+    monkeypatch.setattr(constraint.ConvergenceWatch, "for_device", classmethod(lambda cls, device: None))
+    fixed, fixed_rounds = one_step()
+    assert fixed_rounds == env.tree.model.iterations and watched_rounds < fixed_rounds / 4, (watched_rounds,
+                                                                                             fixed_rounds)
+    assert watched.solver_converged.all()
+    torch.testing.assert_close(watched.qvel, fixed.qvel, rtol=0, atol=0)

@@ -329,11 +329,11 @@ def test_contact_free_tasks_match_gymnasium(task, action_scale):
 
 def test_jointly_solved_limit_forces_match_brute_force_enumeration():
     """The limit rows' complementarity problem against trying every set of pushing rows: random
-    positive definite couplings, offsets and allowed rows (6 rows, 200 problems), both the eager
-    path (only coupled envs pivot, early exit) and the fixed-round one torch.compile takes."""
+    positive definite couplings, offsets and allowed rows (6 rows, 200 problems): the CPU's path
+    (only coupled envs pivot, early exit), the fixed rounds, and the GPU's path without host reads."""
     import itertools
 
-    from torchrl_diffenvs.articulated.limits import _complementary_forces, _pivot
+    from torchrl_diffenvs.articulated.limits import _complementary_forces, _complementary_forces_eager, _pivot
 
     gen = torch.Generator().manual_seed(0)
     n, rows = 200, 6
@@ -362,4 +362,7 @@ def test_jointly_solved_limit_forces_match_brute_force_enumeration():
     solved = _complementary_forces(offset, allowed, diagonal, lambda envs: matrix[envs])
     torch.testing.assert_close(solved, expected, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(_pivot(matrix, offset, allowed, early_exit=False), expected, rtol=1e-9, atol=1e-9)
+    # the GPU's path: no host read, every env pivots (its own rounds stop early on CUDA only)
+    without_reads = _complementary_forces_eager(offset, allowed, diagonal, lambda envs: matrix[envs], host_reads=False)
+    torch.testing.assert_close(without_reads, expected, rtol=1e-9, atol=1e-9)
     assert (expected > 0).sum(-1).max() >= 3  # several rows pushing at once

@@ -17,7 +17,8 @@ the active set it found: the value is the minimiser, and the gradient is the imp
 the solution (exact wherever the active set does not change). Differentiating through the
 iterations instead would cost a backward pass per iteration and carry the line search's
 breakpoints into the gradient; at the solution, one solve gives the same gradient. Under
-``torch.compile`` the Newton search runs eagerly (a graph break).
+``torch.compile`` the Newton search is one ``torch.while_loop`` that ends once every env has
+converged: a step compiles into one graph.
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ import torch
 
 from .collision import Contacts, ContactSlots
 from .contact_gradient import ContactGradient
+from .convergence import ConvergenceWatch
 from .kinematics import Kinematics
 from .limits import _reference
 from .spatial import _MINVAL, Params, _cross
@@ -193,16 +195,21 @@ def _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance: float):
 
 
 def _newton(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
-    """Newton's method on the primal (no autograd), a fixed number of rounds with converged envs
-    held (a mask: no host-device synchronisation): ``(qacc [N, nv], iterations [N], converged [N])``."""
+    """Newton's method on the primal (no autograd), at most ``iterations`` rounds with converged
+    envs held (a mask: no host-device synchronisation): ``(qacc [N, nv], iterations [N],
+    converged [N])``. On CUDA the host stops issuing rounds once it sees, without waiting, that
+    every env has converged ([`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch])."""
     qacc = smooth
     converged = torch.zeros(qacc.shape[0], dtype=torch.bool, device=qacc.device)
     used = torch.zeros(qacc.shape[0], dtype=torch.long, device=qacc.device)
+    watch = ConvergenceWatch.for_device(qacc.device)
     for _ in range(iterations):
         new, settled = _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance)
         qacc = torch.where(converged.unsqueeze(-1), qacc, new)
         used = used + (~converged).long()
         converged = converged | settled
+        if watch is not None and watch.all_done(converged):
+            break
     return qacc, used, converged
 
 
@@ -234,16 +241,44 @@ def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance:
     return qacc.index_copy(0, envs, q), used.index_copy(0, envs, used_c), converged.index_copy(0, envs, converged_c)
 
 
-@torch.compiler.disable
+def _newton_loop(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
+    """`_newton` as one ``torch.while_loop`` for ``torch.compile``: the round is traced once (an
+    unrolled loop would make a step's graph hundreds of times larger) and the loop ends once every
+    env has converged or ``iterations`` rounds have run."""
+    n = smooth.shape[0]
+
+    def unfinished(round_, qacc, used, converged):
+        return (round_ < iterations) & ~converged.all()
+
+    def one_round(round_, qacc, used, converged):
+        new, settled = _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance)
+        return (round_ + 1, torch.where(converged.unsqueeze(-1), qacc, new), used + (~converged).long(),
+                converged | settled)
+
+    start = (torch.zeros((), dtype=torch.long, device=smooth.device), smooth.clone(),
+             torch.zeros(n, dtype=torch.long, device=smooth.device),
+             torch.zeros(n, dtype=torch.bool, device=smooth.device))
+    _, qacc, used, converged = torch.while_loop(unfinished, one_round, start)
+    return qacc, used, converged
+
+
+_newton_outside_the_graph = torch.compiler.disable(_newton)
+
+
 @torch.no_grad()
 def _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations: int, tolerance: float):
     """The Newton search (no autograd): ``(qacc, iterations, converged, active rows)``.
 
-    It runs eagerly under ``torch.compile`` (a graph break: the unrolled iterations would make the
-    graph of a step hundreds of times larger); on the CPU on the compacted rows and envs
+    Under ``torch.compile`` one ``while_loop`` (`_newton_loop`; a graph break on a torch without
+    ``torch.while_loop``); eagerly on the CPU on the compacted rows and envs
     (`_newton_compacted`), elsewhere the fixed, masked rounds (`_newton`)."""
     m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
-    newton = _newton_compacted if smooth.device.type == "cpu" else _newton
+    if not torch.compiler.is_compiling():
+        newton = _newton_compacted if smooth.device.type == "cpu" else _newton
+    elif hasattr(torch, "while_loop"):
+        newton = _newton_loop
+    else:
+        newton = _newton_outside_the_graph
     qacc, used, converged = newton(m, smooth, j, w, ar, exists, iterations, tolerance)
     active = (((j @ qacc.unsqueeze(-1)).squeeze(-1) - ar) < 0) & exists
     return qacc, used, converged, active

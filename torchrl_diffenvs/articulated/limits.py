@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 
+from .convergence import ConvergenceWatch
 from .spatial import _MINVAL, _solve
 from .tree import RigidBodyTree
 
@@ -96,9 +97,19 @@ def _complementary_forces(offset: torch.Tensor, allowed: torch.Tensor, diagonal:
 
 
 @torch.compiler.disable
-def _complementary_forces_eager(offset, allowed, diagonal, matrix_of) -> torch.Tensor:
+def _complementary_forces_eager(offset, allowed, diagonal, matrix_of, host_reads: bool | None = None) -> torch.Tensor:
+    """``host_reads`` (default: on the CPU) picks the envs to pivot by reading the data; without
+    (a GPU, where a read waits for the device) every env pivots, those with fewer than two
+    allowed rows keeping their single-row force, and the rounds stop early through a
+    [`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch]."""
     single = torch.where(allowed, (-offset / diagonal).clamp(min=0.0), torch.zeros_like(offset))
     coupled = allowed.sum(-1) >= 2
+    if host_reads is None:
+        host_reads = offset.device.type == "cpu"
+    if not host_reads:
+        envs = torch.arange(offset.shape[0], device=offset.device)
+        solved = _pivot(matrix_of(envs), offset, allowed & coupled.unsqueeze(-1), early_exit=True, host_reads=False)
+        return torch.where(coupled.unsqueeze(-1), solved, single)
     if not bool(coupled.any()):
         return single
     envs = coupled.nonzero().squeeze(-1)
@@ -106,8 +117,13 @@ def _complementary_forces_eager(offset, allowed, diagonal, matrix_of) -> torch.T
     return single.index_put((envs,), solved)
 
 
-def _pivot(matrix, offset, allowed, early_exit: bool) -> torch.Tensor:
+def _pivot(matrix, offset, allowed, early_exit: bool, host_reads: bool = True) -> torch.Tensor:
+    """The pivoting of `_complementary_forces`; ``early_exit`` stops once no row breaks the
+    conditions in any env (read on the host, or without waiting through a
+    [`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch] when
+    ``host_reads`` is False; the rounds after that change nothing)."""
     rows = offset.shape[-1]
+    watch = ConvergenceWatch.for_device(offset.device) if early_exit and not host_reads else None
     eye = torch.eye(rows, dtype=matrix.dtype, device=matrix.device)
     index = torch.arange(rows, device=offset.device)
 
@@ -121,8 +137,10 @@ def _pivot(matrix, offset, allowed, early_exit: bool) -> torch.Tensor:
         force = solve(chosen)
         slack = (matrix @ force.unsqueeze(-1)).squeeze(-1) + offset
         broken = (chosen & (force < 0)) | (allowed & ~chosen & (slack < 0))
-        if early_exit and not bool(broken.any()):
+        if early_exit and host_reads and not bool(broken.any()):
             return torch.where(chosen, force.clamp(min=0.0), torch.zeros_like(offset))
+        if watch is not None and watch.all_done(~broken.any(-1)):
+            break
         first = broken & (index == torch.where(broken, index, rows).min(-1, keepdim=True).values)
         chosen = chosen ^ first
     return torch.where(chosen, solve(chosen).clamp(min=0.0), torch.zeros_like(offset))
