@@ -147,3 +147,68 @@ def test_the_compiled_step_is_held_by_the_tree_and_the_env():
     eager_physics(env)
     assert compile_report(env) is None
     eager_physics(env)  # again: nothing to undo
+
+
+def test_mujocos_contact_step_compiles_into_one_graph():
+    """MuJoCo's contact model (the default): a physics step with contacts, joint limits and the
+    Newton solve traces into one graph (``fullgraph=True``: no graph break, the solve is one
+    ``torch.while_loop``), and the traced step gives eager's next state."""
+    from torchrl_diffenvs import make_env as make_mujoco_env
+    from torchrl_diffenvs.articulated.pipeline import invweight0
+
+    if not hasattr(torch, "while_loop"):
+        pytest.skip("this torch has no torch.while_loop: the Newton solve is a graph break")
+    env = make_mujoco_env("HalfCheetah-v5", num_envs=4, seed=0, dtype=torch.float64)
+    state = env.rollout(20)[:, -1]["next", "state"]  # fallen onto the floor: contacts active
+    params, weights = dict(env.params.items()), None
+    weights = invweight0(env.tree, params)
+    ctrl = torch.linspace(-1, 1, 4 * env.action_dim, dtype=torch.float64).reshape(4, -1)
+
+    def one(qpos, qvel, ctrl):
+        return integrators.step(env.tree, qpos, qvel, ctrl, params, env.model.timestep, env.integrator, weights)
+
+    eager = one(state["qpos"], state["qvel"], ctrl)
+    assert eager.solver_converged.all()
+    traced = torch.compile(one, fullgraph=True, backend="aot_eager")(state["qpos"], state["qvel"], ctrl)
+    torch.testing.assert_close(traced.qvel, eager.qvel, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(traced.qpos, eager.qpos, rtol=1e-12, atol=1e-12)
+
+
+def test_a_plain_callable_policy_runs_the_compiled_physics_step():
+    """``compile_physics`` with a plain callable policy (no TensorDict module): the articulated
+    task still runs its compiled physics step (the policy is called eagerly around it), with
+    eager's values and gradients; a task compiled by the chunk reports why it ran eagerly."""
+    from torchrl_diffenvs import make_env as make_mujoco_env
+
+    env = make_mujoco_env("HalfCheetah-v5", num_envs=2, seed=0, dtype=torch.float64)
+    torch.manual_seed(0)
+    net = torch.nn.Linear(env.observation_dim, env.action_dim).double()
+
+    def policy(td):
+        return td.set("action", torch.tanh(net(td["observation"])))
+
+    start = env.reset()
+
+    def window():
+        out = env.rollout(4, policy, auto_reset=False, tensordict=start.clone())
+        return out.detach(), torch.autograd.grad(out["next", "reward"].sum(), list(net.parameters()))
+
+    eager = window()
+    compile_physics(env, steps_per_chunk=2, backend="aot_eager")
+    try:
+        compiled = window()
+        report = compile_report(env)
+    finally:
+        eager_physics(env)
+    assert report["fallback_reason"] is None and report["eager_reason"] is None, report
+    assert "physics step (euler), with grad" in report["first_call_seconds"], report
+    torch.testing.assert_close(compiled[0]["next", "observation"], eager[0]["next", "observation"],
+                               rtol=1e-10, atol=1e-10)
+    for got, want in zip(compiled[1], eager[1]):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
+
+    pendulum = make_mujoco_env("pendulum", num_envs=2, seed=0)
+    compile_physics(pendulum, steps_per_chunk=2)
+    pendulum.rollout(2, lambda td: td.set("action", torch.zeros(2, 1)))
+    assert "not a TensorDict module" in compile_report(pendulum)["eager_reason"]
+    assert compile_report(pendulum)["first_call_seconds"] == {}

@@ -119,6 +119,7 @@ class CompiledPhysics:
         self.policy_functions: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self.functions: dict = {}
         self.fallback_reason: str | None = None  # why compiled chunks were given up (then eager)
+        self.eager_reason: str | None = None  # why the last rollout's steps ran eagerly (None: compiled)
         self.first_call_seconds: dict[str, float] = {}  # first call (tracing + compiling + running)
         self.expect_resets = True  # the last chunk saw an env done before its last step
 
@@ -239,7 +240,8 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
     """Opt-in: ``env.rollout`` runs through ``torch.compile`` in chunks of ``K`` steps; returns ``env``.
 
     * With a policy (a TensorDict module such as [`make_actor`][torchrl_diffenvs.modules.make_actor]'s,
-      as BPTT, SHAC and evaluation call it): one compiled function per ``K``-step chunk covers
+      as BPTT, SHAC and evaluation call it; on the articulated tasks any callable that takes and
+      returns a TensorDict, see below): one compiled function per ``K``-step chunk covers
       the policy forward, the physics, the reward, the done flags and the auto-resets of envs
       whose episode ends inside the chunk; its backward is compiled too (AOTAutograd), so
       ``DiffWindowCollector`` windows and their gradients run compiled.
@@ -258,8 +260,10 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
       policy, reward and resets run eagerly and call the same compiled step ``K x frame_skip``
       times. A whole chunk of HalfCheetah-v5 was a graph of 40 physics steps that did not finish
       compiling in 15 minutes on one CPU thread; one step compiles in about a minute, its
-      backward too (benchmarks/compile_physics.py). The joint-limit solve runs eagerly inside
-      it (a graph break, see `limit_force`).
+      backward too (benchmarks/compile_physics.py). With MuJoCo's contact model the step is one
+      graph (the constraint solve is a ``torch.while_loop``); the smooth model's joint-limit
+      solve runs eagerly inside it (a graph break, see `limit_force`). Since the chunk's Python
+      is eager here, the policy may be any callable.
 
     The result is that of the eager path up to floating-point rounding (fused kernels may round
     differently), gradients included, with one exception: random numbers drawn inside compiled
@@ -302,18 +306,20 @@ def compile_report(env: EnvBase) -> dict | None:
     """What [`compile_physics`][torchrl_diffenvs.compile_physics] did on ``env`` so far; ``None`` if it is not compiled.
 
     ``{"steps_per_chunk": K, "granularity": "chunk" or "physics step", "first_call_seconds":
-    {function: seconds}, "fallback_reason": str or None}``: the first call of each compiled
+    {function: seconds}, "fallback_reason": str or None, "eager_reason": str or None}``: the first call of each compiled
     function (tracing and compiling included: for the articulated tasks the compiled physics
     step's own entry, ``"physics step (<integrator>), with/without grad"``, and the first chunk
     that called it; the backward's compilation happens in the first ``backward()`` instead),
-    and why compiled chunks were given up, if they were.
+    why compiled chunks were given up, if they were, and ``"eager_reason"``: why the last
+    rollout ran its steps eagerly (e.g. a plain callable policy on a task compiled by the chunk,
+    whose compiled chunk needs a TensorDict module; ``None``: it ran compiled).
     """
     compiled = compiled_physics(env)
     if compiled is None:
         return None
     return {"steps_per_chunk": compiled.steps_per_chunk, "granularity": compiled.granularity,
             "first_call_seconds": dict(compiled.first_call_seconds),
-            "fallback_reason": compiled.fallback_reason}
+            "fallback_reason": compiled.fallback_reason, "eager_reason": compiled.eager_reason}
 
 
 def eager_physics(env: EnvBase) -> EnvBase:

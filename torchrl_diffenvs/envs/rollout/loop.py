@@ -168,7 +168,10 @@ class _Loop:
         roots: list[dict] = []
         nexts: list[dict] = []
         t, finished = 0, False
-        chunked = self.chunks_unsupported(extras) is None
+        eager_reason = self.chunks_unsupported(extras)
+        if self.compiled is not None:
+            self.compiled.eager_reason = eager_reason
+        chunked = eager_reason is None
         while not finished:
             if chunked and max_steps - t >= self.chunk:
                 actions = None if self.policy is not None else [self.next_action() for _ in range(self.chunk)]
@@ -261,7 +264,9 @@ class _Loop:
             return None if set(extras) <= {"action"} else "the input tensordict has entries besides the env's"
         out_keys = getattr(self.policy, "out_keys", None)
         if not isinstance(self.policy, TensorDictModuleBase) or out_keys is None:
-            return "the policy is not a TensorDict module"
+            # compiled physics steps leave the chunk's Python, the policy's call included, eager
+            return None if compiled.granularity == "physics step" else (
+                "the policy is not a TensorDict module (a compiled chunk traces the policy with its out_keys)")
         if any(not isinstance(key, str) or key in ENV_KEYS for key in out_keys):
             return f"the policy writes nested keys or the env's own entries ({out_keys})"
         if any(not isinstance(value, torch.Tensor) for value in extras.values()):
@@ -294,7 +299,8 @@ class _Loop:
         env, compiled = self.env, self.compiled
         # The previous step's outputs (the only extras, usually) are overwritten by the policy and
         # not read by it: leave them out, so that every chunk has the first chunk's inputs (one compile).
-        policy_keys = set() if self.policy is None else set(self.policy.out_keys) - set(self.policy.in_keys)
+        policy_keys = (set(self.policy.out_keys) - set(self.policy.in_keys)
+                       if isinstance(self.policy, TensorDictModuleBase) else set())
         extras_in = {} if set(extras) <= policy_keys or self.policy is None else {
             key: value.contiguous() for key, value in extras.items()}
         if actions is not None:
