@@ -19,12 +19,16 @@ one env step without gradient (``torch.profiler``) and the host-device synchroni
 (``torch.cuda.set_sync_debug_mode``): an eager GPU step that launches thousands of small kernels is
 bound by their launch overhead, not by the GPU.
 
+A MuJoCo task can be named with its contact model, ``HalfCheetah-v5:smooth`` (default: the task's own,
+``mujoco``), to measure both models side by side.
+
 ``budget_s`` bounds the whole run: once it is spent the remaining cells are reported as
 skipped; results are written after every cell, so a run stopped from outside keeps what it
 measured. An out-of-memory cell is reported as such and the run goes on.
 
     python benchmarks/gpu_throughput.py                                     # device=cuda, every task
     python benchmarks/gpu_throughput.py tasks=[HalfCheetah-v5] sizes=[16384,65536] modes=[eager,cudagraphs]
+    python benchmarks/gpu_throughput.py tasks=[HalfCheetah-v5,HalfCheetah-v5:smooth] sizes=[65536]  # both contact models
     python benchmarks/gpu_throughput.py quick=true device=cpu                # smoke run on the CPU
 """
 from __future__ import annotations
@@ -66,6 +70,14 @@ class GPUThroughputSettings(C.BenchmarkSettings):
     from_results: str | None = None
 
 
+def make_task_env(task: str, n: int, device: str):
+    """The env of a task spec ``NAME`` or ``NAME:CONTACT`` (``HalfCheetah-v5:smooth``)."""
+    from torchrl_diffenvs import make_env
+
+    name, _, contact = task.partition(":")
+    return make_env(name, num_envs=n, seed=0, device=device, **({"contact": contact} if contact else {}))
+
+
 def workload(env, kind: str, args):
     """The timed call of one cell and its env steps per env."""
     import torch
@@ -90,11 +102,9 @@ def step_diagnostics(task: str, n: int, device: str) -> dict:
     """CUDA kernels launched and host-device synchronisations in one env step without gradient."""
     import torch
 
-    from torchrl_diffenvs import make_env
-
     if not device.startswith("cuda"):
         return {"kernels_per_step": None, "syncs_per_step": None}
-    env = make_env(task, num_envs=n, seed=0, device=device)
+    env = make_task_env(task, n, device)
     td = env.rand_step(env.reset())  # warm-up
     with torch.no_grad():
         torch.cuda.synchronize()
@@ -115,16 +125,18 @@ def step_diagnostics(task: str, n: int, device: str) -> dict:
                 env.rand_step(td)
             finally:
                 torch.cuda.set_sync_debug_mode("default")
-    syncs = [str(w.message).splitlines()[0] for w in caught  # not the mode's own notice that it is a prototype
+    # not the mode's own notice that it is a prototype; a warning carries the Python line that synchronised
+    syncs = [f"{'/'.join(Path(w.filename).parts[-2:])}:{w.lineno}" for w in caught
              if "synchronizing" in str(w.message) and "prototype" not in str(w.message)]
-    return {"kernels_per_step": kernels, "syncs_per_step": len(syncs), "sync_kinds": sorted(set(syncs))[:5]}
+    return {"kernels_per_step": kernels, "syncs_per_step": len(syncs),
+            "sync_sites": {site: syncs.count(site) for site in dict.fromkeys(syncs)}}
 
 
 def measure(task: str, n: int, mode: str, kind: str, args) -> dict:
     """One cell: warm-up (compiling) call, then ``repeats`` timed calls."""
     import torch
 
-    from torchrl_diffenvs import compile_physics, make_env
+    from torchrl_diffenvs import compile_physics
     from torchrl_diffenvs.envs.rollout import compile_report
 
     row = {"task": task, "N": n, "mode": mode, "kind": kind}
@@ -132,7 +144,7 @@ def measure(task: str, n: int, mode: str, kind: str, args) -> dict:
         return {**row, "error": NOT_APPLICABLE}
     if mode == "cudagraphs" and not args.device.startswith("cuda"):
         return {**row, "error": "CUDA graphs need device=cuda"}
-    env = make_env(task, num_envs=n, seed=0, device=args.device)
+    env = make_task_env(task, n, args.device)
     if mode != "eager":
         compile_physics(env, steps_per_chunk=8, **({"mode": "reduce-overhead"} if mode == "cudagraphs" else {}))
     run, steps = workload(env, kind, args)
@@ -183,8 +195,9 @@ def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
     if diagnostics:
         tables["diagnostics"] = C.data_table(
             f"One env step without gradient {where}: CUDA kernels launched, host-device synchronisations",
-            ["task", "N", "kernels per env step", "syncs per env step"],
-            [[task, d["N"], d.get("kernels_per_step", "-"), d.get("syncs_per_step", "-")]
+            ["task", "N", "kernels per env step", "syncs per env step", "where they synchronise"],
+            [[d.get("task", task), d["N"], d.get("kernels_per_step", "-"), d.get("syncs_per_step", "-"),
+              ", ".join(d.get("sync_sites", {})) or "-"]
              for task, d in diagnostics.items()])
     return tables
 
