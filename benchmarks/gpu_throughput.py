@@ -19,8 +19,13 @@ one env step without gradient (``torch.profiler``) and the host-device synchroni
 (``torch.cuda.set_sync_debug_mode``): an eager GPU step that launches thousands of small kernels is
 bound by their launch overhead, not by the GPU.
 
-A MuJoCo task can be named with its contact model, ``HalfCheetah-v5:smooth`` (default: the task's own,
-``mujoco``), to measure both models side by side.
+A MuJoCo task can be named with options after colons: its contact model (``HalfCheetah-v5:smooth``;
+default: the task's own, ``mujoco``) and ``recompute`` (``recompute_in_backward=True``: each env
+step's physics runs again in the backward instead of keeping its intermediates), to measure them
+side by side. A ``bptt`` cell also reports the bytes its graph saves for the backward per env step
+(``saved KiB per env-step``: distinct storages through ``torch.autograd.graph.saved_tensors_hooks``
+in the warm-up call; with ``recompute``, what the checkpoints keep is not counted: each env step's
+inputs, which the rollout holds anyway).
 
 ``budget_s`` bounds the whole run: once it is spent the remaining cells are reported as
 skipped; results are written after every cell, so a run stopped from outside keeps what it
@@ -70,12 +75,21 @@ class GPUThroughputSettings(C.BenchmarkSettings):
     from_results: str | None = None
 
 
+TASK_OPTIONS = {"mujoco": {"contact": "mujoco"}, "smooth": {"contact": "smooth"},
+                "recompute": {"recompute_in_backward": True}}
+
+
 def make_task_env(task: str, n: int, device: str):
-    """The env of a task spec ``NAME`` or ``NAME:CONTACT`` (``HalfCheetah-v5:smooth``)."""
+    """The env of a task spec ``NAME[:OPTION...]`` (``HalfCheetah-v5:smooth:recompute``, see `TASK_OPTIONS`)."""
     from torchrl_diffenvs import make_env
 
-    name, _, contact = task.partition(":")
-    return make_env(name, num_envs=n, seed=0, device=device, **({"contact": contact} if contact else {}))
+    name, *options = task.split(":")
+    kwargs = {}
+    for option in options:
+        if option not in TASK_OPTIONS:
+            raise SystemExit(f"gpu_throughput: unknown task option {option!r} in {task!r}; valid: {list(TASK_OPTIONS)}")
+        kwargs.update(TASK_OPTIONS[option])
+    return make_env(name, num_envs=n, seed=0, device=device, **kwargs)
 
 
 def workload(env, kind: str, args):
@@ -150,7 +164,19 @@ def measure(task: str, n: int, mode: str, kind: str, args) -> dict:
     run, steps = workload(env, kind, args)
     if args.device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats(args.device)
-    first, _ = C.timed(run)
+    if kind == "bptt":  # the warm-up call counts the bytes its graph saves for the backward
+        storages = {}
+
+        def pack(tensor):
+            storage = tensor.untyped_storage()
+            storages[storage.data_ptr()] = storage.nbytes()
+            return tensor
+
+        with torch.autograd.graph.saved_tensors_hooks(pack, lambda tensor: tensor):
+            first, _ = C.timed(run)
+        row["saved_kib_per_env_step"] = sum(storages.values()) / (n * steps) / 1024
+    else:
+        first, _ = C.timed(run)
     walls = [C.timed(run)[0] for _ in range(args.repeats or (1 if args.quick else 2))]
     row.update(steps=steps, first_call_s=first, wall_s=walls,
                env_steps_per_s=n * steps / statistics.median(walls))
@@ -181,17 +207,24 @@ def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
         r = cells.get((task, n, kind, mode))
         return "-" if r is None or "first_call_s" not in r else f"{r['first_call_s']:.0f}"
 
+    def memory(task, n):  # of the eager BPTT cell
+        r = cells.get((task, n, "bptt", "eager"), {})
+        peak = f"{r['peak_memory_gib']:.1f}" if "peak_memory_gib" in r else "-"
+        saved = f"{r['saved_kib_per_env_step']:.1f}" if "saved_kib_per_env_step" in r else "-"
+        return [peak, saved]
+
     keys = list(dict.fromkeys((r["task"], r["N"]) for r in results))  # in the order measured
     tables = {}
     for kind, title in (("rollout", "Env-steps/s without gradient"), ("bptt", "Env-steps/s of BPTT windows "
                                                                             "(forward and backward)")):
         rows = [[task, n, *[rate(task, n, kind, m) for m in MODES],
-                 *[first_call(task, n, kind, m) for m in MODES[1:]]]
+                 *[first_call(task, n, kind, m) for m in MODES[1:]], *(memory(task, n) if kind == "bptt" else [])]
                 for task, n in keys if any((task, n, kind, m) in cells for m in MODES)]
         if rows:
+            extra = ["eager: peak GiB", "eager: saved KiB per env-step"] if kind == "bptt" else []
             tables[kind] = C.data_table(f"{title}, wall clock, {where}",
-                                        ["task", "N", *MODES, "compiled: first call s", "cudagraphs: first call s"],
-                                        rows)
+                                        ["task", "N", *MODES, "compiled: first call s", "cudagraphs: first call s",
+                                         *extra], rows)
     if diagnostics:
         tables["diagnostics"] = C.data_table(
             f"One env step without gradient {where}: CUDA kernels launched, host-device synchronisations",

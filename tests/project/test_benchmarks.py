@@ -72,10 +72,13 @@ def test_gpu_throughput_on_the_cpu_quick(tmp_path):
                       f"out={tmp_path / 'gpu.json'}", f"data={tmp_path / 'gpu_data.json'}"])
     cells = {(r["mode"], r["kind"]): r for r in out["results"]}
     assert cells["eager", "rollout"]["env_steps_per_s"] > 0 and cells["eager", "bptt"]["env_steps_per_s"] > 0
+    assert cells["eager", "bptt"]["saved_kib_per_env_step"] > 0
     assert cells["cudagraphs", "rollout"]["error"] == "CUDA graphs need device=cuda"
     assert json.loads((tmp_path / "gpu_data.json").read_text())["tables"]["rollout"]["rows"][0][:2] == ["pendulum", "4"]
     with pytest.raises(SystemExit, match="valid values"):
         bench.main(["quick=true", "device=cpu", "modes=[graphs]", f"out={tmp_path / 'x.json'}", "data=none"])
+    with pytest.raises(SystemExit, match="unknown task option 'soft' in 'Hopper-v5:soft'; valid: "):
+        bench.make_task_env("Hopper-v5:soft", 1, "cpu")
     skipped = bench.main(["quick=true", "device=cpu", "tasks=[pendulum]", "modes=[eager]", "budget_s=1e-9",
                           f"out={tmp_path / 'y.json'}", "data=none"])
     assert {r.get("error") for r in skipped["results"]} == {"skipped (budget)"}

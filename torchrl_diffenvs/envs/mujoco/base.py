@@ -83,6 +83,12 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             state (its parameters join the params). A mapping sets the fields of
             [`ContactGradient`][torchrl_diffenvs.articulated.contact_gradient.ContactGradient], e.g.
             ``{"mode": "cfd", "distance": 0.05}``.
+        recompute_in_backward: ``True``: a graph keeps only each env step's inputs of the
+            physics and runs its ``frame_skip`` physics steps again in the backward (activation
+            checkpointing, ``torch.utils.checkpoint``) instead of saving their intermediates: a
+            BPTT window's memory shrinks by about the physics' share (measured in
+            ``benchmarks/gradient_throughput.py``) for one more forward of the physics per
+            backward. Values and gradients are the same.
         **kwargs: ``device``, ``dtype``, ``seed``, ``max_episode_steps`` and ``params``, as
             [`DiffEnv`][torchrl_diffenvs.DiffEnv]; and the task's own options.
     """
@@ -98,7 +104,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
     default_max_episode_steps = 1000
 
     def __init__(self, num_envs: int = 1, *, contact: str | None = None, integrator: str | None = None,
-                 substeps: int = 1, contact_gradient="exact", **kwargs):
+                 substeps: int = 1, contact_gradient="exact", recompute_in_backward: bool = False, **kwargs):
         model = load_model(self.model_file)
         self.model = model
         contact = self.default_contact if contact is None else contact
@@ -120,6 +126,9 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
                              "(MuJoCo's also treats their velocity derivative implicitly; this one does not); "
                              "valid here: 'euler', 'rk4'")
         self.substeps = substeps
+        if not isinstance(recompute_in_backward, bool):
+            raise ValueError(f"{self.name}: recompute_in_backward must be True or False, got {recompute_in_backward!r}")
+        self.recompute_in_backward = recompute_in_backward
         self.action_dim = model.nu
         low, high = model.ctrl_range[:, 0], model.ctrl_range[:, 1]
         if not ((low == low[0]).all() and (high == high[0]).all()):
@@ -191,7 +200,12 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         its ``contact_force`` is the largest contact normal force over all the physics steps, its
         ``solver_converged`` whether every constraint solve of them converged.
         """
-        qpos, qvel = state["qpos"], state["qvel"]
+        if self.recompute_in_backward and torch.is_grad_enabled():
+            return torch.utils.checkpoint.checkpoint(self._simulate, state["qpos"], state["qvel"], action, params,
+                                                     use_reentrant=False)
+        return self._simulate(state["qpos"], state["qvel"], action, params)
+
+    def _simulate(self, qpos, qvel, action, params) -> StepResult:
         # the constraints' regulariser scales depend on the params only: once per env step, not per physics step
         weights = invweight0(self.tree, params)
         largest = converged = None
