@@ -113,12 +113,16 @@ def workload(env, kind: str, args):
 
 
 def step_diagnostics(task: str, n: int, device: str) -> dict:
-    """CUDA kernels launched and host-device synchronisations in one env step without gradient."""
+    """CUDA kernels launched and host-device synchronisations in one env step without gradient (on
+    the CPU: the aten ops of one env step, the profiler's count)."""
     import torch
 
-    if not device.startswith("cuda"):
-        return {"kernels_per_step": None, "syncs_per_step": None}
     env = make_task_env(task, n, device)
+    if not device.startswith("cuda"):  # the CPU proxy of the kernels: aten ops (the profiler's count)
+        td = env.rand_action(env.reset())
+        with torch.no_grad(), torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            env.step(td)
+        return {"aten_ops_per_step": sum(e.count for e in prof.key_averages() if e.key.startswith("aten::"))}
     td = env.rand_step(env.reset())  # warm-up
     with torch.no_grad():
         torch.cuda.synchronize()
@@ -227,10 +231,12 @@ def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
                                          *extra], rows)
     if diagnostics:
         tables["diagnostics"] = C.data_table(
-            f"One env step without gradient {where}: CUDA kernels launched, host-device synchronisations",
-            ["task", "N", "kernels per env step", "syncs per env step", "where they synchronise"],
+            f"One env step without gradient {where}: CUDA kernels launched and host-device synchronisations "
+            "(on a GPU), aten ops (on the CPU)",
+            ["task", "N", "kernels per env step", "syncs per env step", "where they synchronise",
+             "aten ops per env step (CPU)"],
             [[d.get("task", task), d["N"], d.get("kernels_per_step", "-"), d.get("syncs_per_step", "-"),
-              ", ".join(d.get("sync_sites", {})) or "-"]
+              ", ".join(d.get("sync_sites", {})) or "-", d.get("aten_ops_per_step", "-")]
              for task, d in diagnostics.items()])
     return tables
 
