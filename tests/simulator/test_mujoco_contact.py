@@ -286,10 +286,44 @@ def test_one_step_gradcheck_with_contacts_active():
 
 
 @pytest.mark.filterwarnings("ignore")
-@pytest.mark.parametrize("wrt", ["actions", "start", "friction", "mass"])
+@pytest.mark.parametrize("filename", ["half_cheetah.xml", "hopper.xml"])
+def test_per_env_contact_solref_steps_as_mujoco_with_those_geom_solrefs(filename):
+    """``contact_solref`` per env: env 0 keeps the model's, env 1 has every pair at (0.05, 0.7)
+    (softer, under-damped), env 2 at (0.001, 1): a time constant under two timesteps, which
+    MuJoCo's refsafe raises to two. Each steps as mj_step on a MuJoCo model whose geoms all carry
+    that solref (equal geoms' values mix to the same), from states along a trajectory in contact."""
+    model, mm, data, tree, params = setup(filename)
+    default = tree.contact_slots.pair_solref.to(torch.float64)
+    solrefs = [None, (0.05, 0.7), (0.001, 1.0)]
+    per_env = torch.stack([default if r is None else torch.tensor(r, dtype=torch.float64).expand_as(default)
+                           for r in solrefs])
+    states = trajectory_states(mm, data, 300, seed=2, every=30)
+    qpos, qvel, ctrl = (torch.as_tensor(np.stack([s[i] for s in states])).repeat_interleave(3, 0) for i in range(3))
+    n = qpos.shape[0]
+    batch = {k: v.expand(n, *v.shape[1:]) for k, v in params.items()}
+    batch["contact_solref"] = per_env.repeat(len(states), 1, 1)
+    result = step(tree, qpos, qvel, ctrl, batch, mm.opt.timestep, model.integrator, invweight0(tree, batch))
+    touching = 0
+    for i in range(n):
+        solref = solrefs[i % 3]
+        mm_i = mujoco.MjModel.from_xml_path(str(gymnasium_asset(filename)))
+        if solref is not None:
+            mm_i.geom_solref[:] = solref
+        d = mujoco.MjData(mm_i)
+        d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[i].numpy(), qvel[i].numpy(), ctrl[i].numpy()
+        mujoco.mj_step(mm_i, d)
+        touching += d.ncon > 0
+        np.testing.assert_allclose(result.qvel[i].numpy(), d.qvel, rtol=0, atol=1e-5, err_msg=f"env {i}, solref {solref}")
+        np.testing.assert_allclose(result.qpos[i].numpy(), d.qpos, rtol=0, atol=1e-6, err_msg=f"env {i}, solref {solref}")
+    assert touching > n / 2
+    assert not torch.allclose(result.qvel[0::3], result.qvel[1::3], atol=1e-3)  # the solref matters here
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("wrt", ["actions", "start", "friction", "mass", "solref"])
 def test_multi_step_return_gradient_matches_finite_differences_through_contact(wrt):
-    """d(return of 5 env steps in contact)/d(actions, start qvel, friction, a body mass) against
-    central differences in float64."""
+    """d(return of 5 env steps in contact)/d(actions, start qvel, friction, a body mass, the pairs'
+    solref) against central differences in float64."""
     env, state = _cheetah_on_the_floor()
     base = {k: v.detach().clone() for k, v in env.params.items()}
     actions0 = torch.linspace(-0.8, 0.8, 5 * 6, dtype=torch.float64).reshape(5, 1, 6)
@@ -302,6 +336,8 @@ def test_multi_step_return_gradient_matches_finite_differences_through_contact(w
             qvel = x.reshape(1, -1)
         elif wrt == "friction":
             params["contact_friction"] = x.reshape(1, -1)
+        elif wrt == "solref":
+            params["contact_solref"] = x.reshape(1, -1, 2)
         else:
             params["body_mass"] = torch.cat([base["body_mass"][:, :4], x.reshape(1, 1), base["body_mass"][:, 5:]], 1)
         s = {**{k: v.detach() for k, v in state.items()}, "qvel": qvel}
@@ -312,7 +348,9 @@ def test_multi_step_return_gradient_matches_finite_differences_through_contact(w
         return total
 
     x0 = {"actions": actions0.flatten(), "start": state["qvel"].detach().flatten(),
-          "friction": base["contact_friction"].flatten(), "mass": base["body_mass"][0, 4:5]}[wrt].clone()
+          "friction": base["contact_friction"].flatten(), "mass": base["body_mass"][0, 4:5],
+          # away from refsafe's kink: HalfCheetah's time constant 0.02 is exactly two of its timesteps
+          "solref": (base["contact_solref"] * torch.tensor([1.5, 0.9], dtype=torch.float64)).flatten()}[wrt].clone()
     x = x0.clone().requires_grad_(True)
     (grad,) = torch.autograd.grad(rollout(x), x)
     eps = 1e-6

@@ -128,6 +128,9 @@ class ContactSlots:
     margin: torch.Tensor  # [C] MuJoCo's includemargin (margin - gap; gap is 0 here)
     pyramid_index: torch.Tensor  # [C3] long: the frictional slots (condim 3: four pyramid edges each)
     normal_index: torch.Tensor  # [C1] long: the frictionless slots (condim 1: one row each)
+    # [npair, 2] each geom pair's mixed solref (the entries of params["contact_friction"]): the
+    # default of the params' contact_solref; MuJoCo's default (0.02, 1) for a pair with no slot
+    pair_solref: torch.Tensor
 
     @property
     def count(self) -> int:
@@ -175,7 +178,17 @@ def contact_slots(model: ArticulatedModel, friction_slots: list[tuple[str, str]]
         solref=t([r[3]["solref"] for r in rows], (-1, 2)), solimp=t([r[3]["solimp"] for r in rows], (-1, 5)),
         margin=t([r[3]["margin"] for r in rows], (-1,)),
         pyramid_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 3], (-1,)),
-        normal_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 1], (-1,)))
+        normal_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 1], (-1,)),
+        pair_solref=t(_pair_solref(rows, len(friction_slots)), (-1, 2)))
+
+
+def _pair_solref(rows: list, npair: int) -> np.ndarray:
+    """``[npair, 2]`` the mixed solref of each geom pair from its slots' rows (MuJoCo's default
+    ``(0.02, 1)`` for a pair without one)."""
+    out = np.tile(np.array([0.02, 1.0]), (npair, 1))
+    for _, _, pair, mixed in rows:
+        out[pair] = mixed["solref"]
+    return out
 
 
 class Contacts(NamedTuple):

@@ -96,6 +96,8 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
         in_frame = contacts.frame @ diff.transpose(-1, -2)  # [N, C, 3, nv]: normal, tangents
         translation = body_weight[:, body1, 0] + body_weight[:, body2, 0]  # [N, C]
         mu = params["contact_friction"][:, slots.friction_slot]  # [N, C]
+        # [N or 1, C, 2]: each env's time constant and damping ratio of its pair, or the model's
+        solref = params["contact_solref"][:, slots.friction_slot] if "contact_solref" in params else slots.solref[None]
         for frictional, index in ((True, slots.pyramid_index), (False, slots.normal_index)):
             if not index.numel():
                 continue
@@ -112,7 +114,7 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
                 edges, rows = c[:, :, :1], 1
                 diag = translation[:, index]
             velocity = (edges @ qvel[:, None, :, None]).squeeze(-1)  # [N, S, rows]
-            row_aref, imp = _reference(dist.unsqueeze(-1), cmargin[:, None], velocity, slots.solref[index, None],
+            row_aref, imp = _reference(dist.unsqueeze(-1), cmargin[:, None], velocity, solref[:, index, None],
                                        slots.solimp[index, None], timestep)
             r = ((1 - imp[..., 0]) * diag / imp[..., 0]).clamp_min(_MINVAL)
             if frictional:

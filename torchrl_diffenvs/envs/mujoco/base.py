@@ -11,7 +11,9 @@ State: MuJoCo's coordinates ``("state", "qpos")`` and ``("state", "qvel")`` ``[N
 task extras. Params (per env, float or ``[num_envs, ...]``): the model's ``body_mass [nbody]``,
 ``body_inertia [nbody, 3, 3]``, ``gravity [3]``, ``damping``/``armature``/``stiffness [nv]``; for
 models with contact ``contact_friction [ncontact]`` (one per geom pair, MuJoCo's sliding friction
-by default), and with ``contact="smooth"`` ``contact_stiffness``, ``contact_damping``,
+by default) and, with MuJoCo's contact model, ``contact_solref [ncontact, 2]`` (each pair's
+``solref``: the time constant and damping ratio of its soft contact, MuJoCo's mixed values by
+default; a time constant under two timesteps acts as two, MuJoCo's ``refsafe``), and with ``contact="smooth"`` ``contact_stiffness``, ``contact_damping``,
 ``contact_width`` and ``friction_velocity``; for models in a fluid (``<option density/viscosity>``, Swimmer)
 ``fluid_density`` and ``fluid_viscosity``; and the task's constants (reward weights, healthy
 ranges, reset noise). Truncation follows Gymnasium's ``TimeLimit`` (as the classic Gymnasium tasks).
@@ -153,6 +155,8 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             if contact == "smooth" or self.contact_gradient.mode == "penalty":  # the penalty model's
                 defaults.update(self.contact_params)
             defaults["contact_friction"] = torch.as_tensor(self.tree.contact_pair_friction)
+            if self.tree.contact_model == "mujoco":
+                defaults["contact_solref"] = self.tree.contact_slots.pair_solref.cpu().double()
         defaults.update(self.task_params)
         self.default_params = defaults
         super().__init__(num_envs, **kwargs)
