@@ -366,3 +366,26 @@ def test_a_cuda_graph_mode_keeps_the_eager_rollout_and_gradient():
     torch.testing.assert_close(outs[1]["next", "observation"], outs[0]["next", "observation"], rtol=1e-10, atol=1e-12)
     for got, want in zip(*reversed(grads)):
         torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+
+
+def test_a_window_with_its_policy_traces_into_one_graph():
+    """A 4-step chunk of the pendulum with a TensorDict-module policy (what compile_physics compiles
+    for a BPTT window): dynamo traces it without a graph break, and the traced chunk's rewards
+    are eager's."""
+    from torchrl_diffenvs.envs.rollout.compiled import chunk_inputs, chunk_steps
+
+    env = make_env("pendulum", num_envs=4, seed=0)
+    actor = make_actor(env, hidden=(16,))
+    td = env.reset()
+    root = chunk_inputs({"observation": td["observation"], "state": dict(td["state"].items()),
+                         "params": dict(td["params"].items()), "episode_step": td["episode_step"]})
+
+    def window(root):
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            steps, _ = chunk_steps(env, actor, 4, root, {}, None, None)
+        return torch.stack([nxt["reward"] for _, nxt, _ in steps])
+
+    explanation = torch._dynamo.explain(window)(root)
+    assert explanation.graph_break_count == 0 and explanation.graph_count == 1, explanation.break_reasons
+    traced = torch.compile(window, fullgraph=True, backend="eager")(root)
+    torch.testing.assert_close(traced, window(root), rtol=0, atol=0)
