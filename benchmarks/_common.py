@@ -12,6 +12,7 @@ Measurement rules (the machine these run on is usually shared, 2 CPU cores):
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -302,3 +303,26 @@ def compose(overrides: list[str]):
 
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         return hydra_compose(config_name="config", overrides=overrides)
+
+
+def storage_bytes(tensors, seen: dict) -> None:
+    """Adds the storages of ``tensors`` to ``seen`` ({data pointer: bytes}: a storage counts once)."""
+    for t in tensors:
+        storage = t.untyped_storage()
+        seen.setdefault(storage.data_ptr(), storage.nbytes())
+
+
+@contextlib.contextmanager
+def saved_for_backward():
+    """``with saved_for_backward() as saved:`` the distinct storages autograd saves for the backward
+    inside the block, ``{data pointer: bytes}`` (``torch.autograd.graph.saved_tensors_hooks``)."""
+    import torch
+
+    saved: dict = {}
+
+    def pack(tensor):
+        storage_bytes([tensor], saved)
+        return tensor
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda tensor: tensor):
+        yield saved

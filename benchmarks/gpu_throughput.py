@@ -169,16 +169,9 @@ def measure(task: str, n: int, mode: str, kind: str, args) -> dict:
     if args.device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats(args.device)
     if kind == "bptt":  # the warm-up call counts the bytes its graph saves for the backward
-        storages = {}
-
-        def pack(tensor):
-            storage = tensor.untyped_storage()
-            storages[storage.data_ptr()] = storage.nbytes()
-            return tensor
-
-        with torch.autograd.graph.saved_tensors_hooks(pack, lambda tensor: tensor):
+        with C.saved_for_backward() as saved:
             first, _ = C.timed(run)
-        row["saved_kib_per_env_step"] = sum(storages.values()) / (n * steps) / 1024
+        row["saved_kib_per_env_step"] = sum(saved.values()) / (n * steps) / 1024
     else:
         first, _ = C.timed(run)
     walls = [C.timed(run)[0] for _ in range(args.repeats or (1 if args.quick else 2))]

@@ -76,26 +76,13 @@ def raw_window(env, net, start, horizon: int, actions=None):
     return -torch.stack(rewards, dim=1).mean()
 
 
-def storage_bytes(tensors, seen: dict) -> None:
-    for t in tensors:
-        storage = t.untyped_storage()
-        seen.setdefault(storage.data_ptr(), storage.nbytes())
-
-
 def count_memory(forward):
     """(saved bytes, held bytes) of one ``forward()`` returning (loss, result tensors)."""
-    import torch
 
-    saved: dict = {}
-
-    def pack(t):
-        storage_bytes([t], saved)
-        return t
-
-    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+    with C.saved_for_backward() as saved:
         loss, result = forward()
     held = dict(saved)
-    storage_bytes(result, held)
+    C.storage_bytes(result, held)
     loss.backward()  # frees the graph
     return sum(saved.values()), sum(held.values())
 
