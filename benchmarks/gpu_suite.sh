@@ -4,9 +4,10 @@
 # eat the others'):
 #   1. the GPU tests (tests/project/test_gpu.py: every task, compiled chunks, CUDA graphs, the
 #      synchronisations of one env step, train.py with each loss on CUDA and resumed on the CPU);
-#   2. eager throughput of HalfCheetah-v5 (MuJoCo's contact model and the smooth one) and the Ant at
-#      N = 16384 and 65536, with and without gradient (16-step BPTT windows, peak memory), and the
-#      kernels and synchronisations per step with the lines that synchronise (benchmarks/gpu_throughput.py);
+#   2. eager throughput of HalfCheetah-v5 (MuJoCo's contact model, with recompute_in_backward, and
+#      the smooth model) and the Ant at N = 16384 and 65536, with and without gradient (16-step BPTT
+#      windows, peak memory), and the kernels and synchronisations per step with the lines that
+#      synchronise (benchmarks/gpu_throughput.py);
 #   3. train.py on HalfCheetah-v5 on CUDA, PPO with massively parallel settings (4096 envs, Brax's
 #      discount and entropy), then the gradient learner GRAD_LOSS (default ahac, its tuned file) with 1024
 #      envs, TRAIN_S seconds each, one after the other so that neither slows the other (stopped by
@@ -31,7 +32,7 @@ echo "pytest exit $?"; grep -E "^(FAILED|ERROR|PASSED)|passed|failed" "$out/pyte
 
 echo "== eager throughput ($(elapsed) s)"
 timeout "${EAGER_S:-170}" "$py" benchmarks/gpu_throughput.py modes=[eager] \
-    "tasks=[${EAGER_TASKS:-HalfCheetah-v5,HalfCheetah-v5:smooth,Ant-v5}]" \
+    "tasks=[${EAGER_TASKS:-HalfCheetah-v5,HalfCheetah-v5:recompute,HalfCheetah-v5:smooth,Ant-v5}]" \
     "sizes=[${EAGER_SIZES:-16384,65536}]" steps=8 window=16 budget_s="${EAGER_BUDGET_S:-150}" \
     out="$out/gpu_eager.json" data=none
 
