@@ -207,6 +207,33 @@ def test_a_plain_callable_policy_runs_the_compiled_physics_step():
     for got, want in zip(compiled[1], eager[1]):
         torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
 
+    class Slotted:  # a callable that cannot be weakly referenced
+        __slots__ = ()
+
+        def __call__(self, td):
+            return policy(td)
+
+    compile_physics(env, steps_per_chunk=2, backend="aot_eager")
+    try:
+        with torch.no_grad():
+            slotted = env.rollout(4, Slotted(), auto_reset=False, tensordict=start.clone())
+        assert compile_report(env)["eager_reason"] is None
+        torch.testing.assert_close(slotted["next", "observation"], eager[0]["next", "observation"],
+                                   rtol=1e-10, atol=1e-10)
+
+        def overwriting(td):  # writes the env's own entry: the chunk would drop it, so the steps run eagerly
+            return policy(td).set("observation", td["observation"] * 0 + 7)
+
+        with torch.no_grad():
+            compiled_out = env.rollout(4, overwriting, auto_reset=False, tensordict=start.clone())
+        assert "changed the env's own entries" in compile_report(env)["eager_reason"]
+    finally:
+        eager_physics(env)
+    with torch.no_grad():
+        eager_out = env.rollout(4, overwriting, auto_reset=False, tensordict=start.clone())
+    torch.testing.assert_close(compiled_out["observation"], eager_out["observation"], rtol=0, atol=0)
+    assert (compiled_out["observation"][:, 1:] == 7).all()
+
     pendulum = make_mujoco_env("pendulum", num_envs=2, seed=0)
     compile_physics(pendulum, steps_per_chunk=2)
     pendulum.rollout(2, lambda td: td.set("action", torch.zeros(2, 1)))

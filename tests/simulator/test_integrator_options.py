@@ -290,3 +290,30 @@ def test_recompute_in_backward_keeps_values_and_gradients_and_saves_less():
     for got, want in zip(grads_r, grads):
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
     assert saved_r < saved / 10, (saved_r, saved)
+
+
+def test_recompute_in_backward_under_compile_physics_recomputes_the_compiled_step():
+    """With ``compile_physics`` the forward runs the compiled physics step: the backward's
+    recomputation takes the same step (not the eager one), and the gradient is eager's."""
+    from torchrl_diffenvs import compile_physics, eager_physics
+    from torchrl_diffenvs import make_env as make_mujoco_env
+    from torchrl_diffenvs.envs.rollout import compile_report
+
+    grads = []
+    for compiled in (False, True):
+        env = make_mujoco_env("InvertedPendulum-v5", num_envs=2, seed=0, dtype=torch.float64,
+                              recompute_in_backward=True)
+        torch.manual_seed(0)
+        net = torch.nn.Linear(env.observation_dim, env.action_dim).double()
+        if compiled:
+            compile_physics(env, steps_per_chunk=2, backend="aot_eager")
+        out = env.rollout(2, lambda td: td.set("action", torch.tanh(net(td["observation"]))), auto_reset=False,
+                          tensordict=env.reset())
+        grads.append(torch.autograd.grad(out["next", "reward"].sum() + out["next", "observation"].sum(),
+                                         list(net.parameters())))
+        if compiled:
+            report = compile_report(env)
+            assert report["eager_reason"] is None and any("with grad" in k for k in report["first_call_seconds"]), report
+            eager_physics(env)
+    for got, want in zip(*grads):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)

@@ -18,7 +18,9 @@ the solution (exact wherever the active set does not change). Differentiating th
 iterations instead would cost a backward pass per iteration and carry the line search's
 breakpoints into the gradient; at the solution, one solve gives the same gradient. Under
 ``torch.compile`` the Newton search is one ``torch.while_loop`` that ends once every env has
-converged: a step compiles into one graph.
+converged: a step compiles into one graph. On CUDA it stays eager (a graph break): inductor reads
+a while_loop's condition on the host every round and keeps it out of CUDA graphs, while the eager
+rounds stop without a synchronisation.
 """
 from __future__ import annotations
 
@@ -271,16 +273,20 @@ _newton_outside_the_graph = torch.compiler.disable(_newton)
 def _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations: int, tolerance: float):
     """The Newton search (no autograd): ``(qacc, iterations, converged, active rows)``.
 
-    Under ``torch.compile`` one ``while_loop`` (`_newton_loop`; a graph break on a torch without
-    ``torch.while_loop``); eagerly on the CPU on the compacted rows and envs
-    (`_newton_compacted`), elsewhere the fixed, masked rounds (`_newton`)."""
+    Under ``torch.compile`` one ``while_loop`` (`_newton_loop`), except on CUDA and on a torch
+    without ``torch.while_loop``, where it is a graph break (`_newton` runs eagerly); eagerly on
+    the CPU on the compacted rows and envs (`_newton_compacted`), elsewhere the masked rounds
+    (`_newton`)."""
     m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
     if not torch.compiler.is_compiling():
         newton = _newton_compacted if smooth.device.type == "cpu" else _newton
-    elif hasattr(torch, "while_loop"):
-        newton = _newton_loop
-    else:
+    elif smooth.device.type == "cuda" or not hasattr(torch, "while_loop"):
+        # inductor runs a while_loop's condition on the host (a synchronisation per round) and leaves
+        # it out of CUDA graphs: on CUDA the search runs eagerly between the compiled graphs, where
+        # the ConvergenceWatch stops it without a synchronisation
         newton = _newton_outside_the_graph
+    else:
+        newton = _newton_loop
     qacc, used, converged = newton(m, smooth, j, w, ar, exists, iterations, tolerance)
     active = (((j @ qacc.unsqueeze(-1)).squeeze(-1) - ar) < 0) & exists
     return qacc, used, converged, active
@@ -319,8 +325,9 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
 
     An env has converged once its cost's gradient is below ``tolerance`` relative to the size of
     its terms (at least ``1000 eps`` of the dtype). On the CPU the iterations stop once every env
-    has; on other devices all ``iterations`` run (no host-device synchronisation), converged envs
-    unchanged (a mask). ``gradient``: how the backward differentiates the solve
+    has; on other devices converged envs are held by a mask (no host-device synchronisation), and
+    on CUDA the host stops issuing rounds once it sees, without waiting, that every env has
+    converged ([`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch]). ``gradient``: how the backward differentiates the solve
     ([`ContactGradient`][torchrl_diffenvs.articulated.contact_gradient.ContactGradient]; the values are the same in every mode).
     """
     tolerance = max(tolerance, 1000 * torch.finfo(mass.dtype).eps)

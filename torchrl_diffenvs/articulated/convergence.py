@@ -30,8 +30,10 @@ class ConvergenceWatch:
 
     @classmethod
     def for_device(cls, device: torch.device) -> ConvergenceWatch | None:
-        usable = device.type == "cuda" and not torch.cuda.is_current_stream_capturing()
-        return cls() if usable else None
+        if device.type != "cuda":
+            return None
+        with torch.cuda.device(device):
+            return None if torch.cuda.is_current_stream_capturing() else cls()
 
     def all_done(self, done: torch.Tensor) -> bool:
         """Whether a flag copied after an earlier round says every env was done by then (the
@@ -43,6 +45,6 @@ class ConvergenceWatch:
             if bool(self.flag):  # the copy has landed: reading pinned host memory does not synchronise
                 return True
         self.flag.copy_(done.all(), non_blocking=True)
-        self.event.record()
+        self.event.record(torch.cuda.current_stream(done.device))  # behind the copy, on its device's stream
         self.pending = True
         return False

@@ -85,8 +85,9 @@ def _complementary_forces(offset: torch.Tensor, allowed: torch.Tensor, diagonal:
     With at most one allowed row it is ``max(0, -offset / matrix_ii)``; envs with several are
     solved by principal pivoting: each round solves the rows of the current set exactly, then
     flips the first row that breaks the conditions (Murty's least-index rule, which cannot cycle):
-    a chosen row with a negative force leaves, an allowed row with a negative ``w`` joins. Only
-    the envs with several allowed rows pivot, until no row breaks.
+    a chosen row with a negative force leaves, an allowed row with a negative ``w`` joins. On the
+    CPU only the envs with several allowed rows pivot, until no row breaks; on a GPU every env
+    pivots (the others masked) without reading the data on the host.
 
     Under ``torch.compile`` this runs eagerly (a graph break: the code before and after it
     compiles as two graphs): the data-dependent solve of the few coupled envs costs little there,

@@ -26,6 +26,7 @@ from pathlib import Path
 import torch
 
 from ...articulated import RigidBodyTree, load_mjcf, step
+from ...articulated.integrators import physics_stepper, stepping_with
 from ...articulated.contact import has_contacts
 from ...articulated.dynamics import StepResult, default_params
 from ...articulated.inertia import kinematics_at_qpos0
@@ -205,7 +206,14 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         ``solver_converged`` whether every constraint solve of them converged.
         """
         if self.recompute_in_backward and torch.is_grad_enabled():
-            return torch.utils.checkpoint.checkpoint(self._simulate, state["qpos"], state["qvel"], action, params,
+            stepper = physics_stepper(self.tree)  # compile_physics' step, if a compiled rollout runs this
+
+            def physics(qpos, qvel, action, params):
+                # the backward's recomputation runs outside the rollout: it must take the same step
+                with stepping_with(self.tree, stepper):
+                    return self._simulate(qpos, qvel, action, params)
+
+            return torch.utils.checkpoint.checkpoint(physics, state["qpos"], state["qvel"], action, params,
                                                      use_reentrant=False)
         return self._simulate(state["qpos"], state["qvel"], action, params)
 

@@ -10,6 +10,7 @@ from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from ...articulated.integrators import eager_step, stepping_with
@@ -17,7 +18,7 @@ from ...articulated.tree import RigidBodyTree
 from .step import ENV_KEYS, FLAG_KEYS, merge_reset, physics_step
 from .support import fast_rollout_unsupported
 
-__all__ = ["CompiledPhysics", "chunk_inputs", "chunk_steps", "compile_physics", "compile_report", "compiled_physics",
+__all__ = ["CompiledPhysics", "PolicyWritesEnvEntries", "chunk_inputs", "chunk_steps", "compile_physics", "compile_report", "compiled_physics",
            "eager_physics"]
 
 
@@ -49,6 +50,10 @@ def chunk_steps(env: EnvBase, policy, chunk: int, root: dict, extras: dict, acti
         else:
             entries = {key: value for key, value in root.items() if key not in FLAG_KEYS}
             td = policy(TensorDict({**entries, **flags, **extras}, batch_size=false.shape, device=false.device))
+            if not isinstance(policy, TensorDictModuleBase) and not _env_entries_kept(td, entries):
+                # (a TensorDict module's out_keys were checked before the chunk)
+                raise PolicyWritesEnvEntries("the policy (a plain callable) changed the env's own entries "
+                                             "(observation, state, params): its steps run eagerly")
             out = {key: td.get(key) for key in td.keys() if key not in ENV_KEYS}
         nxt = physics_step(env, root["state"], root["params"], root["episode_step"], out["action"])
         merged = None
@@ -64,6 +69,22 @@ def chunk_steps(env: EnvBase, policy, chunk: int, root: dict, extras: dict, acti
             extras = out
         steps.append((out, nxt, None if merged is None else (merged, extras)))
     return steps, resets
+
+
+class PolicyWritesEnvEntries(RuntimeError):
+    """A plain callable policy changed the env's own entries inside a compiled chunk, which keeps
+    only the policy's other outputs: the rollout goes on eagerly, as `EnvBase.rollout` would run it."""
+
+
+def _env_entries_kept(td: TensorDictBase, entries: dict) -> bool:
+    """Whether ``td`` still holds the very tensors of ``entries`` (nested one level, as the state)."""
+    for key, value in entries.items():
+        if isinstance(value, dict):
+            if any(td.get((key, name), None) is not tensor for name, tensor in value.items()):
+                return False
+        elif td.get(key, None) is not value:
+            return False
+    return True
 
 
 def chunk_inputs(root: dict) -> dict:
@@ -130,11 +151,16 @@ class CompiledPhysics:
 
     def chunk_function(self, policy, with_resets: bool) -> Callable:
         """The compiled `chunk_steps` for ``policy`` (one per policy object, or ``None``)."""
-        functions = self.functions if policy is None else self.policy_functions.setdefault(policy, {})
+        try:
+            functions = self.functions if policy is None else self.policy_functions.setdefault(policy, {})
+            policy_ref = (lambda: None) if policy is None else weakref.ref(policy)
+        except TypeError:  # a callable that cannot be weakly referenced
+            if self.granularity != "physics step":
+                raise
+            functions, policy_ref = {}, (lambda: policy)  # nothing of the policy is compiled: no cache needed
         fn = functions.get(with_resets)
         if fn is None:
             env_ref, steps = self.env_ref, self.steps_per_chunk
-            policy_ref = (lambda: None) if policy is None else weakref.ref(policy)
 
             def chunk(root, extras, actions, fresh):
                 return chunk_steps(env_ref(), policy_ref(), steps, root, extras, actions, fresh)
@@ -261,7 +287,8 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
       times. A whole chunk of HalfCheetah-v5 was a graph of 40 physics steps that did not finish
       compiling in 15 minutes on one CPU thread; one step compiles in about a minute, its
       backward too (benchmarks/compile_physics.py). With MuJoCo's contact model the step is one
-      graph (the constraint solve is a ``torch.while_loop``); the smooth model's joint-limit
+      graph (the constraint solve is a ``torch.while_loop``; on CUDA the solve runs eagerly
+      between two graphs, stopping without a synchronisation); the smooth model's joint-limit
       solve runs eagerly inside it (a graph break, see `limit_force`). Since the chunk's Python
       is eager here, the policy may be any callable.
 
@@ -311,8 +338,9 @@ def compile_report(env: EnvBase) -> dict | None:
     step's own entry, ``"physics step (<integrator>), with/without grad"``, and the first chunk
     that called it; the backward's compilation happens in the first ``backward()`` instead),
     why compiled chunks were given up, if they were, and ``"eager_reason"``: why the last
-    rollout ran its steps eagerly (e.g. a plain callable policy on a task compiled by the chunk,
-    whose compiled chunk needs a TensorDict module; ``None``: it ran compiled).
+    rollout through the lean loop could not take compiled chunks (e.g. a plain callable policy on
+    a task compiled by the chunk, whose compiled chunk needs a TensorDict module, or one that
+    changes the env's own entries; ``None``: it could, for its whole chunks).
     """
     compiled = compiled_physics(env)
     if compiled is None:

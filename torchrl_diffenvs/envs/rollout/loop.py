@@ -24,7 +24,7 @@ from ..._compat import (
     make_compatible_policy,
 )
 from .actions import RandomActions
-from .compiled import chunk_inputs, compiled_physics
+from .compiled import PolicyWritesEnvEntries, chunk_inputs, compiled_physics
 from .output import as_tensordict, build_output, entries_of, set_truncated_last_step
 from .step import ENV_KEYS, merge_reset, physics_step
 from .support import FAST_ROLLOUT_KWARGS, fast_rollout_unsupported  # noqa: F401  (re-exported)
@@ -314,6 +314,9 @@ class _Loop:
         started = time.perf_counter()
         try:
             steps, resets = function(chunk_inputs(root), extras_in, actions_in, fresh)
+        except PolicyWritesEnvEntries as err:  # this rollout's policy only: later rollouts may compile
+            compiled.eager_reason = str(err)
+            return None
         except COMPILE_ERRORS as err:
             message = " ".join(line.strip() for line in str(err).splitlines()[:3] if line.strip())
             compiled.fallback_reason = f"torch.compile failed ({type(err).__name__}: {message})"
