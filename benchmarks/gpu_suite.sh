@@ -4,13 +4,13 @@
 # eat the others'):
 #   1. the GPU tests (tests/project/test_gpu.py: every task, compiled chunks, CUDA graphs, the
 #      synchronisations of one env step, train.py with each loss on CUDA and resumed on the CPU);
-#   2. eager throughput of HalfCheetah-v5 (MuJoCo's contact model, with recompute_in_backward, and
+#   2. eager throughput at N = 65536 of HalfCheetah-v5 (MuJoCo's contact model with recompute_in_backward, and
 #      the smooth model) and the Ant at N = 16384 and 65536, with and without gradient (16-step BPTT
 #      windows, peak memory), and the kernels and synchronisations per step with the lines that
 #      synchronise (benchmarks/gpu_throughput.py);
 #   3. train.py on HalfCheetah-v5 on CUDA, PPO with massively parallel settings (4096 envs, Brax's
 #      discount and entropy), then the gradient learner GRAD_LOSS (default ahac, its tuned file) with 1024
-#      envs, TRAIN_S seconds each, one after the other so that neither slows the other (stopped by
+#      envs, TRAIN_S seconds each (PPO_S, GRAD_S for one), scored in MuJoCo, one after the other so that neither slows the other (stopped by
 #      SIGTERM, which ends a run cleanly with a checkpoint); each run's metrics.jsonl is copied to
 #      OUT_DIR/<loss>_metrics.jsonl;
 #   4. HalfCheetah-v5 compiled and with CUDA graphs, with what is left of TOTAL_S.
@@ -27,29 +27,33 @@ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 "$py" -c "import torch, torchrl, tensordict; print('torch', torch.__version__, 'torchrl', torchrl.__version__, 'tensordict', tensordict.__version__)"
 
 echo "== tests ($(elapsed) s)"
-timeout "${TEST_S:-130}" "$py" -m pytest -q tests/project/test_gpu.py -n 8 -p no:cacheprovider -rA > "$out/pytest_gpu.txt" 2>&1
-echo "pytest exit $?"; grep -E "^(FAILED|ERROR|PASSED)|passed|failed" "$out/pytest_gpu.txt" | tail -40
+# -v writes each test's outcome as it ends, so a run stopped at its limit still names what failed
+timeout "${TEST_S:-150}" "$py" -m pytest -v tests/project/test_gpu.py -n 8 -p no:cacheprovider --timeout=120 \
+    --tb=short -rfE > "$out/pytest_gpu.txt" 2>&1
+echo "pytest exit $?"; grep -E "(FAILED|ERROR)|passed|failed" "$out/pytest_gpu.txt" | tail -40
 
 echo "== eager throughput ($(elapsed) s)"
 timeout "${EAGER_S:-170}" "$py" benchmarks/gpu_throughput.py modes=[eager] \
-    "tasks=[${EAGER_TASKS:-HalfCheetah-v5,HalfCheetah-v5:recompute,HalfCheetah-v5:smooth,Ant-v5}]" \
-    "sizes=[${EAGER_SIZES:-16384,65536}]" steps=8 window=16 budget_s="${EAGER_BUDGET_S:-150}" \
+    "tasks=[${EAGER_TASKS:-HalfCheetah-v5:recompute,HalfCheetah-v5:smooth,Ant-v5}]" \
+    "sizes=[${EAGER_SIZES:-65536}]" steps=8 window=16 repeats=1 budget_s="${EAGER_BUDGET_S:-150}" \
     out="$out/gpu_eager.json" data=none
 
 echo "== train.py on CUDA ($(elapsed) s)"
+# scored in MuJoCo alone (eval.only_gymnasium): our own evaluation's 32 envs would step launch-bound
 common="env=HalfCheetah-v5 device=cuda seed=0 logger=csv eval.gif=false train.progress_bar=false
+        eval.gymnasium=true eval.only_gymnasium=true
         train.checkpoint_interval=100000000 train.total_env_steps=100000000"
 # shellcheck disable=SC2086
-timeout -s TERM "${TRAIN_S:-100}" "$py" sota_scripts/train.py $common loss=ppo env.num_envs=4096 \
+timeout -s TERM "${PPO_S:-${TRAIN_S:-100}}" "$py" sota_scripts/train.py $common loss=ppo env.num_envs=4096 \
     loss.rollout_len=20 loss.minibatch_size=10240 loss.epochs=8 loss.lr_schedule=constant loss.gamma=0.95 \
-    loss.entropy_coeff=1e-3 eval.interval=1000000 hydra.run.dir="$work/ppo" > "$out/train.log" 2>&1
+    loss.entropy_coeff=1e-3 eval.interval=2000000 hydra.run.dir="$work/ppo" > "$out/train.log" 2>&1
 grad=${GRAD_LOSS:-ahac}
 # shellcheck disable=SC2086
-timeout -s TERM "${TRAIN_S:-100}" "$py" sota_scripts/train.py $common loss="$grad" env.num_envs=1024 \
+timeout -s TERM "${GRAD_S:-${TRAIN_S:-100}}" "$py" sota_scripts/train.py $common loss="$grad" env.num_envs=1024 \
     eval.interval=200000 hydra.run.dir="$work/$grad" >> "$out/train.log" 2>&1
 for run in ppo "$grad"; do
     cp "$work/$run/metrics.jsonl" "$out/${run}_metrics.jsonl" 2>/dev/null
-    echo "$run: env steps, wall s, eval return"
+    echo "$run: env steps, wall s, return in MuJoCo (Gymnasium's env)"
     "$py" - "$work/$run/metrics.jsonl" <<'EOF'
 import json, sys
 wall = 0.0
@@ -60,8 +64,8 @@ except OSError as err:
 for line in lines:
     row = json.loads(line)
     wall = row.get("time/wall_s", wall)
-    if "eval/return" in row:
-        print(f"  {row['env_steps']:>10,d} {wall:7.0f} {row['eval/return']:9.1f}")
+    if "eval/gymnasium_return" in row:
+        print(f"  {row['env_steps']:>10,d} {wall:7.0f} {row['eval/gymnasium_return']:9.1f}")
 EOF
 done
 
@@ -69,6 +73,6 @@ echo "== compiled and CUDA graphs ($(elapsed) s)"
 left=$(( ${TOTAL_S:-540} - $(elapsed) ))
 if [ "$left" -gt 30 ]; then
     timeout "$left" "$py" benchmarks/gpu_throughput.py modes=[cudagraphs,compiled] tasks=[HalfCheetah-v5] \
-        sizes=[65536] steps=16 window=16 budget_s=$(( left - 10 )) out="$out/gpu_compiled.json" data=none
+        kinds=[rollout] sizes=[65536] steps=16 window=16 budget_s=$(( left - 10 )) out="$out/gpu_compiled.json" data=none
 fi
 echo "== done ($(elapsed) s)"

@@ -85,7 +85,24 @@ def test_transfer_benchmark_and_training_evaluation_in_gymnasium(tmp_path):
     assert saved["eval/gymnasium_return"] == pytest.approx(direct["return"], rel=1e-12)
 
 
+def test_only_gymnasium_scores_there_alone_and_picks_the_best_checkpoint_by_it(tmp_path):
+    result = train_script.run(tiny_cfg("Hopper-v5", "shac", 1, "eval.gymnasium=true", "eval.only_gymnasium=true",
+                                       "eval.num_envs=2", "eval.max_steps=20", "train.save_best_after=0"),
+                              tmp_path / "run")
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert not any("eval/return" in r or "eval/random_return" in r for r in rows)  # no evaluation of ours
+    logged = [r["eval/gymnasium_return"] for r in rows if "eval/gymnasium_return" in r]
+    assert len(logged) >= 2 and logged[-1] == result["eval/gymnasium_return"] and np.isnan(result["eval/return"])
+    # the Gymnasium return decides the best checkpoint: best.pt holds the best of the logged ones
+    best = torch.load(tmp_path / "run" / "checkpoints" / "best.pt", weights_only=False)
+    assert best["progress"]["best_eval_return"] == max(logged)
+
+
 def test_gymnasium_evaluation_config_errors():
+    with pytest.raises(ConfigError, match="eval.only_gymnasium=true scores the policy only in Gymnasium's own env: "
+                                          "it needs eval.gymnasium=true"):
+        train_script.run(make_cfg("env=Hopper-v5", "loss=shac", "eval.only_gymnasium=true", "logger=none"),
+                         "/tmp/unused")
     # Gymnasium's CartPole-v1 takes discrete actions, ours continuous ones
     with pytest.raises(ConfigError, match="Gymnasium's 'CartPole-v1' has actions Discrete\\(2\\)"):
         train_script.run(make_cfg("env=CartPole-v1", "loss=shac", "eval.gymnasium=true", "logger=none"), "/tmp/unused")

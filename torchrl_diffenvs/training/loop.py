@@ -264,14 +264,17 @@ class Trainer:
         run, progress, last = self.settings, self.progress, self.progress["last"]
         score = None
         if self.world.is_main:
-            if "eval/random_return" not in last:
+            in_gymnasium_backend = isinstance(self.eval_env, GymnasiumBackedEnv)
+            here = not run.eval.only_gymnasium or in_gymnasium_backend
+            if here and "eval/random_return" not in last:
                 last["eval/random_return"] = evaluate_random(self.eval_env, self.eval_steps, run.eval.seed)
                 self.log({"eval/random_return": last["eval/random_return"]})
-            scores = evaluate(self.eval_env, self.learner.policy, self.eval_steps, run.eval.seed)
-            score = last["eval/return"] = scores["return"]
-            last["eval/episode_length"], last["eval/terminated"] = scores["episode_length"], scores["terminated"]
-            self.log({f"eval/{k}": v for k, v in scores.items()})
-            if run.eval.gymnasium and isinstance(self.eval_env, GymnasiumBackedEnv):
+            if here:
+                scores = evaluate(self.eval_env, self.learner.policy, self.eval_steps, run.eval.seed)
+                score = last["eval/return"] = scores["return"]
+                last["eval/episode_length"], last["eval/terminated"] = scores["episode_length"], scores["terminated"]
+                self.log({f"eval/{k}": v for k, v in scores.items()})
+            if run.eval.gymnasium and in_gymnasium_backend:
                 # env.backend=gymnasium: the evaluation just played is Gymnasium's own env, from the
                 # seeds evaluate_in_gymnasium uses (env i from eval.seed + i): the same scores
                 theirs = {f"eval/gymnasium_{k}": v for k, v in scores.items() if k in GYMNASIUM_SCORES}
@@ -280,6 +283,8 @@ class Trainer:
             if run.eval.gymnasium:
                 last["eval/gymnasium_return"] = theirs["eval/gymnasium_return"]
                 self.log(theirs)
+            if not here:
+                score = last["eval/gymnasium_return"]
         score = self.world.broadcast_object(score)
         progress["last_eval"] = progress["env_steps"]
         best_after = run.train.save_best_after
@@ -362,8 +367,10 @@ class Trainer:
         (self.run_dir / "final_metrics.json").write_text(json_report(result, reasons={
             "train/return": "no training episode finished (the episodes are longer than the run, or the returns "
                             "diverged)"}))
+        in_gymnasium = (f", in Gymnasium's own env {result['eval/gymnasium_return']:.4g}"
+                        if "eval/gymnasium_return" in result else "")
         log.info(f"{run.env_name} {run.loss_name}: eval return {result['eval/return']:.4g} "
-                 f"(random policy {result['eval/random_return']:.4g}) after {progress['env_steps']:,} env steps "
+                 f"(random policy {result['eval/random_return'] or math.nan:.4g}){in_gymnasium} after {progress['env_steps']:,} env steps "
                  f"in {progress['wall_time_s']:.0f} s; outputs in {self.run_dir}")
         return world.broadcast_object(result)
 

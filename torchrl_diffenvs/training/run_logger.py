@@ -177,7 +177,7 @@ def read_history(checkpoint: dict, path: str | Path) -> list[dict]:
 
 
 def plot_learning_curve(rows: Iterable[Mapping], path: str | Path, title: str = "") -> Path | None:
-    """Draws ``eval/return`` and ``train/return`` against env steps into a PNG.
+    """Draws ``eval/return``, ``eval/gymnasium_return`` and ``train/return`` against env steps into a PNG.
 
     Needs matplotlib (``pip install "torchrl_diffenvs[render]"``); returns ``None`` (and writes
     nothing) when it is not installed.
@@ -201,6 +201,9 @@ def plot_learning_curve(rows: Iterable[Mapping], path: str | Path, title: str = 
     x, y = series("eval/return")
     if x:
         ax.plot(x, y, color="tab:orange", marker="o", markersize=3, label="evaluation (deterministic)")
+    x, y = series("eval/gymnasium_return")
+    if x:
+        ax.plot(x, y, color="tab:green", marker="s", markersize=3, label="evaluation in Gymnasium's own env")
     _, baseline = series("eval/random_return")
     if baseline:
         ax.axhline(baseline[0], color="grey", linestyle="--", linewidth=1, label="random policy")

@@ -72,6 +72,10 @@ class EvalSettings(Settings):
     # also play each evaluation in Gymnasium's own env (a MuJoCo task: MuJoCo itself; the mujoco extra):
     # eval/gymnasium_return beside eval/return, on eval.num_envs episodes from seeds eval.seed + i
     gymnasium: bool = checked(False, checks.boolean)
+    # with eval.gymnasium=true: score only there and skip this library's own evaluation (on a GPU its
+    # few envs step launch-bound, while MuJoCo's C env on the CPU is quick); eval/return stays NaN and
+    # the Gymnasium return picks the best checkpoint and decides train.score_to_win
+    only_gymnasium: bool = checked(False, checks.boolean)
     # mode=eval: episodes to play, eval.num_envs at a time; null: eval.num_envs
     games_num: int | None = checked(None, _optional(checks.positive_int, "for eval.num_envs"))
     gif_env_index: int = checked(0, checks.nonnegative_int)  # which evaluation env the video shows
@@ -80,10 +84,14 @@ class EvalSettings(Settings):
 
     @classmethod
     def relation_problems(cls, values, where: str = "") -> list[str]:
+        problems = []
         if values["gif_env_index"] >= values["num_envs"]:
-            return [f"{where}gif_env_index={values['gif_env_index']!r}: expected an integer in [0, {where}num_envs) "
-                    f"= [0, {values['num_envs']})"]
-        return []
+            problems.append(f"{where}gif_env_index={values['gif_env_index']!r}: expected an integer in "
+                            f"[0, {where}num_envs) = [0, {values['num_envs']})")
+        if values["only_gymnasium"] and not values["gymnasium"]:
+            problems.append(f"{where}only_gymnasium=true scores the policy only in Gymnasium's own env: it needs "
+                            f"{where}gymnasium=true (or drop {where}only_gymnasium)")
+        return problems
 
 
 @dataclasses.dataclass(frozen=True)
