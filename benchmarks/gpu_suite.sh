@@ -4,15 +4,13 @@
 # eat the others'):
 #   1. the GPU tests (tests/project/test_gpu.py: every task, compiled chunks, CUDA graphs, the
 #      synchronisations of one env step, train.py with each loss on CUDA and resumed on the CPU);
-#   2. eager throughput at N = 65536 of HalfCheetah-v5 (MuJoCo's contact model with recompute_in_backward)
-#      and the Ant, with and without gradient (16-step BPTT
-#      windows, peak memory), and the kernels and synchronisations per step with the lines that
-#      synchronise (benchmarks/gpu_throughput.py);
-#   3. train.py on HalfCheetah-v5 on CUDA, PPO with massively parallel settings (4096 envs, Brax's
-#      discount and entropy), then the gradient learner GRAD_LOSS (default ahac, its tuned file) with 1024
-#      envs, TRAIN_S seconds each (PPO_S, GRAD_S for one), scored in MuJoCo, one after the other so that neither slows the other (stopped by
-#      SIGTERM, which ends a run cleanly with a checkpoint); each run's metrics.jsonl is copied to
-#      OUT_DIR/<loss>_metrics.jsonl;
+#   2. eager throughput at N = 65536 of HalfCheetah-v5 (MuJoCo's contact model, recompute_in_backward)
+#      and the Ant, with and without gradient (16-step BPTT windows, peak memory), and the kernels
+#      and synchronisations per step with the lines that synchronise (benchmarks/gpu_throughput.py);
+#   3. train.py on HalfCheetah-v5 on CUDA, scored in MuJoCo: PPO with massively parallel settings,
+#      then the gradient learner GRAD_LOSS (default ahac), TRAIN_S seconds each (PPO_S, GRAD_S for
+#      one), one after the other (benchmarks/gpu_training.py: the time to tuned PPO's final MuJoCo
+#      return in the CPU race); each run's metrics.jsonl is copied to OUT_DIR/<loss>_metrics.jsonl;
 #   4. HalfCheetah-v5 compiled and with CUDA graphs, with what is left of TOTAL_S.
 # Every result is a flat file directly under OUT_DIR (suite.log holds the summary).
 # Usage: bash benchmarks/gpu_suite.sh OUT_DIR
@@ -39,34 +37,13 @@ timeout "${EAGER_S:-170}" "$py" benchmarks/gpu_throughput.py modes=[eager] \
     out="$out/gpu_eager.json" data=none
 
 echo "== train.py on CUDA ($(elapsed) s)"
-# scored in MuJoCo alone (eval.only_gymnasium): our own evaluation's 32 envs would step launch-bound
-common="env=HalfCheetah-v5 device=cuda seed=0 logger=csv eval.gif=false train.progress_bar=false
-        eval.gymnasium=true eval.only_gymnasium=true
-        train.checkpoint_interval=100000000 train.total_env_steps=100000000"
-# shellcheck disable=SC2086
-timeout -s TERM "${PPO_S:-${TRAIN_S:-100}}" "$py" sota_scripts/train.py $common loss=ppo env.num_envs=4096 \
-    loss.rollout_len=20 loss.minibatch_size=10240 loss.epochs=8 loss.lr_schedule=constant loss.gamma=0.95 \
-    loss.entropy_coeff=1e-3 eval.interval=2000000 hydra.run.dir="$work/ppo" > "$out/train.log" 2>&1
 grad=${GRAD_LOSS:-ahac}
-# shellcheck disable=SC2086
-timeout -s TERM "${GRAD_S:-${TRAIN_S:-100}}" "$py" sota_scripts/train.py $common loss="$grad" env.num_envs=1024 \
-    eval.interval=200000 hydra.run.dir="$work/$grad" >> "$out/train.log" 2>&1
+ppo_s=${PPO_S:-${TRAIN_S:-100}} grad_s=${GRAD_S:-${TRAIN_S:-100}}
+timeout $(( ppo_s + grad_s + 60 )) "$py" benchmarks/gpu_training.py "learners=[ppo,$grad]" \
+    "seconds=[ppo=$ppo_s,$grad=$grad_s]" train_dir="$work/train" out="$out/gpu_training.json" data=none
 for run in ppo "$grad"; do
-    cp "$work/$run/metrics.jsonl" "$out/${run}_metrics.jsonl" 2>/dev/null
-    echo "$run: env steps, wall s, return in MuJoCo (Gymnasium's env)"
-    "$py" - "$work/$run/metrics.jsonl" <<'EOF'
-import json, sys
-wall = 0.0
-try:
-    lines = open(sys.argv[1]).readlines()
-except OSError as err:
-    sys.exit(f"  no metrics: {err}")
-for line in lines:
-    row = json.loads(line)
-    wall = row.get("time/wall_s", wall)
-    if "eval/gymnasium_return" in row:
-        print(f"  {row['env_steps']:>10,d} {wall:7.0f} {row['eval/gymnasium_return']:9.1f}")
-EOF
+    cp "$work/train/$run/metrics.jsonl" "$out/${run}_metrics.jsonl" 2>/dev/null
+    cat "$work/train/$run.log" >> "$out/train.log" 2>/dev/null
 done
 
 echo "== compiled and CUDA graphs ($(elapsed) s)"

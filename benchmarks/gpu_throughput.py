@@ -71,8 +71,9 @@ class GPUThroughputSettings(C.BenchmarkSettings):
     window: int = checked(16, checks.positive_int)  # env steps per timed BPTT window
     budget_s: float = checked(600.0, checks.positive)  # for the whole run: later cells are skipped
     device: str = "cuda"  # cuda | cuda:<k> | cpu (cpu: the smoke run; cudagraphs is CUDA only)
-    # the raw results (out=) of an earlier run: write its data file again (tables, date, machine, command)
-    from_results: str | None = None
+    # the raw results (out=) of earlier runs on one machine: write their data file again (tables, date,
+    # machine, commands), the runs' cells in the order given
+    from_results: list[str] | None = None
 
 
 TASK_OPTIONS = {"mujoco": {"contact": "mujoco"}, "smooth": {"contact": "smooth"},
@@ -187,7 +188,8 @@ def measure(task: str, n: int, mode: str, kind: str, args) -> dict:
 
 
 def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
-    cells = {(r["task"], r["N"], r["kind"], r["mode"]): r for r in results}
+    # a cell the budget skipped was not measured: no row of its own
+    cells = {(r["task"], r["N"], r["kind"], r["mode"]): r for r in results if r.get("error") != "skipped (budget)"}
     where = f"on {device}"
 
     def rate(task, n, kind, mode):
@@ -208,7 +210,7 @@ def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
         r = cells.get((task, n, "bptt", "eager"), {})
         peak = f"{r['peak_memory_gib']:.1f}" if "peak_memory_gib" in r else "-"
         saved = f"{r['saved_kib_per_env_step']:.1f}" if "saved_kib_per_env_step" in r else "-"
-        return [peak, saved]
+        return [r.get("steps", "-"), peak, saved]
 
     keys = list(dict.fromkeys((r["task"], r["N"]) for r in results))  # in the order measured
     tables = {}
@@ -218,7 +220,7 @@ def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
                  *[first_call(task, n, kind, m) for m in MODES[1:]], *(memory(task, n) if kind == "bptt" else [])]
                 for task, n in keys if any((task, n, kind, m) in cells for m in MODES)]
         if rows:
-            extra = ["eager: peak GiB", "eager: saved KiB per env-step"] if kind == "bptt" else []
+            extra = ["window (env steps)", "eager: peak GiB", "eager: saved KiB per env-step"] if kind == "bptt" else []
             tables[kind] = C.data_table(f"{title}, wall clock, {where}",
                                         ["task", "N", *MODES, "compiled: first call s", "cudagraphs: first call s",
                                          *extra], rows)
@@ -240,10 +242,16 @@ def main(argv=None) -> dict:
     if args.from_results is not None:
         import json
 
-        raw = json.loads(Path(args.from_results).read_text())
-        C.write_data(args, "gpu_throughput", docs_tables(raw["results"], raw["diagnostics"], raw["info"]["machine"]),
-                     measured=C.measured_from_raw([raw], "gpu_throughput.py"))
-        return raw
+        raws = [json.loads(Path(path).read_text()) for path in args.from_results]
+        machines = {raw["info"]["machine"] for raw in raws}
+        if len(machines) > 1:
+            raise SystemExit(f"from_results: the runs were measured on different machines {sorted(machines)}; "
+                             "a data file renders one machine's")
+        merged = {"results": [r for raw in raws for r in raw["results"]],
+                  "diagnostics": {k: v for raw in raws for k, v in raw["diagnostics"].items()}}
+        C.write_data(args, "gpu_throughput", docs_tables(merged["results"], merged["diagnostics"], machines.pop()),
+                     measured=C.measured_from_raw(raws, "gpu_throughput.py"))
+        return merged
     device = C.setup_device(args.device)
     import torch
 

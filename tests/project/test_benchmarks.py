@@ -84,6 +84,64 @@ def test_gpu_throughput_on_the_cpu_quick(tmp_path):
     assert {r.get("error") for r in skipped["results"]} == {"skipped (budget)"}
 
 
+def test_gpu_throughput_data_file_from_several_runs(tmp_path):
+    """``from_results`` renders several runs of one machine in one data file, in the order given,
+    without rows for cells the budget skipped; runs of two machines are refused."""
+    bench = load("gpu_throughput")
+
+    def raw(name, machine, results, diagnostics):
+        path = tmp_path / name
+        path.write_text(json.dumps({"date": "2026-01-02", "info": {"machine": machine, "command": f"x.py {name}"},
+                                    "results": results, "diagnostics": diagnostics}))
+        return path
+
+    cell = {"mode": "eager", "kind": "bptt", "steps": 16, "env_steps_per_s": 5e4, "first_call_s": 1.0,
+            "peak_memory_gib": 10.9, "saved_kib_per_env_step": 0.68}
+    first = raw("a.json", "GPU", [{**cell, "task": "A", "N": 8}], {"A": {"N": 8, "kernels_per_step": 10}})
+    second = raw("b.json", "GPU", [{**cell, "task": "B", "N": 8},
+                                   {"task": "C", "N": 8, "mode": "eager", "kind": "bptt", "error": "skipped (budget)"}],
+                 {"B": {"N": 8, "kernels_per_step": 20}})
+    target = tmp_path / "data.json"
+    bench.main([f"from_results=[{first},{second}]", f"data={target}"])
+    data = json.loads(target.read_text())
+    assert [row[0] for row in data["tables"]["bptt"]["rows"]] == ["A", "B"]  # C was skipped: no row
+    assert data["tables"]["bptt"]["rows"][1][-3:] == ["16", "10.9", "0.7"]  # window, peak GiB, saved KiB
+    assert [row[0] for row in data["tables"]["diagnostics"]["rows"]] == ["A", "B"]
+    other = raw("c.json", "another GPU", [{**cell, "task": "D", "N": 8}], {})
+    with pytest.raises(SystemExit, match="measured on different machines"):
+        bench.main([f"from_results=[{first},{other}]", "data=none"])
+
+
+def test_gpu_training_time_to_the_cpu_race_ppo_return(tmp_path):
+    """The target is the median of the CPU race's PPO final MuJoCo returns; a learner reaches it at
+    its first evaluation at or above it (env steps and the wall clock logged then)."""
+    bench = load("gpu_training")
+    race = tmp_path / "race"
+    race.mkdir()
+    for seed, final in enumerate([900.0, 1500.0, 400.0]):
+        (race / f"HalfCheetah-v5_s{seed}_ppo.json").write_text(json.dumps(
+            {"summary": [{"mujoco_return": {"median": final}}]}))
+    metrics = tmp_path / "metrics.jsonl"
+    rows = [{"env_steps": 0, "eval/gymnasium_return": -90.0},
+            {"env_steps": 1000, "time/wall_s": 5.0, "time/steps_per_s": 200.0},
+            {"env_steps": 1000, "eval/gymnasium_return": 850.0},
+            {"env_steps": 2000, "time/wall_s": 11.0, "time/steps_per_s": 180.0},
+            {"env_steps": 2000, "eval/gymnasium_return": 950.0},
+            {"env_steps": 3000, "time/wall_s": 16.0, "time/steps_per_s": 190.0},
+            {"env_steps": 3000, "eval/gymnasium_return": 920.0}]
+    metrics.write_text("\n".join(json.dumps(r) for r in rows))
+    out = bench.main([f"from_metrics=[ahac={metrics}]", f"race={race}", "gpu=a GPU", f"out={tmp_path / 'o.json'}",
+                      f"data={tmp_path / 'd.json'}"])
+    assert out["target"] == 900.0
+    (result,) = out["results"]
+    assert (result["reached_steps"], result["reached_wall_s"]) == (2000, 11.0)
+    assert (result["best_return"], result["last_return"], result["training_env_steps_per_s"]) == (950.0, 920.0, 190.0)
+    data = json.loads((tmp_path / "d.json").read_text())
+    assert data["machine"] == "a GPU" and data["tables"]["time_to_ppo"]["rows"][0][2] == "11 s"
+    with pytest.raises(SystemExit, match=r"no Hopper-v5_s\*_ppo.json results there"):
+        bench.main(["env=Hopper-v5", f"from_metrics=[ahac={metrics}]", f"race={race}", "data=none"])
+
+
 def test_policy_anatomy_of_a_saved_hopper(tmp_path):
     """The return is the first episode's (as ``evaluation.episode_returns`` computes it for the same
     policy and start states) and an episode ended by the torso above ``healthy_z_high`` counts as a
