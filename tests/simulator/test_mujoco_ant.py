@@ -21,9 +21,8 @@ pytest.importorskip("mujoco")
 
 def test_ant_in_the_air_matches_gymnasium():
     """Dropped from 8 m, 20 steps (1 s) of random actions: observation, reward, terminated
-    (healthy range widened to (0.2, 10) in both, so the flight counts as healthy; MuJoCo 4's RK4
-    on the free joint's quaternion differs from the classic tableau by ~1e-7 per physics step, see
-    test_mujoco_parity.py, which grows to ~1e-5 here, hence 1e-4)."""
+    (healthy range widened to (0.2, 10) in both, so the flight counts as healthy), to 1e-9: the
+    file's RK4 as MuJoCo 4's, its rotation correction included."""
     genv = gym.make("Ant-v5", healthy_z_range=(0.2, 10.0))
     env = make_env("Ant-v5", num_envs=1, dtype=torch.float64, seed=0, params={"healthy_z_high": 10.0},
                    integrator="model")  # gymnasium runs the file's RK4
@@ -45,8 +44,8 @@ def test_ant_in_the_air_matches_gymnasium():
         gobs, greward, gterm, gtrunc, info = genv.step(action)
         td["action"] = torch.tensor(action[None])
         nxt = env.step(td)["next"]
-        np.testing.assert_allclose(nxt["observation"][0].numpy(), gobs, atol=1e-4, rtol=1e-4)
-        assert nxt["reward"].item() == pytest.approx(greward, abs=1e-4)
+        np.testing.assert_allclose(nxt["observation"][0].numpy(), gobs, atol=1e-9, rtol=1e-9)
+        assert nxt["reward"].item() == pytest.approx(greward, abs=1e-9)
         assert abs(info["x_velocity"]) > 1e-3  # the forward term is exercised
         assert nxt["terminated"].item() == gterm is False
         td = nxt.clone()
