@@ -39,7 +39,8 @@ timeout "${EAGER_S:-170}" "$py" benchmarks/gpu_throughput.py modes=[eager] \
 echo "== train.py on CUDA ($(elapsed) s)"
 grad=${GRAD_LOSS:-ahac}
 ppo_s=${PPO_S:-${TRAIN_S:-100}} grad_s=${GRAD_S:-${TRAIN_S:-100}}
-timeout $(( ppo_s + grad_s + 60 )) "$py" benchmarks/gpu_training.py "learners=[ppo,$grad]" \
+# each run: its seconds, up to 60 s to end after SIGTERM, and its start
+timeout $(( ppo_s + grad_s + 240 )) "$py" benchmarks/gpu_training.py "learners=[ppo,$grad]" \
     "seconds=[ppo=$ppo_s,$grad=$grad_s]" train_dir="$work/train" out="$out/gpu_training.json" data=none
 for run in ppo "$grad"; do
     cp "$work/train/$run/metrics.jsonl" "$out/${run}_metrics.jsonl" 2>/dev/null

@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import os
 import shlex
+import signal
 import statistics
 import subprocess
 import sys
@@ -45,18 +46,20 @@ from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 LEARNER_OVERRIDES = {
     "ppo": ["env.num_envs=4096", "loss.rollout_len=20", "loss.minibatch_size=10240", "loss.epochs=8",
             "loss.lr_schedule=constant", "loss.gamma=0.95", "loss.entropy_coeff=1e-3", "eval.interval=500000"],
-    "ahac": ["env.num_envs=1024", "eval.interval=100000"],
-    "shac": ["env.num_envs=1024", "eval.interval=100000"],
-    "sapo": ["env.num_envs=1024", "eval.interval=100000"],
+    "ahac": ["env.num_envs=1024", "eval.interval=200000"],
+    "shac": ["env.num_envs=1024", "eval.interval=200000"],
+    "sapo": ["env.num_envs=1024", "eval.interval=200000"],
 }
 
 
-def _label_values(values: list[str], what: str) -> dict[str, str]:
+def _label_values(values: list[str], what: str, valid: list[str]) -> dict[str, str]:
     out = {}
     for item in values:
         label, sep, value = str(item).partition("=")
         if not sep or not label:
             raise SystemExit(f"{what}: expected LOSS=VALUE items, got {item!r}")
+        if label not in valid:
+            raise SystemExit(f"{what}: {label!r} is not a learner of this run; valid: {valid}")
         out[label] = value
     return out
 
@@ -90,10 +93,13 @@ def cpu_ppo_target(race: Path, env: str) -> tuple[float, list[str]]:
 
 def curve(metrics: Path) -> tuple[list[tuple[int, float, float]], float | None]:
     """``(env steps, wall s, MuJoCo return)`` of each evaluation, and the training env-steps/s
-    (median of the logged iterations')."""
+    (median of the logged iterations'). A last line cut off by the run's end is skipped."""
     points, rates, wall = [], [], 0.0
     for line in metrics.read_text().splitlines():
-        row = json.loads(line)
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
         wall = row.get("time/wall_s", wall)
         if "time/steps_per_s" in row:
             rates.append(row["time/steps_per_s"])
@@ -102,7 +108,11 @@ def curve(metrics: Path) -> tuple[list[tuple[int, float, float]], float | None]:
     return points, (statistics.median(rates) if rates else None)
 
 
-def summarise(label: str, metrics: Path, target: float) -> dict:
+def summarise(label: str, metrics: Path, target: float, exit_code: int | None = None) -> dict:
+    if exit_code not in (None, 0, -signal.SIGTERM, 128 + signal.SIGTERM):
+        return {"learner": label, "error": f"train.py exited with {exit_code}: see {metrics.parent.parent / label}.log"}
+    if not metrics.is_file():
+        return {"learner": label, "error": f"no {metrics}: the run wrote no metrics"}
     points, rate = curve(metrics)
     if not points:
         return {"learner": label, "error": f"no eval/gymnasium_return in {metrics}"}
@@ -110,12 +120,15 @@ def summarise(label: str, metrics: Path, target: float) -> dict:
     return {"learner": label, "evaluations": points, "training_env_steps_per_s": rate,
             "reached_steps": None if reached is None else reached[0],
             "reached_wall_s": None if reached is None else reached[1],
+            "evaluated_every": (statistics.median(b[0] - a[0] for a, b in zip(points, points[1:]))
+                                if len(points) > 1 else None),
             "best_return": max(ret for _, _, ret in points), "last_return": points[-1][2],
             "last_env_steps": points[-1][0], "last_wall_s": points[-1][1]}
 
 
-def train(label: str, seconds: int, args, run_dir: Path) -> Path:
-    """One train.py run on the GPU, stopped by SIGTERM after ``seconds``; its metrics.jsonl."""
+def train(label: str, seconds: int, args, run_dir: Path) -> tuple[Path, int]:
+    """One train.py run on the GPU, stopped by SIGTERM after ``seconds``; its metrics.jsonl and
+    exit code."""
     command = [sys.executable, str(C.REPO_ROOT / "sota_scripts" / "train.py"), f"env={args.env}", f"loss={label}",
                f"device={args.device}", f"seed={args.seed}", "logger=csv", "eval.gif=false",
                "train.progress_bar=false", "eval.gymnasium=true", "eval.only_gymnasium=true",
@@ -129,10 +142,11 @@ def train(label: str, seconds: int, args, run_dir: Path) -> Path:
         except subprocess.TimeoutExpired:
             process.terminate()  # SIGTERM: the run ends after its iteration, with a checkpoint
             try:
-                process.wait(timeout=120)
+                process.wait(timeout=60)
             except subprocess.TimeoutExpired:
                 process.kill()
-    return run_dir / "metrics.jsonl"
+                process.wait()
+    return run_dir / "metrics.jsonl", process.returncode
 
 
 def main(argv=None) -> dict:
@@ -142,11 +156,16 @@ def main(argv=None) -> dict:
     print(f"# target: tuned PPO's final MuJoCo return in the CPU race, median of {len(race_files)} seeds: "
           f"{target:.1f}", flush=True)
     if args.from_metrics is not None:
-        metrics = {label: Path(path) for label, path in _label_values(args.from_metrics, "from_metrics").items()}
-        machine, info = args.gpu or "a GPU", {"from_metrics": {k: str(v) for k, v in metrics.items()}}
+        given = _label_values(args.from_metrics, "from_metrics", list(LEARNER_OVERRIDES))
+        metrics = {label: (Path(path), None) for label, path in given.items()}
+        machine, info = args.gpu or "a GPU", {"from_metrics": given}
     else:
         C.setup_device(args.device)
-        seconds = {label: int(s) for label, s in _label_values(args.seconds, "seconds").items()}
+        seconds = {}
+        for label, value in _label_values(args.seconds, "seconds", args.learners).items():
+            if not value.isdigit() or int(value) < 1:
+                raise SystemExit(f"seconds: {label}={value!r}: expected a whole number of seconds >= 1")
+            seconds[label] = int(value)
         root = Path(args.train_dir or tempfile.mkdtemp(prefix="gpu_training_"))
         root.mkdir(parents=True, exist_ok=True)
         metrics = {}
@@ -155,18 +174,19 @@ def main(argv=None) -> dict:
             metrics[label] = train(label, seconds.get(label, args.default_s), args, root / label)
             print(f"# {label}: {time.perf_counter() - tic:.0f} s", flush=True)
         machine, info = C.machine_name(args.device), C.versions()
-    rows = [summarise(label, path, target) for label, path in metrics.items()]
-    headers = ["learner", "envs", f"time to {target:.0f} in MuJoCo", "env steps then", "best MuJoCo return",
-               "last (env steps, s)", "training env-steps/s"]
+    rows = [summarise(label, path, target, code) for label, (path, code) in metrics.items()]
+    headers = ["learner", "envs", f"time to {target:.0f} in MuJoCo", "env steps then", "evaluated every (env steps)",
+               "best MuJoCo return", "last (env steps, s)", "training env-steps/s"]
     table = []
     for row in rows:
         if "error" in row:
-            table.append([row["learner"], "", row["error"], "", "", "", ""])
+            table.append([row["learner"], "", row["error"], "", "", "", "", ""])
             continue
         reached = "not reached" if row["reached_wall_s"] is None else f"{row['reached_wall_s']:.0f} s"
         envs = [o.split("=")[1] for o in LEARNER_OVERRIDES.get(row["learner"], []) if o.startswith("env.num_envs=")]
         table.append([row["learner"], envs[0] if envs else "tuned file",
                       reached, "-" if row["reached_steps"] is None else f"{row['reached_steps']:,}",
+                      "-" if row["evaluated_every"] is None else f"{row['evaluated_every']:,.0f}",
                       f"{row['best_return']:.0f}",
                       f"{row['last_return']:.0f} ({row['last_env_steps']:,}, {row['last_wall_s']:.0f} s)",
                       C.fmt_rate(row["training_env_steps_per_s"])])
@@ -179,7 +199,8 @@ def main(argv=None) -> dict:
         f"return in the CPU race ({target:.0f}, median of {len(race_files)} seeds)", headers, table)},
         device=args.device, measured=None if args.from_metrics is None else {
             "machine": machine, "command": shlex.join(["python", "benchmarks/gpu_training.py",
-                                    *(a for a in sys.argv[1:] if not a.startswith(("out=", "data=")))])})
+                                    *(a for a in (sys.argv[1:] if argv is None else argv)
+                                      if not a.startswith(("out=", "data=")))])})
     return payload
 
 

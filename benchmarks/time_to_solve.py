@@ -379,6 +379,10 @@ def main(argv=None) -> dict:
                 except Exception as error:  # Hydra's composition errors name the override
                     raise SystemExit(f"time_to_solve: the run {env} {loss} {variant or ''} seed {seed} does not "
                                      f"compose ({' '.join(overrides)}): {error}") from None
+                if cfg.eval.get("only_gymnasium"):
+                    raise SystemExit("time_to_solve: eval.only_gymnasium=true leaves the runs without this library's "
+                                     "evaluation returns, which the race reads (eval.gymnasium=true puts Gymnasium's "
+                                     "beside them): drop eval.only_gymnasium")
                 plan.append((seed, env, variant, overrides, run_dir, cfg))
     runs = []
     for seed, env, variant, overrides, run_dir, cfg in plan:

@@ -60,7 +60,7 @@ def markdown_table(runs: list[dict], full_grid: bool = True) -> str:
             if full_grid:
                 lines.append(f"| {env} | {loss} | 0 | | not run | | |")
             continue
-        returns = [r["eval/return"] for r in group]
+        returns = [run_score(r) for r in group]
         randoms = [r["eval/random_return"] for r in group if r.get("eval/random_return") is not None]
         steps = sorted({r["env_steps"] for r in group})
         wall = statistics.mean(r["wall_time_s"] for r in group)
@@ -70,6 +70,13 @@ def markdown_table(runs: list[dict], full_grid: bool = True) -> str:
             f"{random_cell} | {wall:.0f} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def run_score(result: dict) -> float:
+    """A run's final evaluation return: this library's, or Gymnasium's where only that was played
+    (``eval.only_gymnasium=true``: ``eval/return`` is null)."""
+    ours = result.get("eval/return")
+    return result["eval/gymnasium_return"] if ours is None and "eval/gymnasium_return" in result else ours
 
 
 @dataclass(frozen=True)

@@ -64,7 +64,8 @@ def main(cfg: DictConfig) -> float:
         raise SystemExit(f"error: {err}") from None
     except KeyboardInterrupt as err:  # SIGTERM / Ctrl-C: the resume hint is logged; no traceback
         raise SystemExit(getattr(err, "exit_code", 130)) from None
-    return result["eval/return"]  # a sweeper can maximise it
+    # a sweeper can maximise it: the return the run is judged by (Gymnasium's with eval.only_gymnasium)
+    return result["eval/gymnasium_return"] if cfg.eval.get("only_gymnasium") else result["eval/return"]
 
 
 if __name__ == "__main__":

@@ -129,13 +129,18 @@ def test_gpu_training_time_to_the_cpu_race_ppo_return(tmp_path):
             {"env_steps": 2000, "eval/gymnasium_return": 950.0},
             {"env_steps": 3000, "time/wall_s": 16.0, "time/steps_per_s": 190.0},
             {"env_steps": 3000, "eval/gymnasium_return": 920.0}]
-    metrics.write_text("\n".join(json.dumps(r) for r in rows))
+    metrics.write_text("\n".join(json.dumps(r) for r in rows) + '\n{"env_steps": 31')  # cut off by the run's end
     out = bench.main([f"from_metrics=[ahac={metrics}]", f"race={race}", "gpu=a GPU", f"out={tmp_path / 'o.json'}",
                       f"data={tmp_path / 'd.json'}"])
     assert out["target"] == 900.0
     (result,) = out["results"]
     assert (result["reached_steps"], result["reached_wall_s"]) == (2000, 11.0)
     assert (result["best_return"], result["last_return"], result["training_env_steps_per_s"]) == (950.0, 920.0, 190.0)
+    assert result["evaluated_every"] == 1000
+    assert "exited with 1" in bench.summarise("ahac", metrics, 900.0, exit_code=1)["error"]
+    assert bench.summarise("ahac", metrics, 900.0, exit_code=143)["reached_steps"] == 2000  # SIGTERM: a clean end
+    with pytest.raises(SystemExit, match="seconds: 'sac' is not a learner of this run; valid: \\['ppo', 'ahac'\\]"):
+        bench.main(["seconds=[sac=5]", "device=cpu", f"race={race}", "data=none"])
     data = json.loads((tmp_path / "d.json").read_text())
     assert data["machine"] == "a GPU" and data["tables"]["time_to_ppo"]["rows"][0][2] == "11 s"
     with pytest.raises(SystemExit, match=r"no Hopper-v5_s\*_ppo.json results there"):
@@ -253,6 +258,9 @@ def test_time_to_solve_checks_every_run_before_the_first(tmp_path, monkeypatch):
     with pytest.raises(SystemExit, match=r"Hopper-v5 shac bad seed 0 does not compose .*no_such_option"):
         tts.main(["quick=true", "envs=[Hopper-v5]", "losses=[shac]", 'variant=["ok=","bad=env.options.no_such_option=1"]',
                   f"out={tmp_path / 'tts.json'}"])
+    with pytest.raises(SystemExit, match="eval.only_gymnasium=true leaves the runs without this library's evaluation"):
+        tts.main(["quick=true", "envs=[Hopper-v5]", "losses=[shac]",
+                  "override=[eval.gymnasium=true,eval.only_gymnasium=true]", f"out={tmp_path / 'tts.json'}"])
     assert started == []
 
 

@@ -14,7 +14,7 @@ gym = pytest.importorskip("gymnasium")
 pytest.importorskip("mujoco")
 
 from _env_helpers import REPO, load_script  # noqa: E402
-from _train_helpers import make_cfg, tiny_cfg, train_script  # noqa: E402
+from _train_helpers import make_cfg, results_table, tiny_cfg, train_script  # noqa: E402
 
 from torchrl_diffenvs.evaluation import evaluate_in_gymnasium, gymnasium_kwargs  # noqa: E402
 from torchrl_diffenvs.training.config import ConfigError  # noqa: E402
@@ -96,6 +96,15 @@ def test_only_gymnasium_scores_there_alone_and_picks_the_best_checkpoint_by_it(t
     # the Gymnasium return decides the best checkpoint: best.pt holds the best of the logged ones
     best = torch.load(tmp_path / "run" / "checkpoints" / "best.pt", weights_only=False)
     assert best["progress"]["best_eval_return"] == max(logged)
+    final = json.loads((tmp_path / "run" / "final_metrics.json").read_text())
+    assert final["eval/return"] is None and "eval.only_gymnasium=true" in final["non_finite"]["eval/return"]
+    table = results_table.main([f"dirs=[{tmp_path / 'run'}]", f"output={tmp_path / 'table.md'}"])
+    assert f"{result['eval/gymnasium_return']:.4g}" in table  # the table reads the Gymnasium return there
+    # ... and train.score_to_win: a bar any evaluation clears stops the run at its first one
+    won = train_script.run(tiny_cfg("Hopper-v5", "shac", 3, "eval.gymnasium=true", "eval.only_gymnasium=true",
+                                    "eval.num_envs=2", "eval.max_steps=20", "train.score_to_win=-1e9"),
+                           tmp_path / "won")
+    assert won["env_steps"] == 0
 
 
 def test_gymnasium_evaluation_config_errors():

@@ -21,8 +21,9 @@ rounding error:
   time, MuJoCo's coupled solve otherwise;
 * smooth penalty contact between geoms and ground planes (`contact_force`), not MuJoCo's
   convex solver: see [`torchrl_diffenvs.articulated`][torchrl_diffenvs.articulated] for the difference;
-* MuJoCo's integrators: semi-implicit Euler with implicit joint damping, and classic RK4, both
-  moving quaternions as ``mj_integratePos`` does (`integrate_position`).
+* MuJoCo's integrators: semi-implicit Euler with implicit joint damping, and MuJoCo 4's RK4 (with
+  its rotation correction for ball and free joints), both moving quaternions as
+  ``mj_integratePos`` does (`integrate_position`).
 
 Physical parameters come per env in a mapping (``body_mass [N, nbody]``, ``body_inertia
 [N, nbody, 3, 3]``, ``damping``/``armature``/``stiffness [N, nv]``, ``gravity [N, 3]``,

@@ -228,8 +228,9 @@ class Trainer:
                                     / (time.perf_counter() - tic)})
                         self.log(row)
                     bar.update(self.learner.env_steps_per_iteration)
-                    bar.set_postfix({"return": f"{last['train/return']:.3g}", "eval": f"{last['eval/return']:.3g}"},
-                                    refresh=False)
+                    shown = last.get("eval/gymnasium_return", math.nan) if run.eval.only_gymnasium \
+                        else last["eval/return"]
+                    bar.set_postfix({"return": f"{last['train/return']:.3g}", "eval": f"{shown:.3g}"}, refresh=False)
             except KeyboardInterrupt as err:
                 if isinstance(err, TrainingInterrupted):
                     raise
@@ -364,13 +365,17 @@ class Trainer:
             "run_dir": str(self.run_dir),
             "wandb_dir": str(self.logger.wandb_dir) if self.logger.wandb_dir else None,
         }
-        (self.run_dir / "final_metrics.json").write_text(json_report(result, reasons={
-            "train/return": "no training episode finished (the episodes are longer than the run, or the returns "
-                            "diverged)"}))
+        reasons = {"train/return": "no training episode finished (the episodes are longer than the run, or the "
+                                   "returns diverged)"}
+        if run.eval.only_gymnasium and not math.isfinite(result["eval/return"]):
+            reasons["eval/return"] = ("eval.only_gymnasium=true: this library's own evaluation is not played "
+                                      "(eval/gymnasium_return is the score)")
+        (self.run_dir / "final_metrics.json").write_text(json_report(result, reasons=reasons))
         in_gymnasium = (f", in Gymnasium's own env {result['eval/gymnasium_return']:.4g}"
                         if "eval/gymnasium_return" in result else "")
         log.info(f"{run.env_name} {run.loss_name}: eval return {result['eval/return']:.4g} "
-                 f"(random policy {result['eval/random_return'] or math.nan:.4g}){in_gymnasium} after {progress['env_steps']:,} env steps "
+                 f"(random policy {math.nan if result['eval/random_return'] is None else result['eval/random_return']:.4g})"
+                 f"{in_gymnasium} after {progress['env_steps']:,} env steps "
                  f"in {progress['wall_time_s']:.0f} s; outputs in {self.run_dir}")
         return world.broadcast_object(result)
 

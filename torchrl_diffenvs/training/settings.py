@@ -73,8 +73,8 @@ class EvalSettings(Settings):
     # eval/gymnasium_return beside eval/return, on eval.num_envs episodes from seeds eval.seed + i
     gymnasium: bool = checked(False, checks.boolean)
     # with eval.gymnasium=true: score only there and skip this library's own evaluation (on a GPU its
-    # few envs step launch-bound, while MuJoCo's C env on the CPU is quick); eval/return stays NaN and
-    # the Gymnasium return picks the best checkpoint and decides train.score_to_win
+    # few envs step launch-bound, while MuJoCo's C env on the CPU is quick); eval/return is then NaN
+    # and the Gymnasium return picks the best checkpoint and decides train.score_to_win
     only_gymnasium: bool = checked(False, checks.boolean)
     # mode=eval: episodes to play, eval.num_envs at a time; null: eval.num_envs
     games_num: int | None = checked(None, _optional(checks.positive_int, "for eval.num_envs"))
