@@ -147,6 +147,23 @@ def test_gpu_training_time_to_the_cpu_race_ppo_return(tmp_path):
         bench.main(["env=Hopper-v5", f"from_metrics=[ahac={metrics}]", f"race={race}", "data=none"])
 
 
+def test_memory_growth_reads_the_slope_after_the_warm_up(tmp_path):
+    """The slope is a least-squares line through the rows after the first tenth of the iterations,
+    in MiB per 1000 iterations: flat memory gives 0, a steady leak its rate, the warm-up is left out."""
+    bench = load("memory_growth")
+    assert bench.slope_per_1000([(0, 5.0), (1000, 7.0), (2000, 9.0)]) == pytest.approx(2.0)
+    rows = [{"time/iteration": i, "memory/rss_mib": 100.0 if i < 100 else 300.0 + 0.01 * i} for i in range(10, 1001, 10)]
+    metrics = tmp_path / "metrics.jsonl"
+    metrics.write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    out = bench.summarise("x:y", metrics)["memory/rss_mib"]
+    assert out["slope_per_1000"] == pytest.approx(10.0) and out["iterations"] == 1000
+    assert (out["after_warmup"], out["end"], out["peak"]) == (301.0, 310.0, 310.0)
+    metrics.write_text(json.dumps({"time/iteration": 1}))
+    assert "no memory rows" in bench.summarise("x:y", metrics)["error"]
+    with pytest.raises(SystemExit, match="runs: expected ENV:LOSS, got 'pendulum'"):
+        bench.main(["runs=[pendulum]", "data=none", f"out={tmp_path / 'o.json'}"])
+
+
 def test_policy_anatomy_of_a_saved_hopper(tmp_path):
     """The return is the first episode's (as ``evaluation.episode_returns`` computes it for the same
     policy and start states) and an episode ended by the torso above ``healthy_z_high`` counts as a

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -356,6 +357,13 @@ def test_csv_logger_and_run_directory_outputs(tmp_path):
     assert float(eval_rows[-1].split(",")[1]) == pytest.approx(result["eval/return"])
     header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
     assert {"env_steps", "train/loss_objective", "train/grad_norm", "eval/return", "time/wall_s"} <= set(header)
+    rows = read_jsonl(tmp_path / "metrics.jsonl")
+    rss = [r["memory/rss_mib"] for r in rows if "train/loss_objective" in r]
+    if sys.platform.startswith("linux"):  # the process's resident memory, from /proc
+        import resource
+
+        peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        assert rss and all(50 < m <= peak_mib + 1 for m in rss)
     with Image.open(tmp_path / "final.gif") as gif:
         assert gif.size == (32, 32) and gif.n_frames > 1
     assert (tmp_path / "learning_curve.png").stat().st_size > 0

@@ -76,6 +76,21 @@ _PER_INVOCATION = ("resume=", "mode=", "checkpoint=")
 GYMNASIUM_SCORES = ("return", "return_std", "return_min", "return_max", "episode_length", "terminated")
 
 
+def memory_in_use(device) -> dict:
+    """The process's resident memory (``memory/rss_mib``, Linux) and on CUDA the tensors' memory
+    (``memory/cuda_allocated_mib``): a training row's record, so that a leak shows as a slope over
+    iterations (``benchmarks/memory_growth.py``). Host-side counters: no synchronisation."""
+    out = {}
+    try:
+        with open("/proc/self/statm") as statm:
+            out["memory/rss_mib"] = int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):  # not Linux
+        pass
+    if torch.device(device).type == "cuda":
+        out["memory/cuda_allocated_mib"] = torch.cuda.memory_allocated(device) / 2**20
+    return out
+
+
 def run(cfg: DictConfig, run_dir: str | Path, overrides: Sequence[str] = ()) -> dict:
     """Checks ``cfg`` and trains, or evaluates a checkpoint (``mode=eval``, on rank 0 only), in the
     ranks ``torchrun`` started (one process without it). ``overrides`` are the command line's
@@ -225,7 +240,7 @@ class Trainer:
                         row = {f"train/{k}": v for k, v in metrics.items()}
                         row.update({"time/iteration": progress["iteration"], "time/wall_s": progress["wall_time_s"],
                                     "time/steps_per_s": self.learner.env_steps_per_iteration
-                                    / (time.perf_counter() - tic)})
+                                    / (time.perf_counter() - tic), **memory_in_use(self.env.device)})
                         self.log(row)
                     bar.update(self.learner.env_steps_per_iteration)
                     shown = last.get("eval/gymnasium_return", math.nan) if run.eval.only_gymnasium \
