@@ -101,6 +101,7 @@ def train(env: str, loss: str, args, run_dir: Path) -> Path:
 
 def main(argv=None) -> dict:
     args = parse_cli(MemoryGrowthSettings, argv, __doc__)
+    C.setup_threads(args.threads)  # the runs' threads too (OMP_NUM_THREADS)
     if args.from_metrics is not None:
         metrics = {}
         for item in args.from_metrics:
@@ -132,8 +133,8 @@ def main(argv=None) -> dict:
     payload = {"benchmark": "memory_growth", "date": C.today(), "info": C.versions(), "results": results}
     C.write_json("memory_growth", payload, args.out)
     C.write_data(args, "memory_growth", {"memory": C.data_table(
-        f"Memory over a training run (train.py, {args.num_envs} envs, a row every {args.log_interval} iterations): "
-        "after the first tenth of the iterations, at the end, and the slope after it", headers, table)},
+        "Memory over a training run (train.py): after the first tenth of the iterations, at the end, and the "
+        "slope after it", headers, table)},
         device=args.device)
     return payload
 
