@@ -55,6 +55,12 @@ def tiny_cfg(env: str, loss: str, iterations: int = 2, *extra: str):
                     f"train.checkpoint_interval={steps}", *extra)
 
 
+def without_measurements(rows: list[dict]) -> list[dict]:
+    """The rows without what measures the machine (``time/``: timings, ``memory/``: memory in
+    use), which differs between two runs of the same training: everything else must not."""
+    return [{k: v for k, v in r.items() if not k.startswith(("time/", "memory/"))} for r in rows]
+
+
 def read_jsonl(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()]
 

@@ -217,7 +217,7 @@ def test_selfplay_needs_a_two_player_env():
 
 # ---------------------------------------------------------------------------- the training script
 def test_selfplay_run_resumes_exactly_and_reports_the_win_rate(tmp_path):
-    from _train_helpers import STEPS_PER_ITER, read_jsonl, tiny_cfg, train_script
+    from _train_helpers import STEPS_PER_ITER, read_jsonl, tiny_cfg, train_script, without_measurements
 
     from torchrl_diffenvs.training import load_checkpoint
 
@@ -232,7 +232,7 @@ def test_selfplay_run_resumes_exactly_and_reports_the_win_rate(tmp_path):
     for key, value in final_a["policy"].items():
         assert torch.equal(value, final_b["policy"][key]), key
     rows = [read_jsonl(tmp_path / run / "metrics.jsonl") for run in "ab"]
-    strip = [[{k: v for k, v in r.items() if not k.startswith("time/")} for r in run] for run in rows]
+    strip = [without_measurements(run) for run in rows]
     assert strip[0] == strip[1] and result_a["eval/return"] == result_b["eval/return"]
     assert any("eval/win_rate" in r for r in rows[0]) and any("train/opponent_age" in r for r in rows[0])
 

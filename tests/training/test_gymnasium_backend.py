@@ -13,7 +13,7 @@ import torch
 gym = pytest.importorskip("gymnasium")
 pytest.importorskip("mujoco")
 
-from _train_helpers import STEPS_PER_ITER, make_cfg, read_jsonl, tiny_cfg, train_script  # noqa: E402
+from _train_helpers import STEPS_PER_ITER, make_cfg, read_jsonl, tiny_cfg, train_script, without_measurements  # noqa: E402
 
 from torchrl_diffenvs.envs.gymnasium_backend import GymnasiumBackedEnv  # noqa: E402
 from torchrl_diffenvs.evaluation import evaluate_in_gymnasium  # noqa: E402
@@ -95,11 +95,8 @@ def test_a_resumed_run_continues_exactly(tmp_path):
     for key, value in final_a["policy"].items():
         assert torch.equal(value, final_b["policy"][key]), key
 
-    def comparable(rows):
-        return [{k: v for k, v in r.items() if not k.startswith("time/")} for r in rows]
-
-    assert comparable(read_jsonl(tmp_path / "b" / "metrics.jsonl")) == \
-        comparable(read_jsonl(tmp_path / "a" / "metrics.jsonl"))
+    assert without_measurements(read_jsonl(tmp_path / "b" / "metrics.jsonl")) == \
+        without_measurements(read_jsonl(tmp_path / "a" / "metrics.jsonl"))
     assert result_b["eval/return"] == result_a["eval/return"]
 
 

@@ -33,7 +33,7 @@ from torchrl_diffenvs.training.config import LOSSES, merge_overrides
 
 from _train_helpers import (  # noqa: F401  (shared with the other areas' training tests)
     COMMON, CONFIGS, CONTACT_ENVS, ROOT, SCRIPT, STEPS_PER_ITER, TINY, _cli, make_cfg, read_jsonl, results_table,
-    tiny_cfg, train_script,
+    tiny_cfg, train_script, without_measurements,
 )
 
 
@@ -400,10 +400,8 @@ def test_resumed_run_continues_exactly_where_the_stopped_run_was(loss, tmp_path)
     for key, value in final_a["policy"].items():
         assert torch.equal(value, final_b["policy"][key]), key
 
-    def comparable(rows):  # timings differ between runs, everything else must not
-        return [{k: v for k, v in r.items() if not k.startswith("time/")} for r in rows]
-
-    assert comparable(read_jsonl(tmp_path / "b" / "metrics.jsonl")) == comparable(read_jsonl(tmp_path / "a" / "metrics.jsonl"))
+    assert without_measurements(read_jsonl(tmp_path / "b" / "metrics.jsonl")) == \
+        without_measurements(read_jsonl(tmp_path / "a" / "metrics.jsonl"))
     assert result_b["eval/return"] == result_a["eval/return"]
 
 

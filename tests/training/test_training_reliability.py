@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from _train_helpers import COMMON, STEPS_PER_ITER, TINY, _cli, make_cfg, read_jsonl, tiny_cfg, train_script
+from _train_helpers import COMMON, STEPS_PER_ITER, TINY, _cli, make_cfg, read_jsonl, tiny_cfg, train_script, without_measurements
 from torchrl_diffenvs.learners import BPTTLearner
 from torchrl_diffenvs.learners.base import load_lr_scheduler, lr_scheduler
 from torchrl_diffenvs.training import (
@@ -110,11 +110,8 @@ def test_checkpoint_size_does_not_grow_with_the_run_and_resume_keeps_the_history
     train_script.run(tiny_cfg("pendulum", "bptt", 40, f"train.checkpoint_interval={2 * STEPS}", "eval.interval=32",
                               f"resume={middle}"), tmp_path / "b")
 
-    def comparable(rows):
-        return [{k: v for k, v in r.items() if not k.startswith("time/")} for r in rows]
-
     rows_a, rows_b = read_jsonl(tmp_path / "a" / "metrics.jsonl"), read_jsonl(tmp_path / "b" / "metrics.jsonl")
-    assert comparable(rows_b) == comparable(rows_a)
+    assert without_measurements(rows_b) == without_measurements(rows_a)
 
 
 # ---------------------------------------------------------------------- SIGTERM and Ctrl-C
