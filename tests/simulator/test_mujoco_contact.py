@@ -19,6 +19,11 @@ from torchrl_diffenvs.articulated.inertia import body_invweight0, mass_matrix_an
 from torchrl_diffenvs.articulated.pipeline import accelerations, body_contact_wrenches, invweight0  # noqa: E402
 from torchrl_diffenvs.envs import make_env  # noqa: E402
 
+from _env_helpers import REPO, load_script  # noqa: E402
+
+# the Pusher's pushing trajectories (MuJoCo's own) come from the benchmark that reports them
+CONTACT_MODEL = load_script("contact_model", REPO / "benchmarks" / "contact_model.py")
+
 CONTACT_ASSETS = ["half_cheetah.xml", "hopper.xml", "walker2d_v5.xml", "ant.xml", "humanoid.xml", "humanoidstandup.xml"]
 # the files without a free joint: their full MuJoCo step is matched (see test_step_matches_mj_step)
 PLANAR = ["half_cheetah.xml", "hopper.xml", "walker2d_v5.xml"]
@@ -371,11 +376,133 @@ def test_contact_option_defaults_and_errors():
     smooth = make_env("Hopper-v5", contact="smooth")
     assert smooth.integrator == "euler" and "contact_stiffness" in smooth.params.keys()
     assert make_env("Ant-v5", contact="smooth").integrator == "implicit"
-    assert make_env("Pusher-v5").contact == "smooth"
+    assert make_env("Pusher-v5").contact == "mujoco"
     with pytest.raises(ValueError, match=r"unknown contact model 'soft'; valid: 'mujoco', 'smooth'"):
         make_env("Hopper-v5", contact="soft")
-    with pytest.raises(ValueError, match=r"'table' \(plane\).*cylinder.*contact='smooth'"):
-        make_env("Pusher-v5", contact="mujoco")
+
+
+def _two_bodies(tmp_path, geom1: str, geom2: str):
+    """A tree of two free bodies, one geom each (MJCF attributes), 2 mm margin each."""
+    path = tmp_path / "pair.xml"
+    path.write_text(f"""<mujoco><option gravity="0 0 0"/><worldbody>
+        <body name="a"><freejoint/><geom name="a" {geom1} margin="0.002"/></body>
+        <body name="b"><freejoint/><geom name="b" {geom2} margin="0.002"/></body></worldbody></mujoco>""")
+    return RigidBodyTree.from_model(load_mjcf(str(path)))
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_a_pair_without_a_primitive_is_refused_with_what_is_available(tmp_path):
+    tree = _two_bodies(tmp_path, 'type="sphere" size="0.03"', 'type="cylinder" size="0.05 0.05"')
+    assert tree.contact_model == "smooth"  # chosen when MuJoCo's contact cannot cover the model
+    with pytest.raises(ValueError, match=r"'a' \(sphere\) and 'b' \(cylinder\).*collides only.*capsule-cylinder"
+                                         r".*contact='smooth'"):
+        tree.use_contact_model("mujoco")
+
+
+def _capsule_beside_cylinder(tmp_path, centre, angle=0.0):
+    """``(tree, qpos)``: a capsule (radius 0.02, half-length 0.1) with its axis along y turned by
+    ``angle`` about x, centred at ``centre``, and an upright cylinder (radius 0.05, half-height 0.05)
+    at the origin."""
+    tree = _two_bodies(tmp_path, 'type="capsule" size="0.02 0.1"', 'type="cylinder" size="0.05 0.05"')
+    half = (-np.pi / 2 + angle) / 2  # z onto y, then the tilt
+    qpos = np.zeros(14)
+    qpos[:3], qpos[3:7], qpos[10] = centre, [np.cos(half), np.sin(half), 0.0, 0.0], 1.0
+    return tree, torch.as_tensor(qpos).unsqueeze(0)
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_capsule_cylinder_contact_hand_computed(tmp_path):
+    """Capsule against cylinder where the answer is known by hand: beside the side (the normal is
+    -x, the distance the gap between the surfaces) and across the rim (the normal along the
+    diagonal to the rim point), in float64."""
+    tree, qpos = _capsule_beside_cylinder(tmp_path, [0.072, 0.0, 0.01])
+    c = collide(tree.contact_slots, forward_kinematics(tree, qpos))
+    assert c.dist[0, 0].item() == pytest.approx(0.072 - 0.05 - 0.02, abs=1e-14) and c.active[0, 0]
+    torch.testing.assert_close(c.frame[0, 0, 0], torch.tensor([-1.0, 0.0, 0.0], dtype=torch.float64), atol=1e-14, rtol=0)
+    torch.testing.assert_close(c.pos[0, 0], torch.tensor([(0.052 + 0.05) / 2, 0.0, 0.01], dtype=torch.float64),
+                               atol=1e-14, rtol=0)
+    tree, qpos = _capsule_beside_cylinder(tmp_path, [0.066, 0.0, 0.066])  # over the rim point (0.05, 0, 0.05)
+    c = collide(tree.contact_slots, forward_kinematics(tree, qpos))
+    gap = 0.016 * np.sqrt(2)
+    assert c.dist[0, 0].item() == pytest.approx(gap - 0.02, abs=1e-14) and c.active[0, 0]
+    torch.testing.assert_close(c.frame[0, 0, 0], torch.tensor([-1.0, 0.0, -1.0], dtype=torch.float64) / np.sqrt(2),
+                               atol=1e-12, rtol=0)
+    middle = 0.05 + (gap - 0.02) / 2 / np.sqrt(2)
+    torch.testing.assert_close(c.pos[0, 0], torch.tensor([middle, 0.0, middle], dtype=torch.float64), atol=1e-12, rtol=0)
+    # upright, its lower end 1 cm inside the cap: the minimal translation is 3 cm straight up
+    tree, qpos = _capsule_beside_cylinder(tmp_path, [0.0, 0.0, 0.14], angle=np.pi / 2)
+    c = collide(tree.contact_slots, forward_kinematics(tree, qpos))
+    assert c.dist[0, 0].item() == pytest.approx(-0.03, abs=1e-14)
+    torch.testing.assert_close(c.frame[0, 0, 0], torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64), atol=1e-14, rtol=0)
+    torch.testing.assert_close(c.pos[0, 0], torch.tensor([0.0, 0.0, 0.035], dtype=torch.float64), atol=1e-14, rtol=0)
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_capsule_cylinder_contact_gradcheck(tmp_path):
+    """The distance, position and normal of a tilted capsule's contact on the cylinder's side and
+    near its rim (the minimiser along the capsule's axis by its implicit derivative), and with
+    its axis inside the cylinder (an end against the rim, an end under the cap), against finite
+    differences in float64."""
+    for centre, angle in (([0.069, 0.01, 0.02], 0.4), ([0.06, 0.0, 0.071], 0.3), ([0.06, 0.0, 0.1], 1.2),
+                          ([0.03, 0.0, 0.06], 0.2)):
+        tree, qpos = _capsule_beside_cylinder(tmp_path, centre, angle)
+
+        def contact(position):
+            q = torch.cat([position, qpos[:, 3:]], dim=-1)
+            c = collide(tree.contact_slots, forward_kinematics(tree, q))
+            return c.dist[0], c.pos[0, 0], c.frame[0, 0, 0]
+
+        assert collide(tree.contact_slots, forward_kinematics(tree, qpos)).active.all()
+        torch.autograd.gradcheck(contact, (qpos[:, :3].clone().requires_grad_(True),))
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_pusher_contacts_and_step_match_mujoco_while_pushing():
+    """The Pusher's wrist pushing the object (MuJoCo's own trajectories): the contacts per geom
+    pair as mj_collision's (table contacts exactly; the wrist's on the object to the tolerance of
+    MuJoCo's EPA, which stops at ccd_tolerance: positions where the axis stays outside the object,
+    whose witness points are unique), and one physics step from MuJoCo's state as mj_step's:
+    exact without the wrist on the object, within EPA's residual with it (measured: ~2e-5 in
+    qvel; the smooth model lands ~6 m/s away). States where MuJoCo's multi-contact gave a wrist
+    two contacts (its capsule lying along the object's cap; one here) are left out."""
+    model, mm, data, tree, params = setup("pusher_v5.xml")
+    starts, ends, depth, multi = CONTACT_MODEL.pushing_trajectory(mm, episodes=6, steps=200, seed=0)
+    single = np.flatnonzero(np.isfinite(depth) & ~multi)
+    free = np.flatnonzero(~np.isfinite(depth))
+    assert len(single) > 60 and (depth[single] < -0.02).sum() > 10 and len(free) > 300
+    slots, compared = tree.contact_slots, 0
+    for i in single[::3]:
+        q, v, u = starts[i]
+        forward(mm, data, q, v, u)
+        c = collide(slots, forward_kinematics(tree, torch.as_tensor(q).unsqueeze(0)))
+        ours = sorted((tuple(slots.geom[k].tolist()), k) for k in np.flatnonzero(c.active[0].numpy()))
+        theirs = sorted((tuple(map(int, data.contact.geom[k])), k) for k in range(data.ncon))
+        assert [o[0] for o in ours] == [t[0] for t in theirs]
+        for (geoms, k), (_, j) in zip(ours, theirs):
+            if mm.geom_type[geoms[0]] == mujoco.mjtGeom.mjGEOM_PLANE:
+                assert c.dist[0, k].item() == pytest.approx(data.contact.dist[j], abs=1e-12)
+                np.testing.assert_allclose(c.pos[0, k].numpy(), data.contact.pos[j], atol=1e-12)
+                np.testing.assert_allclose(c.frame[0, k].numpy().ravel(), data.contact.frame[j], atol=1e-12)
+                continue
+            assert c.dist[0, k].item() == pytest.approx(data.contact.dist[j], abs=2e-6)
+            np.testing.assert_allclose(c.frame[0, k, 0].numpy(), data.contact.frame[j][:3], atol=1e-2)
+            if data.contact.dist[j] > -0.02:  # the axis outside the object: unique witness points
+                np.testing.assert_allclose(c.pos[0, k].numpy(), data.contact.pos[j], atol=2e-5)
+            compared += 1
+    assert compared > 20
+    def qvel_gaps(index):
+        qpos, qvel, ctrl = (torch.as_tensor(np.stack([starts[i][k] for i in index])) for k in range(3))
+        batch = {k: v.expand(len(index), *v.shape[1:]) for k, v in params.items()}
+        result = step(tree, qpos, qvel, ctrl, batch, mm.opt.timestep, model.integrator, invweight0(tree, batch))
+        return np.abs(result.qvel.numpy() - np.stack([ends[i][1] for i in index])).max(-1)
+
+    assert qvel_gaps(free).max() < 1e-10
+    shallow = single[depth[single] >= -0.02]
+    assert qvel_gaps(shallow).max() < 3e-5  # measured 2e-7
+    # the axis inside the object: EPA's residual (~2e-5), and a few states whose capsule lies across
+    # the object's side, where any point of the overlap is a contact point and EPA's is another
+    deep = qvel_gaps(single[depth[single] < -0.02])
+    assert np.quantile(deep, 0.95) < 1e-4 and deep.max() < 3e-3
 
 
 def _mujoco_converged(mm, data) -> bool:

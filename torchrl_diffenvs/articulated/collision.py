@@ -2,10 +2,26 @@
 
 Every geom pair that MuJoCo's filter lets touch ([`colliding_pairs`][torchrl_diffenvs.articulated.collision.colliding_pairs]) is tested by its
 primitive, as ``engine_collision_primitive.c`` does: plane-sphere and sphere-sphere give one
-contact, plane-capsule two (one per end), sphere-capsule one, capsule-capsule one (two where the
-axes are parallel). The number of contacts is fixed per pair (a slot per possible contact), and
-a slot holds a contact when MuJoCo's would: ``active`` is where its distance is below the pair's
-margin. No data-dependent shape or Python branch: the same ops run whatever touches.
+contact, plane-capsule two (one per end), plane-cylinder up to four (``mjc_PlaneCylinder``: the
+lowest rim point, the opposite end's and two more on the lowest disk), sphere-capsule one,
+capsule-capsule one (two where the axes are parallel). The number of contacts is fixed per pair
+(a slot per possible contact), and a slot holds a contact when MuJoCo's would: ``active`` is where
+its distance is below the pair's margin. No data-dependent shape or Python branch: the same ops run
+whatever touches.
+
+Capsule-cylinder, which MuJoCo collides by its general convex collision (GJK and EPA on the two
+shapes grown by half the margin each, ``mjc_Convex``), is the exact solution of the same problem
+here, one contact: the signed distance between the capsule's axis and the cylinder less the
+capsule's radius, along the direction that minimises it. Where the axis stays outside the
+cylinder that is its nearest point (a 1-D convex minimisation: golden section, then a Newton
+step that also carries the implicit gradient); where it enters, the minimal translation that
+separates them, the minimiser of the support function of their difference among the directions
+that can minimise it (the cap normals, the side, each end against each rim, the segment's edge
+against a rim). MuJoCo's EPA stops at ``ccd_tolerance``: its distance matches to ~1e-6, its normal
+to ~5e-3 and, where the witness points are unique, its position to ~1e-5. Where they are not (the
+capsule lying across a face), any point of the overlap is a valid witness and EPA's choice is
+not reproduced, nor are the extra contacts MuJoCo 4's multi-contact adds when the capsule lies
+along the cylinder's cap (one contact here).
 
 Each contact has MuJoCo's ``pos``, ``frame`` (normal first, pointing from geom 1 to geom 2),
 ``dist`` and the pair's mixed parameters (``condim``, friction, ``solref``, ``solimp``,
@@ -26,8 +42,14 @@ __all__ = ["Contacts", "ContactSlots", "colliding_pairs", "contact_slots", "coll
 
 #: the primitives this module implements (MuJoCo's geom type order: plane < sphere < capsule), and
 #: the contacts each gives at most
-_PRIMITIVES = {("plane", "sphere"): 1, ("plane", "capsule"): 2, ("sphere", "sphere"): 1,
-               ("sphere", "capsule"): 1, ("capsule", "capsule"): 2}
+_PRIMITIVES = {("plane", "sphere"): 1, ("plane", "capsule"): 2, ("plane", "cylinder"): 4, ("sphere", "sphere"): 1,
+               ("sphere", "capsule"): 1, ("capsule", "capsule"): 2, ("capsule", "cylinder"): 1}
+#: golden-section iterations of the capsule-cylinder search: the bracket of the axis parameter
+#: shrinks to 2 * 0.618**40 ~ 1e-8 before the Newton step
+_GOLDEN_ITERATIONS = 40
+_GOLDEN = (5 ** 0.5 - 1) / 2
+_TOUCHING = 1e-9  # metres: an axis this close to the cylinder is treated as entering it (see _segment_cylinder)
+_EDGE_SAMPLES = 32  # directions across a segment sampled before the golden section (edge against rim)
 _TYPE_ORDER = ("plane", "hfield", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
 
 
@@ -292,6 +314,203 @@ def _capsule_capsule(pos1, axis1, radius1, pos2, axis2, radius2, margin):
     return centres1, centres2, found
 
 
+def _plane_cylinder(plane_pos, plane_rot, pos, rot, size):
+    """MuJoCo's ``mjc_PlaneCylinder``: ``(dist [N, P, 4], pos [N, P, 4, 3], normal [N, P, 3])`` of
+    its four candidate contacts in its order: the rim point nearest the plane, the same point of the
+    other disk, and two points of the nearer disk at 120 degrees from the first (MuJoCo's triangle)."""
+    normal = plane_rot[..., :, 2]
+    axis = rot[..., :, 2]
+    prjaxis = _dot(normal, axis)
+    towards = (prjaxis > 0).unsqueeze(-1)  # make the axis point towards the plane
+    axis, prjaxis = torch.where(towards, -axis, axis), -prjaxis.abs()
+    dist0 = _dot(pos - plane_pos, normal)
+    vec = prjaxis.unsqueeze(-1) * axis - normal  # towards the plane, across the axis
+    squared = _dot(vec, vec)
+    radius, half = size[:, 0], size[:, 1]
+    # a disk parallel to the plane: MuJoCo takes the cylinder's x axis (see _sphere_sphere for the clamp)
+    scaled = vec * (radius / torch.sqrt(squared.clamp_min(_MINVAL * _MINVAL))).unsqueeze(-1)
+    vec = torch.where((squared >= _MINVAL * _MINVAL).unsqueeze(-1), scaled, rot[..., :, 0] * radius.unsqueeze(-1))
+    prjvec = _dot(vec, normal)
+    axis, prjaxis = axis * half.unsqueeze(-1), prjaxis * half
+    side = _cross(vec, axis)
+    side = side * (radius * 3 ** 0.5 / 2 / torch.sqrt(_dot(side, side).clamp_min(_MINVAL * _MINVAL))).unsqueeze(-1)
+    near_disk = pos + axis
+    points = torch.stack([near_disk + vec, pos - axis + vec, near_disk + side - vec / 2, near_disk - side - vec / 2], dim=-2)
+    triangle = dist0 + prjaxis - prjvec / 2
+    dist = torch.stack([dist0 + prjaxis + prjvec, dist0 - prjaxis + prjvec, triangle, triangle], dim=-1)
+    return dist, points - (dist / 2).unsqueeze(-1) * normal.unsqueeze(-2), normal
+
+
+def _cylinder_nearest(p, radius, half):
+    """The signed distance of points ``p [..., 3]`` (the cylinder's frame) to a cylinder, the nearest
+    point of its surface and the outward unit normal there: ``(sdf, q, outward)``. Outside, the
+    nearest point is unique (the distance is differentiable); inside, the nearer of the side and
+    the caps."""
+    x, y, z = p.unbind(-1)
+    rho = torch.sqrt((x * x + y * y).clamp_min(_MINVAL * _MINVAL))  # clamped inside the root: see _sphere_sphere
+    radial = torch.stack([x / rho, y / rho, torch.zeros_like(x)], dim=-1)
+    up = torch.where(z >= 0, 1.0, -1.0)
+    beyond_side, beyond_cap = rho > radius, z.abs() > half
+    outside = beyond_side | beyond_cap
+    scale = torch.where(beyond_side, radius / rho, torch.ones_like(rho))
+    clamped = torch.stack([x * scale, y * scale, torch.minimum(torch.maximum(z, -half), half)], dim=-1)
+    gap = p - clamped
+    distance = torch.sqrt(_dot(gap, gap).clamp_min(_MINVAL * _MINVAL))
+    # inside: out through the side or through the nearer cap, whichever is closer
+    through_side = (radius - rho < half - z.abs()).unsqueeze(-1)
+    cap_point = torch.stack([x, y, up * half], dim=-1)
+    side_point = torch.stack([x * radius / rho, y * radius / rho, z], dim=-1)
+    cap_normal = torch.stack([torch.zeros_like(z), torch.zeros_like(z), up], dim=-1)
+    inside_q = torch.where(through_side, side_point, cap_point)
+    inside_normal = torch.where(through_side, radial, cap_normal)
+    inside_sdf = -torch.minimum(radius - rho, half - z.abs())
+    o = outside.unsqueeze(-1)
+    return (torch.where(outside, distance, inside_sdf), torch.where(o, clamped, inside_q),
+            torch.where(o, gap / distance.unsqueeze(-1), inside_normal))
+
+
+def _axis_parameter(start, axis, radius, half):
+    """``t`` in ``[-1, 1]`` minimising the cylinder's signed distance at ``start + t axis`` (a convex
+    function of ``t``): golden section without gradient, the better of it and the two ends, then
+    one Newton step at an interior minimum outside the cylinder, whose derivative is the implicit
+    one of the minimiser (``dt = -f_t' / f_tt``, ``f`` the distance)."""
+    with torch.no_grad():
+        s, a = start.detach(), axis.detach()
+        f = lambda t: _cylinder_nearest(s + t.unsqueeze(-1) * a, radius, half)[0]  # noqa: E731
+        t_best, f_best = _golden_search(f, torch.full_like(s[..., 0], -1.0), torch.full_like(s[..., 0], 1.0),
+                                        _GOLDEN_ITERATIONS)
+        candidates = torch.stack([t_best, -torch.ones_like(t_best), torch.ones_like(t_best)], dim=-1)
+        values = torch.stack([f_best, f(candidates[..., 1]), f(candidates[..., 2])], dim=-1)
+        t0 = candidates.gather(-1, values.argmin(-1, keepdim=True)).squeeze(-1)
+    # the Newton step: f_t = o . axis, f_tt = axis^T (I - o o^T)(I - dq/dp) axis / distance outside
+    p = start + t0.unsqueeze(-1) * axis
+    sdf, _, outward = _cylinder_nearest(p, radius, half)
+    x, y, z = p.unbind(-1)
+    rho = torch.sqrt((x * x + y * y).clamp_min(_MINVAL * _MINVAL))
+    radial = torch.stack([x / rho, y / rho], dim=-1)
+    beyond_side = (rho > radius).unsqueeze(-1)
+    across = axis[..., :2]
+    moving = torch.cat([torch.where(beyond_side, (1 - radius / rho).unsqueeze(-1) * across
+                                    + (radius / rho).unsqueeze(-1) * _dot(radial, across).unsqueeze(-1) * radial,
+                                    torch.zeros_like(across)),
+                        torch.where(z.abs() > half, axis[..., 2], torch.zeros_like(z)).unsqueeze(-1)], dim=-1)
+    slope = _dot(outward, axis)
+    curvature = (_dot(moving, axis) - slope * _dot(outward, moving)) / sdf.clamp_min(_MINVAL)
+    newton = (t0.abs() < 1) & (sdf > 0) & (curvature > 1e-12)
+    change = (slope / torch.where(newton, curvature, 1.0)).clamp(-1e-7, 1e-7)
+    return torch.where(newton, t0 - change, t0)
+
+
+def _golden_search(f, lo, hi, iterations: int):
+    """The minimiser of a unimodal ``f`` over ``[lo, hi]`` (elementwise, no gradient): golden section."""
+    x1, x2 = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
+    f1, f2 = f(x1), f(x2)
+    for _ in range(iterations):
+        left = f1 < f2  # the minimum lies in [lo, x2]
+        lo, hi = torch.where(left, lo, x1), torch.where(left, x2, hi)
+        new = torch.where(left, hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo))
+        fnew = f(new)
+        x1, x2, f1, f2 = (torch.where(left, new, x2), torch.where(left, x1, new),
+                          torch.where(left, fnew, f2), torch.where(left, f1, fnew))
+    return torch.where(f1 < f2, x1, x2), torch.minimum(f1, f2)
+
+
+def _penetration_directions(start, axis, radius, half):
+    """``[..., K, 3]`` unit directions among which lies the minimiser of the support function of
+    segment minus cylinder, ``h(u) = start.u + |axis.u| + R |u_xy| + H |u_z|`` (the cylinder's
+    frame): the cap normals, the best horizontal direction (the side), the best direction across
+    the segment (its edge against a rim, found numerically) and each end's stationary direction
+    against each rim. The minimiser lies in one of these families (the sign pattern of ``axis.u``
+    and ``u_z`` is fixed inside each open region, where ``h`` has one minimum at most)."""
+    z_axis = torch.zeros_like(start)
+    z_axis[..., 2] = 1.0
+    tiny = _MINVAL * _MINVAL
+    # the side: minus the point of the segment's shadow nearest the axis, or across the shadow
+    shadow, across = start[..., :2], axis[..., :2]
+    along = (-_dot(shadow, across) / _dot(across, across).clamp_min(tiny)).clamp(-1, 1)
+    nearest = shadow + along.unsqueeze(-1) * across
+    perp = torch.stack([-across[..., 1], across[..., 0]], dim=-1)
+    flat = lambda v: torch.cat([v / torch.sqrt(_dot(v, v).clamp_min(tiny)).unsqueeze(-1),  # noqa: E731
+                                torch.zeros_like(v[..., :1])], dim=-1)
+    side = [flat(-nearest), flat(perp), flat(-perp)]
+    # each end against each rim: u = -(A v, B) / |(A, B)|, v = -w_xy / |w_xy|, A = R - |w_xy|, B = w_z
+    rims = []
+    for end in (start + axis, start - axis):
+        for sign in (1.0, -1.0):
+            w = end + sign * half.unsqueeze(-1) * z_axis
+            reach = torch.sqrt(_dot(w[..., :2], w[..., :2]).clamp_min(tiny))
+            a, b = radius - reach, w[..., 2]
+            norm = torch.sqrt((a * a + b * b).clamp_min(tiny)).unsqueeze(-1)
+            rims.append(torch.cat([(a.unsqueeze(-1) * w[..., :2] / reach.unsqueeze(-1)), -b.unsqueeze(-1)], dim=-1)
+                        / norm)
+    # the edge: the great circle across the segment, sampled then refined (no gradient)
+    with torch.no_grad():
+        direction = axis / torch.sqrt(_dot(axis, axis).clamp_min(tiny)).unsqueeze(-1)
+        helper = torch.where((direction[..., 2].abs() < 0.9).unsqueeze(-1), z_axis, torch.roll(z_axis, 1, -1))
+        b1 = _cross(direction, helper)
+        b1 = b1 / torch.sqrt(_dot(b1, b1).clamp_min(tiny)).unsqueeze(-1)
+        b2 = _cross(direction, b1)
+        circle = lambda phi: (torch.cos(phi).unsqueeze(-1) * b1 + torch.sin(phi).unsqueeze(-1) * b2)  # noqa: E731
+        h = lambda u: (_dot(start, u) + radius * torch.sqrt((u[..., 0] ** 2 + u[..., 1] ** 2).clamp_min(tiny))  # noqa: E731
+                       + half * u[..., 2].abs())
+        step = 2 * torch.pi / _EDGE_SAMPLES
+        phis = torch.arange(_EDGE_SAMPLES, dtype=start.dtype, device=start.device) * step
+        sampled = h(circle(phis.view(-1, *([1] * (start.dim() - 1))))).argmin(0).to(start.dtype) * step
+        phi, _ = _golden_search(lambda x: h(circle(x)), sampled - step, sampled + step, _GOLDEN_ITERATIONS)
+        edge = circle(phi)
+    directions = torch.stack([z_axis, -z_axis, *side, *rims, edge], dim=-2)
+    # a family without a direction here (a shadow through the axis, an end on it) gives a zero or
+    # short vector: any unit vector stands in (a candidate that is not the minimiser is harmless)
+    length = torch.sqrt(_dot(directions, directions).clamp_min(tiny)).unsqueeze(-1)
+    return torch.where(length > 1e-9, directions / length, z_axis.unsqueeze(-2).expand_as(directions))
+
+
+def _segment_cylinder(start, axis, radius, half):
+    """A segment ``start + t axis`` (``t`` in ``[-1, 1]``, the cylinder's frame) against the
+    cylinder: ``(sd, x1, x2, u)``, the signed distance (negative: the minimal translation that
+    separates them), a witness point on each (``x1 - x2 = -sd u``) and the unit direction from
+    the segment to the cylinder. Outside, the axis' nearest point (`_axis_parameter`); where the
+    axis enters the cylinder, the minimiser of the support function of their difference among
+    `_penetration_directions`."""
+    t = _axis_parameter(start, axis, radius, half)
+    p = start + t.unsqueeze(-1) * axis  # outside: the segment's nearest point; inside: its deepest
+    sdf, q, outward = _cylinder_nearest(p, radius, half)
+    directions = _penetration_directions(start, axis, radius, half)
+    r, h2, tiny = radius.unsqueeze(-1), half.unsqueeze(-1), _MINVAL * _MINVAL
+    support = (_dot(start.unsqueeze(-2), directions) + _dot(axis.unsqueeze(-2), directions).abs()
+               + r * torch.sqrt((directions[..., 0] ** 2 + directions[..., 1] ** 2).clamp_min(tiny))
+               + h2 * directions[..., 2].abs())
+    best = support.argmin(-1, keepdim=True)
+    depth = support.gather(-1, best).squeeze(-1)
+    u = directions.gather(-2, best.unsqueeze(-1).expand(*best.shape, 3)).squeeze(-2)
+    # witnesses: the segment's end where it is the support, else the cylinder's rim point, else
+    # (two faces) the axis' deepest point
+    lean = _dot(axis, u)
+    x1_end = start + torch.where(lean >= 0, 1.0, -1.0).unsqueeze(-1) * axis
+    flat = torch.sqrt((u[..., 0] ** 2 + u[..., 1] ** 2).clamp_min(tiny))
+    x2_rim = torch.stack([-radius * u[..., 0] / flat, -radius * u[..., 1] / flat,
+                          -half * torch.where(u[..., 2] >= 0, 1.0, -1.0)], dim=-1)
+    end_unique = (lean.abs() > 1e-9 * torch.sqrt(_dot(axis, axis))).unsqueeze(-1)
+    rim_unique = ((flat > 1e-9) & (u[..., 2].abs() > 1e-9)).unsqueeze(-1)
+    gap = depth.unsqueeze(-1) * u
+    x1 = torch.where(end_unique, x1_end, torch.where(rim_unique, x2_rim + gap, p))
+    x2 = x1 - gap
+    # the directions also where the axis only touches the cylinder: the outward normal there is 0 / 0
+    inside = sdf < _TOUCHING
+    return (torch.where(inside, -depth, sdf), torch.where(inside.unsqueeze(-1), x1, p),
+            torch.where(inside.unsqueeze(-1), x2, q), torch.where(inside.unsqueeze(-1), u, -outward))
+
+
+def _capsule_cylinder(pos1, half_axis1, radius1, pos2, rot2, size2):
+    """Capsule against cylinder (see the module's docstring): ``(dist, pos, normal)``, ``[N, P, ...]``."""
+    to_local = rot2.transpose(-1, -2)
+    start = (to_local @ (pos1 - pos2).unsqueeze(-1)).squeeze(-1)
+    axis = (to_local @ half_axis1.unsqueeze(-1)).squeeze(-1)
+    sd, x1, x2, u = _segment_cylinder(start, axis, size2[:, 0], size2[:, 1])
+    middle = (x1 + x2 + radius1.unsqueeze(-1) * u) / 2
+    return sd - radius1, pos2 + (rot2 @ middle.unsqueeze(-1)).squeeze(-1), (rot2 @ u.unsqueeze(-1)).squeeze(-1)
+
+
 def collide(slots: ContactSlots, kin) -> Contacts:
     """The contacts of every slot at the configurations of ``kin`` (a
     [`Kinematics`][torchrl_diffenvs.articulated.Kinematics]; not imported here: the kinematics import the tree, which
@@ -311,6 +530,13 @@ def collide(slots: ContactSlots, kin) -> Contacts:
             ends = torch.stack([pos2 + half, pos2 - half], dim=-2)  # MuJoCo: the +axis end first
             dist, pos, normal = _plane_sphere(pos1.unsqueeze(-2), rot1.unsqueeze(-3), ends, size2[:, 0, None])
             normal, tangent = normal.expand_as(pos), axis.unsqueeze(-2).expand_as(pos)
+        elif kind == ("plane", "cylinder"):
+            dist, pos, normal = _plane_cylinder(pos1, rot1, pos2, rot2, size2)
+            normal = normal.unsqueeze(-2).expand_as(pos)
+            tangent = torch.zeros_like(pos)
+        elif kind == ("capsule", "cylinder"):
+            dist, pos, normal = _capsule_cylinder(pos1, size1[:, 1, None] * rot1[..., :, 2], size1[:, 0], pos2, rot2, size2)
+            dist, pos, normal, tangent = dist[..., None], pos[..., None, :], normal[..., None, :], zero[..., None, :]
         elif kind == ("sphere", "sphere"):
             dist, pos, normal = _sphere_sphere(pos1, size1[:, 0], pos2, size2[:, 0], rot1[..., :, 2], rot2[..., :, 2])
             dist, pos, normal, tangent = dist[..., None], pos[..., None, :], normal[..., None, :], zero[..., None, :]

@@ -218,14 +218,16 @@ class RigidBodyTree:
             for p in planes:
                 collide = (model.geom_contype[g] & model.geom_conaffinity[p]) or (
                     model.geom_contype[p] & model.geom_conaffinity[g])
-                if not collide or _slides_along(model, int(model.geom_body[g]), model.geom_rot[p][:, 2]):
+                if not collide:
                     continue
-                local = _contact_points(model, g)
-                normal = model.geom_rot[p][:, 2]
                 slot = len(pairs)
                 pairs.append((model.geom_names[g], model.geom_names[p]))
                 pair_friction.append(friction(g, p))
                 frictional.append(max(model.geom_condim[g], model.geom_condim[p]) > 1)
+                if _slides_along(model, int(model.geom_body[g]), model.geom_rot[p][:, 2]):
+                    continue  # the pair keeps its friction entry (MuJoCo's contact has it) but no smooth points
+                local = _contact_points(model, g)
+                normal = model.geom_rot[p][:, 2]
                 for offset, radius in local:
                     points.append((model.geom_body[g], offset, radius, slot, model.geom_pos[p], normal))
         geom_pairs = []  # (A, B, A's segment, B's segment, radii, slot)

@@ -97,7 +97,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
     """
 
     INTEGRATORS = ("model", "euler", "implicit", "rk4")
-    default_contact = "mujoco"  # the Pusher: "smooth" (MuJoCo's capsule-cylinder collision is not here yet)
+    default_contact = "mujoco"
     smooth_integrator = "model"  # with contact="smooth": the planar contact tasks and the humanoids "euler", the Ant "implicit"
 
     model_file: str = ""

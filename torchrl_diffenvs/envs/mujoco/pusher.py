@@ -19,21 +19,24 @@ class PusherV5Env(MuJoCoModelEnv):
     positions are read where ``mj_step`` leaves them (the start of the last Euler step); they travel
     as ``("state", "body_points")``.
 
-    Contact (the wrist's capsules against the object and the table): the smooth model by default
-    (``contact="smooth"``), frictionless as the file's ``condim=1`` says; the object's cylinder is
-    taken as the capsule inscribed in it when the wrist pushes it. The object resting on the table
-    is left out: it slides only along the table, so that contact could push it nowhere. MuJoCo's
-    own contact model (``contact="mujoco"``) is not available for this file yet: MuJoCo collides
-    capsules with cylinders by its general convex collision, which is not implemented here.
+    Contact (the wrist's capsules against the object and the table): MuJoCo's own by default
+    ([`collision`][torchrl_diffenvs.articulated.collision]: plane-capsule, plane-cylinder and
+    capsule-cylinder), frictionless as the file's ``condim=1`` says. MuJoCo collides capsules with
+    cylinders by its general convex collision (GJK/EPA to ``ccd_tolerance``); here that contact is
+    the exact solution of the same problem, so one step lands within EPA's residual of
+    ``mj_step``'s (measured in ``benchmarks/contact_model.py`` on a trajectory that pushes the
+    object). Where the wrist's axis itself enters the object (deeper than the capsule's 2 cm
+    radius) the contact is that of the axis' deepest point rather than EPA's minimal translation,
+    and MuJoCo's extra multi-CCD contacts there are not generated. ``contact="smooth"``: the
+    penalty model, with the object's cylinder taken as the capsule inscribed in it.
     """
 
     name = "Pusher-v5"
     model_file = "pusher_v5.xml"
     frame_skip = 5
     default_max_episode_steps = 100
-    default_contact = "smooth"  # MuJoCo's capsule-cylinder collision is not implemented (see the docstring)
     task_params = {"reward_near_weight": 0.5, "reward_dist_weight": 1.0, "reward_control_weight": 0.1}
-    # the object's slides carry 0.04 kg of armature: a softer contact than the locomotion default
+    # contact="smooth": the object's slides carry 0.04 kg of armature, a softer contact than the locomotion default
     contact_params = {"contact_stiffness": 2e3, "contact_damping": 20.0, "contact_width": 0.002,
                       "friction_velocity": 0.01}
     points = ("tips_arm", "object", "goal")
