@@ -39,7 +39,7 @@ from torchrl_diffenvs.articulated import step  # noqa: E402
 from torchrl_diffenvs.articulated.pipeline import invweight0  # noqa: E402
 
 PARITY_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "HumanoidStandup-v5", "Pusher-v5"]
-SPEED_TASKS = ["HalfCheetah-v5", "Ant-v5"]
+SPEED_TASKS = ["HalfCheetah-v5", "Ant-v5", "Pusher-v5"]
 
 
 def _trajectory(mm, steps: int, seed: int, warmstart: bool = True):

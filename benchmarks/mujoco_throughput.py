@@ -10,7 +10,12 @@ For each task and N in {1, 64, 1024, 4096}, timed interleaved (see benchmarks/_c
 * ``gymnasium SyncVectorEnv``: ``SyncVectorEnv`` of N envs (N <= 64: beyond that it is N times
   the single env plus bookkeeping, and a batch step takes seconds);
 * ``mj_step (C)``: ``mujoco.mj_step(model, data, nstep=frame_skip * K)`` on one ``MjData``:
-  MuJoCo's C physics with no Python per step, the speed limit of one env on one core.
+  MuJoCo's C physics with no Python per step, the speed limit of one env on one core;
+* ``MJX (CPU)``: MuJoCo XLA (``mujoco.mjx``, JAX on the CPU, one XLA thread with
+  ``threads=1``): ``jit(scan(vmap(env step)))`` over T steps of N envs, an env step being
+  ``frame_skip`` ``mjx.step`` calls with the action held (no resets: MJX has none), compiled
+  before timing (the compile time is in the JSON). Needs the ``bench`` extra (``mujoco-mjx``,
+  ``jax``); without it the column is ``-``.
 
 The gymnasium and MuJoCo rows do not depend on N; they run in every row so that each ratio is
 taken within a round. Unit: env-steps/s (a batched step of N envs counts N) from CPU time.
@@ -23,6 +28,7 @@ Needs ``pip install "torchrl_diffenvs[mujoco]"`` (gymnasium's MuJoCo envs).
 """
 from __future__ import annotations
 
+import os
 import sys
 import warnings
 from dataclasses import dataclass, field
@@ -49,8 +55,9 @@ def make_policy(env):
     return TensorDictModule(net, ["observation"], ["action"])
 
 
-def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int) -> tuple[dict, dict]:
-    """``(name -> fn, name -> env-steps per call)`` for one row."""
+def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int) -> tuple[dict, dict, dict]:
+    """``(name -> fn, name -> env-steps per call, notes)`` for one row (notes: MJX's compile time,
+    or why it did not run)."""
     import gymnasium as gym
     import mujoco
     import torch
@@ -89,6 +96,9 @@ def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int) -> 
 
     fns = {"ours": ours, "ours fwd+bwd": ours_fwd_bwd, "gymnasium": gymnasium_single, "mj_step (C)": mj_step_c}
     counts = {"ours": n * steps, "ours fwd+bwd": n * WINDOW, "gymnasium": gym_steps, "mj_step (C)": gym_steps}
+    mjx = mjx_rollout(model, frame_skip, n, steps)
+    if isinstance(mjx, tuple):
+        fns["MJX (CPU)"], counts["MJX (CPU)"] = mjx[0], n * steps
     if n <= sync_max:
         vec = gym.vector.SyncVectorEnv([lambda: gym.make(task) for _ in range(n)], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
         vec.reset(seed=0)
@@ -100,7 +110,46 @@ def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int) -> 
 
         fns["gymnasium SyncVectorEnv"] = gymnasium_sync
         counts["gymnasium SyncVectorEnv"] = n * vec_steps
-    return fns, counts
+    return fns, counts, {"mjx_compile_s": mjx[1]} if isinstance(mjx, tuple) else {"mjx": mjx}
+
+
+def mjx_rollout(model, frame_skip: int, n: int, steps: int):
+    """MJX's compiled rollout of ``steps`` env steps of ``n`` envs from qpos0 (slightly perturbed),
+    random actions in the control range: ``(run, compile_s)``, or a string saying why MJX cannot run."""
+    try:
+        import jax
+        from mujoco import mjx
+    except ImportError as error:
+        return f"mujoco-mjx / jax not installed ({error}): pip install 'torchrl_diffenvs[bench]'"
+    import time
+
+    try:
+        mx = mjx.put_model(model)
+    except NotImplementedError as error:  # a geom pair or option MJX does not support
+        return f"MJX cannot run this model: {error}"
+    start = mjx.make_data(mx)
+    keys = jax.random.split(jax.random.PRNGKey(0), n)
+    batch = jax.vmap(lambda k: start.replace(qpos=start.qpos + 0.01 * jax.random.normal(k, start.qpos.shape)))(keys)
+    low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (steps, n, model.nu), minval=low, maxval=high)
+
+    def env_step(data, action):
+        data = data.replace(ctrl=action)
+        data, _ = jax.lax.scan(lambda d, _: (mjx.step(mx, d), None), data, None, length=frame_skip)
+        return data
+
+    @jax.jit
+    def rollout(data, actions):
+        data, _ = jax.lax.scan(lambda d, a: (jax.vmap(env_step)(d, a), None), data, actions)
+        return data.qpos
+
+    began = time.perf_counter()
+    rollout(batch, actions).block_until_ready()  # compile
+    compile_s = time.perf_counter() - began
+
+    def run():
+        rollout(batch, actions).block_until_ready()
+    return run, compile_s
 
 
 @dataclass(frozen=True)
@@ -112,6 +161,8 @@ class MuJoCoThroughputSettings(C.BenchmarkSettings):
 def main(argv=None) -> dict:
     args = parse_cli(MuJoCoThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
+    if args.threads == 1:  # before jax is imported: XLA's CPU backend on one thread too
+        os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
     warnings.filterwarnings("ignore")
     sizes = args.sizes or ([1, 4] if args.quick else [1, 64, 1024, 4096])
     rounds = args.repeats or (2 if args.quick else 3)
@@ -122,7 +173,7 @@ def main(argv=None) -> dict:
     for task in args.tasks:
         for n in sizes:
             steps = 2 if args.quick else max(2, min(50, 20000 // n))
-            fns, counts = candidates(task, n, steps, gym_steps, sync_max=4 if args.quick else 64)
+            fns, counts, notes = candidates(task, n, steps, gym_steps, sync_max=4 if args.quick else 64)
             times = C.interleaved(fns, rounds)
             cands = {}
             for name, t in times.items():
@@ -135,19 +186,23 @@ def main(argv=None) -> dict:
             per_step = {name: [c / counts[name] for c in t["cpu"]] for name, t in times.items()}
             ratios = {f"ours / {name}": C.median_ratio(per_step[name], per_step["ours"])
                       for name in fns if name != "ours"}
-            results.append({"task": task, "N": n, "T": steps, "H": WINDOW, "candidates": cands, "ratios_cpu": ratios})
+            results.append({"task": task, "N": n, "T": steps, "H": WINDOW, "candidates": cands, "ratios_cpu": ratios,
+                            **notes})
             rate = lambda name: cands[name]["env_steps_per_s_cpu"]["median"] if name in cands else None  # noqa: E731
             rows.append([task, n, C.fmt_rate(rate("ours")), C.fmt_rate(rate("ours fwd+bwd")),
                          C.fmt_rate(rate("gymnasium")), C.fmt_rate(rate("gymnasium SyncVectorEnv")),
-                         C.fmt_rate(rate("mj_step (C)")), C.fmt_ratio(ratios["ours / gymnasium"])])
+                         C.fmt_rate(rate("mj_step (C)")), C.fmt_rate(rate("MJX (CPU)")),
+                         C.fmt_ratio(ratios["ours / gymnasium"]),
+                         C.fmt_ratio(ratios["ours / MJX (CPU)"]) if "MJX (CPU)" in cands else "-"])
             print(f"# {task} N={n}: " + ", ".join(f"{k} {C.fmt_rate(rate(k))}" for k in cands), flush=True)
     table = C.print_table(["task", "N", "ours", "ours fwd+bwd", "gymnasium", "gym SyncVectorEnv", "mj_step (C)",
-                           "ours / gymnasium"], rows)
+                           "MJX (CPU)", "ours / gymnasium", "ours / MJX"], rows)
     payload = {"benchmark": "mujoco_throughput", "info": info, "results": results, "table": table}
     C.write_json("mujoco_throughput", payload, args.out)
     C.write_data(args, "mujoco_throughput", {"rates": C.data_table(
         "MuJoCo tasks: env-steps/s, one thread, from CPU time",
-        ["task", "N", "ours", "ours fwd+bwd", "gymnasium, 1 env", "SyncVectorEnv", "mj_step (C)", "ours / gymnasium"],
+        ["task", "N", "ours", "ours fwd+bwd", "gymnasium, 1 env", "SyncVectorEnv", "mj_step (C)", "MJX (CPU)",
+         "ours / gymnasium", "ours / MJX"],
         rows)})
     return payload
 

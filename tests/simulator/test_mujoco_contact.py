@@ -102,7 +102,7 @@ def test_contacts_match_mj_collision(filename):
             assert slots.margin[i].item() == pytest.approx(data.contact.includemargin[j], abs=1e-15)
             assert slots.condim[i] == data.contact.dim[j]
         compared += len(ours)
-    assert compared > 20
+    assert compared > 60
 
 
 def _mujoco_rows(mm, data):
@@ -381,13 +381,14 @@ def test_contact_option_defaults_and_errors():
         make_env("Hopper-v5", contact="soft")
 
 
-def _two_bodies(tmp_path, geom1: str, geom2: str):
-    """A tree of two free bodies, one geom each (MJCF attributes), 2 mm margin each."""
+def _two_bodies(tmp_path, geom1: str, geom2: str, dtype=torch.float64):
+    """A tree of two free bodies, one geom each (MJCF attributes), 2 mm margin each (the file is
+    ``tmp_path / "pair.xml"``)."""
     path = tmp_path / "pair.xml"
     path.write_text(f"""<mujoco><option gravity="0 0 0"/><worldbody>
         <body name="a"><freejoint/><geom name="a" {geom1} margin="0.002"/></body>
         <body name="b"><freejoint/><geom name="b" {geom2} margin="0.002"/></body></worldbody></mujoco>""")
-    return RigidBodyTree.from_model(load_mjcf(str(path)))
+    return RigidBodyTree.from_model(load_mjcf(str(path)), dtype=dtype)
 
 
 @pytest.mark.filterwarnings("ignore")
@@ -399,15 +400,31 @@ def test_a_pair_without_a_primitive_is_refused_with_what_is_available(tmp_path):
         tree.use_contact_model("mujoco")
 
 
-def _capsule_beside_cylinder(tmp_path, centre, angle=0.0):
-    """``(tree, qpos)``: a capsule (radius 0.02, half-length 0.1) with its axis along y turned by
-    ``angle`` about x, centred at ``centre``, and an upright cylinder (radius 0.05, half-height 0.05)
-    at the origin."""
-    tree = _two_bodies(tmp_path, 'type="capsule" size="0.02 0.1"', 'type="cylinder" size="0.05 0.05"')
-    half = (-np.pi / 2 + angle) / 2  # z onto y, then the tilt
+CAPSULE, CYLINDER = 'type="capsule" size="0.02 0.1"', 'type="cylinder" size="0.05 0.05"'
+
+
+def _quaternion_from_z(direction) -> np.ndarray:
+    """The unit quaternion turning the z axis onto ``direction``."""
+    d = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
+    axis = np.cross([0.0, 0.0, 1.0], d)
+    if np.linalg.norm(axis) < 1e-12:
+        return np.array([1.0, 0.0, 0.0, 0.0]) if d[2] > 0 else np.array([0.0, 1.0, 0.0, 0.0])
+    angle = np.arccos(np.clip(d[2], -1.0, 1.0))
+    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis / np.linalg.norm(axis)])
+
+
+def _capsule_along(tmp_path, centre, direction):
+    """``(tree, qpos)``: a capsule (radius 0.02, half-length 0.1) centred at ``centre`` with its
+    axis along ``direction``, and an upright cylinder (radius 0.05, half-height 0.05) at the origin."""
+    tree = _two_bodies(tmp_path, CAPSULE, CYLINDER)
     qpos = np.zeros(14)
-    qpos[:3], qpos[3:7], qpos[10] = centre, [np.cos(half), np.sin(half), 0.0, 0.0], 1.0
+    qpos[:3], qpos[3:7], qpos[10] = centre, _quaternion_from_z(direction), 1.0
     return tree, torch.as_tensor(qpos).unsqueeze(0)
+
+
+def _capsule_beside_cylinder(tmp_path, centre, angle=0.0):
+    """`_capsule_along` with the capsule's axis along y turned by ``angle`` about x."""
+    return _capsule_along(tmp_path, centre, [0.0, np.cos(angle), np.sin(angle)])
 
 
 @pytest.mark.filterwarnings("ignore")
@@ -457,21 +474,83 @@ def test_capsule_cylinder_contact_gradcheck(tmp_path):
 
 
 @pytest.mark.filterwarnings("ignore")
+def test_capsule_cylinder_gradient_where_the_capsule_edge_meets_the_rim(tmp_path):
+    """Deep in the cylinder with the capsule's side against a rim (the minimiser found on the
+    great circle across the capsule's axis): distance, position and normal against finite
+    differences in the capsule's position and its direction (float64)."""
+    centre, direction = np.array([0.045, 0.003, 0.046]), np.array([0.068, 0.01, -0.072])
+    tree, qpos = _capsule_along(tmp_path, centre, direction)
+    c = collide(tree.contact_slots, forward_kinematics(tree, qpos))
+    assert c.active.all() and c.dist[0, 0] < -0.02  # the axis inside
+    u = c.frame[0, 0, 0]
+    assert abs(float(u @ torch.as_tensor(direction / np.linalg.norm(direction)))) < 1e-9  # across the axis
+    assert 0.1 < abs(float(u[2])) < 0.99  # neither a cap nor the side
+
+    def contact(position, turn):
+        quaternion = qpos[:, 3:7] + turn
+        q = torch.cat([position, quaternion / quaternion.norm(dim=-1, keepdim=True), qpos[:, 7:]], dim=-1)
+        cc = collide(tree.contact_slots, forward_kinematics(tree, q))
+        return cc.dist[0], cc.pos[0, 0], cc.frame[0, 0, 0]
+
+    torch.autograd.gradcheck(contact, (qpos[:, :3].clone().requires_grad_(True),
+                                       torch.zeros(1, 4, dtype=torch.float64, requires_grad=True)))
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_capsule_cylinder_matches_mujocos_converged_convex_collision(tmp_path, dtype):
+    """At random poses, outside and deep inside: MuJoCo's own capsule-cylinder contact with its
+    convex collision run to 1e-11 (multi-CCD off), against ours: the same contacts, distance,
+    normal and position (measured, float64: 1e-11, 2e-5, 5e-7). Float32, the envs' default: to
+    its rounding."""
+    tree = _two_bodies(tmp_path, CAPSULE, CYLINDER, dtype)
+    converged = 'gravity="0 0 0" ccd_tolerance="1e-11" ccd_iterations="1000"'
+    mm = mujoco.MjModel.from_xml_string((tmp_path / "pair.xml").read_text().replace('gravity="0 0 0"', converged))
+    mm.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_MULTICCD
+    data = mujoco.MjData(mm)
+    rng = np.random.default_rng(0)
+    poses = np.zeros((800, 14))
+    poses[:, :3] = rng.uniform(-0.09, 0.09, (800, 3))
+    poses[:, 3:7] = rng.normal(size=(800, 4))
+    poses[:, 3:7] /= np.linalg.norm(poses[:, 3:7], axis=1, keepdims=True)
+    poses[:, 10] = 1.0
+    c = collide(tree.contact_slots, forward_kinematics(tree, torch.as_tensor(poses, dtype=dtype)))
+    errors = []
+    for k, pose in enumerate(poses):
+        data.qpos[:] = pose
+        mujoco.mj_forward(mm, data)
+        assert bool(c.active[k, 0]) == (data.ncon == 1)
+        if data.ncon:
+            errors.append((abs(c.dist[k, 0].item() - data.contact.dist[0]),
+                           np.abs(c.frame[k, 0, 0].double().numpy() - data.contact.frame[0][:3]).max(),
+                           np.abs(c.pos[k, 0].double().numpy() - data.contact.pos[0]).max(), data.contact.dist[0]))
+    errors = np.array(errors)
+    compared, deep = len(errors), int((errors[:, 3] < -0.02).sum())
+    worst = errors[:, :3].max(0)
+    if dtype == torch.float64:
+        assert worst[0] < 1e-9 and worst[1] < 1e-4 and worst[2] < 1e-5, worst
+    else:  # a shallow minimum's normal moves with float32's rounding (measured: 4 of 566 above 1e-3)
+        assert worst[0] < 1e-6 and worst[2] < 1e-3 and worst[1] < 5e-2, worst
+        assert np.quantile(errors[:, 1], 0.99) < 2e-3
+    assert compared > 400 and deep > 150
+
+
+@pytest.mark.filterwarnings("ignore")
 def test_pusher_contacts_and_step_match_mujoco_while_pushing():
     """The Pusher's wrist pushing the object (MuJoCo's own trajectories): the contacts per geom
     pair as mj_collision's (table contacts exactly; the wrist's on the object to the tolerance of
-    MuJoCo's EPA, which stops at ccd_tolerance: positions where the axis stays outside the object,
-    whose witness points are unique), and one physics step from MuJoCo's state as mj_step's:
-    exact without the wrist on the object, within EPA's residual with it (measured: ~2e-5 in
-    qvel; the smooth model lands ~6 m/s away). States where MuJoCo's multi-contact gave a wrist
-    two contacts (its capsule lying along the object's cap; one here) are left out."""
+    MuJoCo's EPA, which stops at the file's ccd_tolerance), and one physics step from MuJoCo's
+    state as mj_step's: exact without the wrist on the object, within EPA's residual with it
+    (measured: 2e-5 in qvel; the smooth model lands ~6 m/s away). States where MuJoCo's
+    multi-contact gave a wrist two contacts (its capsule lying along the object's cap; one here)
+    are left out."""
     model, mm, data, tree, params = setup("pusher_v5.xml")
     starts, ends, depth, multi = CONTACT_MODEL.pushing_trajectory(mm, episodes=6, steps=200, seed=0)
     single = np.flatnonzero(np.isfinite(depth) & ~multi)
     free = np.flatnonzero(~np.isfinite(depth))
     assert len(single) > 60 and (depth[single] < -0.02).sum() > 10 and len(free) > 300
     slots, compared = tree.contact_slots, 0
-    for i in single[::3]:
+    for i in single:
         q, v, u = starts[i]
         forward(mm, data, q, v, u)
         c = collide(slots, forward_kinematics(tree, torch.as_tensor(q).unsqueeze(0)))
@@ -486,10 +565,11 @@ def test_pusher_contacts_and_step_match_mujoco_while_pushing():
                 continue
             assert c.dist[0, k].item() == pytest.approx(data.contact.dist[j], abs=2e-6)
             np.testing.assert_allclose(c.frame[0, k, 0].numpy(), data.contact.frame[j][:3], atol=1e-2)
-            if data.contact.dist[j] > -0.02:  # the axis outside the object: unique witness points
-                np.testing.assert_allclose(c.pos[0, k].numpy(), data.contact.pos[j], atol=2e-5)
+            # EPA stops at the file's ccd_tolerance: farther from the exact answer when deep
+            np.testing.assert_allclose(c.pos[0, k].numpy(), data.contact.pos[j],
+                                       atol=2e-5 if data.contact.dist[j] > -0.02 else 5e-4)
             compared += 1
-    assert compared > 20
+    assert compared > 60
     def qvel_gaps(index):
         qpos, qvel, ctrl = (torch.as_tensor(np.stack([starts[i][k] for i in index])) for k in range(3))
         batch = {k: v.expand(len(index), *v.shape[1:]) for k, v in params.items()}
@@ -499,10 +579,8 @@ def test_pusher_contacts_and_step_match_mujoco_while_pushing():
     assert qvel_gaps(free).max() < 1e-10
     shallow = single[depth[single] >= -0.02]
     assert qvel_gaps(shallow).max() < 3e-5  # measured 2e-7
-    # the axis inside the object: EPA's residual (~2e-5), and a few states whose capsule lies across
-    # the object's side, where any point of the overlap is a contact point and EPA's is another
-    deep = qvel_gaps(single[depth[single] < -0.02])
-    assert np.quantile(deep, 0.95) < 1e-4 and deep.max() < 3e-3
+    # the axis inside the object: EPA's residual (measured 2e-5)
+    assert qvel_gaps(single[depth[single] < -0.02]).max() < 1e-4
 
 
 def _mujoco_converged(mm, data) -> bool:

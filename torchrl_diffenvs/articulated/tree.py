@@ -294,8 +294,8 @@ class RigidBodyTree:
 
 def _slides_along(model: ArticulatedModel, body: int, normal: np.ndarray) -> bool:
     """Whether only slides parallel to a plane move ``body`` (the Pusher's object on its table):
-    its contact with that plane could push it along no dof, so it is left out (MuJoCo computes
-    it, to no effect)."""
+    its contact with that plane could push it along no dof, so the smooth model gives it no
+    contact points (MuJoCo's computes it, to no effect; the pair keeps its friction entry)."""
     rot, chain = np.eye(3), []
     while body != 0:
         chain.append(body)

@@ -25,10 +25,9 @@ class PusherV5Env(MuJoCoModelEnv):
     cylinders by its general convex collision (GJK/EPA to ``ccd_tolerance``); here that contact is
     the exact solution of the same problem, so one step lands within EPA's residual of
     ``mj_step``'s (measured in ``benchmarks/contact_model.py`` on a trajectory that pushes the
-    object). Where the wrist's axis itself enters the object (deeper than the capsule's 2 cm
-    radius) the contact is that of the axis' deepest point rather than EPA's minimal translation,
-    and MuJoCo's extra multi-CCD contacts there are not generated. ``contact="smooth"``: the
-    penalty model, with the object's cylinder taken as the capsule inscribed in it.
+    object), except in the rare states where MuJoCo's multi-contact gives a wrist capsule lying
+    along the object's cap a second contact (one here). ``contact="smooth"``: the penalty model,
+    with the object's cylinder taken as the capsule inscribed in it.
     """
 
     name = "Pusher-v5"
