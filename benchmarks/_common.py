@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import platform
 import resource
@@ -167,6 +168,14 @@ def fmt_rate(x: float | None) -> str:
         if x >= scale:
             return f"{x / scale:.3g}{unit}"
     return f"{x:.3g}"
+
+
+def fmt_return(x: float | None) -> str:
+    """A return as people read it: whole numbers from 100 up (``1450``, not ``1.45e+03``), three
+    significant digits below."""
+    if x is None:
+        return "-"
+    return f"{x:.0f}" if math.isfinite(x) and abs(x) >= 100 else f"{x:.3g}"
 
 
 def fmt_ratio(x: float | None) -> str:

@@ -12,7 +12,8 @@ For each task and N in {1, 64, 1024, 4096}, timed interleaved (see benchmarks/_c
 * ``mj_step (C)``: ``mujoco.mj_step(model, data, nstep=frame_skip * K)`` on one ``MjData``:
   MuJoCo's C physics with no Python per step, the speed limit of one env on one core;
 * ``MJX (CPU)``: MuJoCo XLA (``mujoco.mjx``, JAX on the CPU, one XLA thread with
-  ``threads=1``): ``jit(scan(vmap(env step)))`` over T steps of N envs, an env step being
+  ``threads=1``): ``jit(scan(vmap(env step)))`` over ``min(T, 2048 / N)`` steps (at least one)
+  of N envs, an env step being
   ``frame_skip`` ``mjx.step`` calls with the action held (no resets: MJX has none), compiled
   before timing (the compile time is in the JSON). Needs the ``bench`` extra (``mujoco-mjx``,
   ``jax``); without it the column is ``-``.
@@ -41,6 +42,7 @@ from torchrl_diffenvs.checks import parse_cli  # noqa: E402
 
 TASKS = ("HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5", "Ant-v5")
 WINDOW = 8  # H of the forward+backward window
+MJX_ENV_STEPS = 2048  # env steps per timed MJX call, at most (T shrinks with N; at least one step)
 
 
 def make_policy(env):
@@ -96,9 +98,10 @@ def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int) -> 
 
     fns = {"ours": ours, "ours fwd+bwd": ours_fwd_bwd, "gymnasium": gymnasium_single, "mj_step (C)": mj_step_c}
     counts = {"ours": n * steps, "ours fwd+bwd": n * WINDOW, "gymnasium": gym_steps, "mj_step (C)": gym_steps}
-    mjx = mjx_rollout(model, frame_skip, n, steps)
+    mjx_steps = max(1, min(steps, MJX_ENV_STEPS // n))  # MJX on the CPU runs a few hundred env-steps/s
+    mjx = mjx_rollout(model, frame_skip, n, mjx_steps)
     if isinstance(mjx, tuple):
-        fns["MJX (CPU)"], counts["MJX (CPU)"] = mjx[0], n * steps
+        fns["MJX (CPU)"], counts["MJX (CPU)"] = mjx[0], n * mjx_steps
     if n <= sync_max:
         vec = gym.vector.SyncVectorEnv([lambda: gym.make(task) for _ in range(n)], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
         vec.reset(seed=0)

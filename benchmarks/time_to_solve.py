@@ -200,7 +200,8 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
           "seeds that reached it, speed-up vs PPO)")
 
     def rng(d, fmt):
-        return f"{fmt.format(d['median'])} [{fmt.format(d['min'])}, {fmt.format(d['max'])}]"
+        show = fmt if callable(fmt) else fmt.format
+        return f"{show(d['median'])} [{show(d['min'])}, {show(d['max'])}]"
 
     def level_cell(row, fraction):
         cell = row["levels"].get(fraction)
@@ -222,7 +223,7 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
     ppo_levels = LEVELS if first else ()  # PPO-relative levels need a PPO run
     # one env: the levels' values in the header; several: each env has its own (see each row's env's table)
     level_names = [f"{'PPO final' if f == 1.0 else f'{f:.0%} of PPO'}"
-                   + (f" = {first['levels'][f]['return']:.3g}" if len(envs) == 1 else " (the env's own)")
+                   + (f" = {C.fmt_return(first['levels'][f]['return'])}" if len(envs) == 1 else " (the env's own)")
                    for f in ppo_levels]
     in_mujoco = any("mujoco_return" in r for r in summary)
 
@@ -231,12 +232,12 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
             return []
         if "mujoco_return" not in row:
             return ["-", "-"]
-        return [rng(row["mujoco_return"], "{:.3g}"), rng(row["transfer"], "{:.2f}")]
+        return [rng(row["mujoco_return"], C.fmt_return), rng(row["transfer"], "{:.2f}")]
 
     table = C.print_table(
         ["env", "loss", "final eval return", *(["in Gymnasium's env", "kept there"] if in_mujoco else []),
          "random policy", "wall s", "env steps", *level_names, *[f"return >= {level:g}" for level in fixed_levels]],
-        [[r["env"], r["loss"], rng(r["final_return"], "{:.3g}"), *mujoco_cells(r), f"{r['random_return']:.3g}",
+        [[r["env"], r["loss"], rng(r["final_return"], C.fmt_return), *mujoco_cells(r), C.fmt_return(r["random_return"]),
           rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}",
           *[level_cell(r, f) for f in ppo_levels], *[fixed_cell(r, lv) for lv in fixed_levels]]
          for r in summary],
