@@ -11,12 +11,13 @@ For each task and N in {1, 64, 1024, 4096}, timed interleaved (see benchmarks/_c
   the single env plus bookkeeping, and a batch step takes seconds);
 * ``mj_step (C)``: ``mujoco.mj_step(model, data, nstep=frame_skip * K)`` on one ``MjData``:
   MuJoCo's C physics with no Python per step, the speed limit of one env on one core;
-* ``MJX (CPU)``: MuJoCo XLA (``mujoco.mjx``, JAX on the CPU, one XLA thread with
-  ``threads=1``): ``jit(scan(vmap(env step)))`` over ``min(T, 2048 / N)`` steps (at least one)
-  of N envs, an env step being
-  ``frame_skip`` ``mjx.step`` calls with the action held (no resets: MJX has none), compiled
-  before timing (the compile time is in the JSON). Needs the ``bench`` extra (``mujoco-mjx``,
-  ``jax``); without it the column is ``-``.
+* ``MJX (CPU)``: MuJoCo XLA (``mujoco.mjx``, JAX on the CPU, XLA's Eigen kernels on one thread
+  with ``threads=1``; rates from CPU time, all threads counted): ``jit(scan(vmap(env step)))``
+  over ``min(T, 2048 / N)`` steps (at least one) of N envs, an env step being ``frame_skip``
+  ``mjx.step`` calls with the action held (no resets: MJX has none), compiled before timing (the
+  compile time is in the JSON), at N <= 64 (at N = 1024 jaxlib's batched LAPACK calls in MJX's
+  constraint solve deadlocked on this CPU, beside torch). Needs the ``bench`` extra
+  (``mujoco-mjx``, ``jax``); without it the column is ``-``.
 
 The gymnasium and MuJoCo rows do not depend on N; they run in every row so that each ratio is
 taken within a round. Unit: env-steps/s (a batched step of N envs counts N) from CPU time.
@@ -43,6 +44,7 @@ from torchrl_diffenvs.checks import parse_cli  # noqa: E402
 TASKS = ("HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5", "Ant-v5")
 WINDOW = 8  # H of the forward+backward window
 MJX_ENV_STEPS = 2048  # env steps per timed MJX call, at most (T shrinks with N; at least one step)
+MJX_MAX_N = 64  # above it MJX is not timed: its batched LAPACK calls deadlocked on the CPU at N = 1024
 
 
 def make_policy(env):
@@ -99,7 +101,8 @@ def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int) -> 
     fns = {"ours": ours, "ours fwd+bwd": ours_fwd_bwd, "gymnasium": gymnasium_single, "mj_step (C)": mj_step_c}
     counts = {"ours": n * steps, "ours fwd+bwd": n * WINDOW, "gymnasium": gym_steps, "mj_step (C)": gym_steps}
     mjx_steps = max(1, min(steps, MJX_ENV_STEPS // n))  # MJX on the CPU runs a few hundred env-steps/s
-    mjx = mjx_rollout(model, frame_skip, n, mjx_steps)
+    mjx = (mjx_rollout(model, frame_skip, n, mjx_steps) if n <= MJX_MAX_N else
+           f"N > {MJX_MAX_N}: jaxlib's batched LAPACK calls (MJX's constraint solve) hung on the CPU at N = 1024")
     if isinstance(mjx, tuple):
         fns["MJX (CPU)"], counts["MJX (CPU)"] = mjx[0], n * mjx_steps
     if n <= sync_max:
@@ -164,8 +167,9 @@ class MuJoCoThroughputSettings(C.BenchmarkSettings):
 def main(argv=None) -> dict:
     args = parse_cli(MuJoCoThroughputSettings, argv, __doc__)
     C.setup_threads(args.threads)
-    if args.threads == 1:  # before jax is imported: XLA's CPU backend on one thread too
-        os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
+    if args.threads == 1:  # before jax is imported: XLA's Eigen kernels on one thread too (its intra-op
+        # pool stays: limited to one thread, jaxlib's batched LAPACK calls deadlock; rates are CPU time)
+        os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
     warnings.filterwarnings("ignore")
     sizes = args.sizes or ([1, 4] if args.quick else [1, 64, 1024, 4096])
     rounds = args.repeats or (2 if args.quick else 3)

@@ -367,7 +367,7 @@ def test_mujoco_throughput_quick(tmp_path):
     for row in payload["results"]:
         positive_rates(row["candidates"])
         mjx = {"MJX (CPU)"} if "mjx_compile_s" in row else set()  # with the bench extra (mujoco-mjx, jax)
-        assert "mjx_compile_s" in row or "not installed" in row["mjx"] or "MJX cannot run" in row["mjx"]
+        assert "mjx_compile_s" in row or any(why in row["mjx"] for why in ("not installed", "MJX cannot run", "hung"))
         assert {"ours", "ours fwd+bwd", "gymnasium", "mj_step (C)", "gymnasium SyncVectorEnv"} | mjx == set(row["candidates"])
         assert set(row["ratios_cpu"]) == {f"ours / {name}" for name in row["candidates"] if name != "ours"}
 
