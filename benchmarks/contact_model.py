@@ -10,7 +10,7 @@
   drives its fingertip at the object (random actions never touch it); its gap is also reported
   without the states where MuJoCo 4's multi-contact gave a wrist capsule two contacts on the
   object (its capsule along the object's cap), which are not reproduced (see
-  ``articulated/collision.py``).
+  ``articulated/capsule_cylinder.py``).
 * **speed** (one thread, interleaved rounds, CPU time): env-steps/s at ``N`` envs of the env step
   (no gradient) and of a 4-step BPTT window (forward + backward), and the ratio mujoco / smooth.
 * **ops**: aten ops per env step (``torch.profiler`` on the CPU, no gradient), the CPU proxy of
@@ -129,7 +129,7 @@ def parity(task: str, steps: int) -> dict:
         out["trajectory"] = "pushing"
         out["deep_share"] = float((depth < -0.02).mean())  # the wrist's axis inside the object
         out["multi_contact_share"] = float(multi.mean())
-        single = np.flatnonzero(~multi)  # MuJoCo 4's multi-contact is not reproduced (see collision.py)
+        single = np.flatnonzero(~multi)  # MuJoCo 4's multi-contact is not reproduced (see capsule_cylinder.py)
         out["mujoco_single_contacts"] = _one_step_gap(env, [starts[i] for i in single], [ends[i] for i in single])
     else:
         starts, ends, out["contact_share"] = _trajectory(mm, steps, seed=0)

@@ -36,6 +36,10 @@ def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim=-1)
 
 
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return (a * b).sum(-1)
+
+
 def _skew(v: torch.Tensor) -> torch.Tensor:
     """``[.., 3] -> [.., 3, 3]`` such that ``skew(v) @ u == v x u``."""
     z = torch.zeros_like(v[..., 0])

@@ -1,0 +1,254 @@
+"""Capsule against cylinder, the exact solution of the problem MuJoCo's general convex collision
+solves (GJK and EPA on the two shapes grown by half the margin each, ``mjc_Convex``): one contact,
+the signed distance between the capsule's axis and the cylinder less the capsule's radius, along
+the direction that minimises it.
+
+Where the axis stays outside the cylinder that is its nearest point (a 1-D convex minimisation:
+golden section, then a Newton step that also carries the implicit gradient, `_axis_parameter`);
+where it enters, the minimal translation that separates them, the minimiser of the support
+function of their difference among the directions that can minimise it (`_segment_cylinder`).
+Every search runs a fixed number of iterations without gradient, and one Newton step at its
+answer carries the derivative: no data-dependent shape, no Python branch on values.
+
+Against MuJoCo's convex collision run to 1e-11 it agrees to 1e-11 in distance, 2e-5 in the normal
+and 5e-7 in position at random poses; MuJoCo's default ``ccd_tolerance`` (1e-6) leaves its own
+answer up to ~4e-3 (normal) and ~1e-4 (position) from the exact one in deep contacts. Where the
+witness points are not unique (a capsule lying exactly along a face) any point of the overlap is a
+valid contact and EPA's choice is not reproduced; nor are the extra contacts MuJoCo 4's
+multi-contact adds when a capsule lies along the cylinder's cap (one contact here).
+"""
+from __future__ import annotations
+
+import torch
+
+from .spatial import _MINVAL, _cross, _dot
+
+__all__ = ["capsule_cylinder"]
+
+#: golden-section iterations of the searches: the bracket of the axis parameter shrinks to
+#: 2 * 0.618**40 ~ 1e-8 before the Newton step
+_GOLDEN_ITERATIONS = 40
+_GOLDEN = (5 ** 0.5 - 1) / 2
+_TOUCHING = 1e-9  # metres: an axis this close to the cylinder is treated as entering it (see _segment_cylinder)
+_EDGE_SAMPLES = 32  # directions across a segment sampled before the golden section (edge against rim)
+_EDGE_CANDIDATES = 3  # the best local minima of those samples refined
+
+
+def _cylinder_nearest(p, radius, half):
+    """The signed distance of points ``p [..., 3]`` (the cylinder's frame) to a cylinder, the nearest
+    point of its surface and the outward unit normal there: ``(sdf, q, outward)``. Outside, the
+    nearest point is unique (the distance is differentiable); inside, the nearer of the side and
+    the caps."""
+    x, y, z = p.unbind(-1)
+    rho = torch.sqrt((x * x + y * y).clamp_min(_MINVAL * _MINVAL))  # clamped inside the root: see primitives._sphere_sphere
+    radial = torch.stack([x / rho, y / rho, torch.zeros_like(x)], dim=-1)
+    up = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
+    beyond_side, beyond_cap = rho > radius, z.abs() > half
+    outside = beyond_side | beyond_cap
+    scale = torch.where(beyond_side, radius / rho, torch.ones_like(rho))
+    clamped = torch.stack([x * scale, y * scale, torch.minimum(torch.maximum(z, -half), half)], dim=-1)
+    gap = p - clamped
+    distance = torch.sqrt(_dot(gap, gap).clamp_min(_MINVAL * _MINVAL))
+    # inside: out through the side or through the nearer cap, whichever is closer
+    through_side = (radius - rho < half - z.abs()).unsqueeze(-1)
+    cap_point = torch.stack([x, y, up * half], dim=-1)
+    side_point = torch.stack([x * radius / rho, y * radius / rho, z], dim=-1)
+    cap_normal = torch.stack([torch.zeros_like(z), torch.zeros_like(z), up], dim=-1)
+    inside_q = torch.where(through_side, side_point, cap_point)
+    inside_normal = torch.where(through_side, radial, cap_normal)
+    inside_sdf = -torch.minimum(radius - rho, half - z.abs())
+    o = outside.unsqueeze(-1)
+    return (torch.where(outside, distance, inside_sdf), torch.where(o, clamped, inside_q),
+            torch.where(o, gap / distance.unsqueeze(-1), inside_normal))
+
+
+def _cylinder_sdf(p, radius, half):
+    """The signed distance of points ``p [..., 3]`` (the cylinder's frame) to the cylinder (see
+    `_cylinder_nearest`), alone: what the searches evaluate."""
+    side = torch.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2) - radius
+    cap = p[..., 2].abs() - half
+    return torch.sqrt(side.clamp_min(0) ** 2 + cap.clamp_min(0) ** 2) + torch.maximum(side, cap).clamp_max(0)
+
+
+def _axis_parameter(start, axis, radius, half):
+    """``t`` in ``[-1, 1]`` minimising the cylinder's signed distance at ``start + t axis`` (a convex
+    function of ``t``): golden section without gradient, the better of it and the two ends, then
+    one Newton step at an interior minimum outside the cylinder, whose derivative is the implicit
+    one of the minimiser (``dt = -f_t' / f_tt``, ``f`` the distance)."""
+    with torch.no_grad():
+        s, a = start.detach(), axis.detach()
+        f = lambda t: _cylinder_sdf(s + t.unsqueeze(-1) * a, radius, half)  # noqa: E731
+        t_best, f_best = _golden_search(f, torch.full_like(s[..., 0], -1.0), torch.full_like(s[..., 0], 1.0),
+                                        _GOLDEN_ITERATIONS)
+        candidates = torch.stack([t_best, -torch.ones_like(t_best), torch.ones_like(t_best)], dim=-1)
+        values = torch.stack([f_best, f(candidates[..., 1]), f(candidates[..., 2])], dim=-1)
+        t0 = candidates.gather(-1, values.argmin(-1, keepdim=True)).squeeze(-1)
+    # the Newton step: f_t = o . axis, f_tt = axis^T (I - o o^T)(I - dq/dp) axis / distance outside
+    p = start + t0.unsqueeze(-1) * axis
+    sdf, _, outward = _cylinder_nearest(p, radius, half)
+    x, y, z = p.unbind(-1)
+    rho = torch.sqrt((x * x + y * y).clamp_min(_MINVAL * _MINVAL))
+    radial = torch.stack([x / rho, y / rho], dim=-1)
+    beyond_side = (rho > radius).unsqueeze(-1)
+    across = axis[..., :2]
+    moving = torch.cat([torch.where(beyond_side, (1 - radius / rho).unsqueeze(-1) * across
+                                    + (radius / rho).unsqueeze(-1) * _dot(radial, across).unsqueeze(-1) * radial,
+                                    torch.zeros_like(across)),
+                        torch.where(z.abs() > half, axis[..., 2], torch.zeros_like(z)).unsqueeze(-1)], dim=-1)
+    slope = _dot(outward, axis)
+    curvature = (_dot(moving, axis) - slope * _dot(outward, moving)) / sdf.clamp_min(_MINVAL)
+    newton = (t0.abs() < 1) & (sdf > 0) & (curvature > 1e-12)
+    change = (slope / torch.where(newton, curvature, 1.0)).clamp(-1e-7, 1e-7)
+    return torch.where(newton, t0 - change, t0)
+
+
+def _golden_search(f, lo, hi, iterations: int):
+    """The minimiser of a unimodal ``f`` over ``[lo, hi]`` (elementwise, no gradient): golden section."""
+    x1, x2 = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
+    f1, f2 = f(x1), f(x2)
+    for _ in range(iterations):
+        left = f1 < f2  # the minimum lies in [lo, x2]
+        lo, hi = torch.where(left, lo, x1), torch.where(left, x2, hi)
+        new = torch.where(left, hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo))
+        fnew = f(new)
+        x1, x2, f1, f2 = (torch.where(left, new, x2), torch.where(left, x1, new),
+                          torch.where(left, fnew, f2), torch.where(left, f1, fnew))
+    return torch.where(f1 < f2, x1, x2), torch.minimum(f1, f2)
+
+
+def _support(start, axis, radius, half, u):
+    """``h(u) = start.u + |axis.u| + R |u_xy| + H |u_z|``: the support function of the segment
+    ``start + t axis`` minus the cylinder (its frame) in unit directions ``u [..., K, 3]``."""
+    s, a = start.unsqueeze(-2), axis.unsqueeze(-2)
+    return (_dot(s, u) + _dot(a, u).abs() + radius.unsqueeze(-1) * torch.sqrt((u[..., 0] ** 2 + u[..., 1] ** 2)
+            .clamp_min(_MINVAL * _MINVAL)) + half.unsqueeze(-1) * u[..., 2].abs())
+
+
+def _edge_directions(start, axis, radius, half):
+    """The segment's edge against a rim: the local minima of ``h`` on the great circle across the
+    segment (where ``axis.u = 0``), ``[..., _EDGE_CANDIDATES, 3]``. The circle is sampled, the
+    best local minima refined by golden section (no gradient), then one Newton step in the angle
+    carries the derivative (``u`` built from a basis that follows the axis)."""
+    tiny = _MINVAL * _MINVAL
+    z_axis = torch.zeros_like(start)
+    z_axis[..., 2] = 1.0
+    direction = axis / torch.sqrt(_dot(axis, axis).clamp_min(tiny)).unsqueeze(-1)
+    helper = torch.where((direction[..., 2].abs() < 0.9).unsqueeze(-1), z_axis, torch.roll(z_axis, 1, -1))
+    b1 = _cross(direction, helper)
+    b1 = b1 / torch.sqrt(_dot(b1, b1).clamp_min(tiny)).unsqueeze(-1)
+    b2 = _cross(direction, b1)
+    r, h2, s = radius.unsqueeze(-1), half.unsqueeze(-1), start.unsqueeze(-2)
+    with torch.no_grad():
+        c1, c2, sd = b1.detach().unsqueeze(-2), b2.detach().unsqueeze(-2), s.detach()
+
+        def h(phi):  # [..., K] -> [..., K]: h on the circle (axis.u = 0 there)
+            u = torch.cos(phi).unsqueeze(-1) * c1 + torch.sin(phi).unsqueeze(-1) * c2
+            return _dot(sd, u) + r * torch.sqrt((u[..., 0] ** 2 + u[..., 1] ** 2).clamp_min(tiny)) + h2 * u[..., 2].abs()
+
+        step = 2 * torch.pi / _EDGE_SAMPLES
+        # half a step off the circle's crossings of the horizontal plane (b1 is horizontal), h's kinks
+        phis = (torch.arange(_EDGE_SAMPLES, dtype=start.dtype, device=start.device) + 0.5) * step
+        values = h(phis.expand(*start.shape[:-1], -1))
+        local = (values <= torch.roll(values, 1, -1)) & (values <= torch.roll(values, -1, -1))
+        best = torch.topk(torch.where(local, -values, -torch.inf), _EDGE_CANDIDATES, dim=-1).indices
+        centre = phis[best]
+        phi0, _ = _golden_search(h, centre - step, centre + step, _GOLDEN_ITERATIONS)
+    # the Newton step: h' and h'' along the circle (u'' = -u)
+    cos, sin = torch.cos(phi0).unsqueeze(-1), torch.sin(phi0).unsqueeze(-1)
+    u = cos * b1.unsqueeze(-2) + sin * b2.unsqueeze(-2)
+    du = -sin * b1.unsqueeze(-2) + cos * b2.unsqueeze(-2)
+    flat = torch.sqrt((u[..., 0] ** 2 + u[..., 1] ** 2).clamp_min(tiny))
+    turn = u[..., 0] * du[..., 0] + u[..., 1] * du[..., 1]
+    up = torch.where(u[..., 2] >= 0, torch.ones_like(flat), -torch.ones_like(flat))
+    slope = _dot(s, du) + r * turn / flat + h2 * up * du[..., 2]
+    curvature = (-_dot(s, u) + r * ((du[..., 0] ** 2 + du[..., 1] ** 2 - flat ** 2) / flat - turn ** 2 / flat ** 3)
+                 - h2 * up * u[..., 2])
+    newton = curvature > 1e-12
+    phi = phi0 - (slope / torch.where(newton, curvature, torch.ones_like(curvature))).clamp(-1e-6, 1e-6) * newton
+    return torch.cos(phi).unsqueeze(-1) * b1.unsqueeze(-2) + torch.sin(phi).unsqueeze(-1) * b2.unsqueeze(-2)
+
+
+def _segment_cylinder(start, axis, radius, half):
+    """A segment ``start + t axis`` (``t`` in ``[-1, 1]``, the cylinder's frame) against the
+    cylinder: ``(sd, x1, x2, u)``, the signed distance (negative: the minimal translation that
+    separates them), a witness point on each (``x1 - x2 = -sd u``) and the unit direction from
+    the segment to the cylinder.
+
+    Outside, the axis' nearest point (`_axis_parameter`). Where the axis enters (or touches) the
+    cylinder, the minimiser of the support function ``h`` of their difference (`_support`) among
+    the directions that can minimise it, each with its witness on the segment: the cap normals
+    (the end that leads), the side (the segment point whose shadow is nearest the axis; across
+    the shadow where it passes through the axis), each end against each rim (that end) and the
+    segment's edge against a rim (`_edge_directions`; the rim point, moved back by the depth).
+    Inside each region of fixed signs of ``axis.u`` and ``u_z``, ``h`` has one minimum at most,
+    at one of these."""
+    t = _axis_parameter(start, axis, radius, half)
+    p = start + t.unsqueeze(-1) * axis  # outside: the segment's nearest point
+    sdf, q, outward = _cylinder_nearest(p, radius, half)
+    tiny = _MINVAL * _MINVAL
+    one = torch.ones_like(start[..., 0])
+    z_axis = torch.zeros_like(start)
+    z_axis[..., 2] = 1.0
+    unit = lambda v: v / torch.sqrt(_dot(v, v).clamp_min(tiny)).unsqueeze(-1)  # noqa: E731
+    # caps: the leading end
+    caps = torch.stack([z_axis, -z_axis], dim=-2)
+    lead = torch.where(axis[..., 2] >= 0, one, -one).unsqueeze(-1)
+    cap_witness = torch.stack([start + lead * axis, start - lead * axis], dim=-2)
+    # the side: minus the point of the segment's shadow nearest the axis, or across the shadow
+    shadow, across = start[..., :2], axis[..., :2]
+    along = (-_dot(shadow, across) / _dot(across, across).clamp_min(tiny)).clamp(-1, 1)
+    nearest = shadow + along.unsqueeze(-1) * across
+    perp = torch.stack([-across[..., 1], across[..., 0]], dim=-1)
+    flat = lambda v: unit(torch.cat([v, torch.zeros_like(v[..., :1])], dim=-1))  # noqa: E731
+    sides = torch.stack([flat(-nearest), flat(perp), flat(-perp)], dim=-2)
+    side_witness = (start + along.unsqueeze(-1) * axis).unsqueeze(-2).expand_as(sides)
+    # each end against each rim: u = -(A v, B) / |(A, B)|, v = -w_xy / |w_xy|, A = R - |w_xy|, B = w_z
+    rims, rim_witness = [], []
+    for end in (start + axis, start - axis):
+        for sign in (1.0, -1.0):
+            w = end + sign * half.unsqueeze(-1) * z_axis
+            reach = torch.sqrt(_dot(w[..., :2], w[..., :2]).clamp_min(tiny))
+            a, b = radius - reach, w[..., 2]
+            rims.append(unit(torch.cat([a.unsqueeze(-1) * w[..., :2] / reach.unsqueeze(-1), -b.unsqueeze(-1)], dim=-1)))
+            rim_witness.append(end)
+    rims, rim_witness = torch.stack(rims, dim=-2), torch.stack(rim_witness, dim=-2)
+    # the edge: the rim point at -u, moved back by the depth
+    edges = _edge_directions(start, axis, radius, half)
+    edge_flat = torch.sqrt((edges[..., 0] ** 2 + edges[..., 1] ** 2).clamp_min(tiny))
+    rim_point = torch.stack([-radius.unsqueeze(-1) * edges[..., 0] / edge_flat,
+                             -radius.unsqueeze(-1) * edges[..., 1] / edge_flat,
+                             -half.unsqueeze(-1) * torch.where(edges[..., 2] >= 0, 1.0, -1.0).to(edges.dtype)], dim=-1)
+    edge_witness = rim_point + _support(start, axis, radius, half, edges).unsqueeze(-1) * edges
+    directions = torch.cat([caps, sides, rims, edges], dim=-2)
+    witnesses = torch.cat([cap_witness, side_witness, rim_witness, edge_witness], dim=-2)
+    # a family without a direction here (a shadow through the axis, an end on it) gives a short
+    # vector: any unit vector stands in (a candidate that is not the minimiser is harmless)
+    length = torch.sqrt(_dot(directions, directions).clamp_min(tiny)).unsqueeze(-1)
+    directions = torch.where(length > 0.5, directions, z_axis.unsqueeze(-2).expand_as(directions))
+    support = _support(start, axis, radius, half, directions)
+    # ties within rounding go to the earlier family: a capsule along the side also has a (horizontal)
+    # edge direction, whose rim witness would be wrong there
+    scale = torch.sqrt(_dot(start, start)) + torch.sqrt(_dot(axis, axis)) + radius + half
+    lowest = support.min(-1, keepdim=True).values
+    within = support <= lowest + 16 * torch.finfo(support.dtype).eps * scale.unsqueeze(-1)
+    best = within.to(torch.uint8).argmax(-1, keepdim=True)  # the first candidate within the tie
+    depth = support.gather(-1, best).squeeze(-1)
+    u = directions.gather(-2, best.unsqueeze(-1).expand(*best.shape, 3)).squeeze(-2)
+    x1 = witnesses.gather(-2, best.unsqueeze(-1).expand(*best.shape, 3)).squeeze(-2)
+    x2 = x1 - depth.unsqueeze(-1) * u
+    # the directions also where the axis only touches the cylinder: the outward normal there is 0 / 0
+    inside = sdf < _TOUCHING
+    return (torch.where(inside, -depth, sdf), torch.where(inside.unsqueeze(-1), x1, p),
+            torch.where(inside.unsqueeze(-1), x2, q), torch.where(inside.unsqueeze(-1), u, -outward))
+
+
+def capsule_cylinder(pos1, half_axis1, radius1, pos2, rot2, size2):
+    """A capsule (centre ``pos1``, half-axis ``half_axis1``, radius ``radius1``) against a cylinder
+    (``pos2``, ``rot2``, ``size2`` its radius and half-height): ``(dist, pos, normal)``, ``[N, P, ...]``,
+    the normal from the capsule to the cylinder (see the module's docstring)."""
+    to_local = rot2.transpose(-1, -2)
+    start = (to_local @ (pos1 - pos2).unsqueeze(-1)).squeeze(-1)
+    axis = (to_local @ half_axis1.unsqueeze(-1)).squeeze(-1)
+    sd, x1, x2, u = _segment_cylinder(start, axis, size2[:, 0], size2[:, 1])
+    middle = (x1 + x2 + radius1.unsqueeze(-1) * u) / 2
+    return sd - radius1, pos2 + (rot2 @ middle.unsqueeze(-1)).squeeze(-1), (rot2 @ u.unsqueeze(-1)).squeeze(-1)

@@ -1,0 +1,216 @@
+"""Collision primitives: the contacts of one geom-type pair, as ``engine_collision_primitive.c``.
+
+Each primitive takes the two geoms posed in the world ([`PosedGeoms`][torchrl_diffenvs.articulated.primitives.PosedGeoms],
+``P`` pairs of one type in a batch of ``N`` configurations) and the pairs' margins, and returns a
+fixed number ``K`` of contacts per pair ([`PairContacts`][torchrl_diffenvs.articulated.primitives.PairContacts]):
+plane-sphere and sphere-sphere one, plane-capsule two (one per end), plane-cylinder up to four
+(``mjc_PlaneCylinder``: the lowest rim point, the opposite end's and two more on the lowest disk),
+sphere-capsule one, capsule-capsule one (two where the axes are parallel), capsule-cylinder one
+([`capsule_cylinder`][torchrl_diffenvs.articulated.capsule_cylinder]). The same ops run whatever touches.
+
+To collide a new pair of geom types: write its function with this signature and add it to
+[`PRIMITIVES`][torchrl_diffenvs.articulated.primitives.PRIMITIVES] under the two types in MuJoCo's
+order (plane < sphere < capsule < ellipsoid < cylinder < box); the collision stage, the pair
+filter and the constraint rows pick it up from there.
+"""
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import torch
+
+from .capsule_cylinder import capsule_cylinder as _capsule_cylinder
+from .spatial import _MINVAL, _cross, _dot
+
+__all__ = ["PRIMITIVES", "PairContacts", "PosedGeoms", "Primitive"]
+
+
+class PosedGeoms(NamedTuple):
+    """``P`` geoms of one type in ``N`` configurations: world ``pos [N, P, 3]`` and ``rot [N, P, 3, 3]``
+    (MuJoCo's geom_xpos, geom_xmat), and ``size [P, 3]`` (MuJoCo's geom_size)."""
+
+    pos: torch.Tensor
+    rot: torch.Tensor
+    size: torch.Tensor
+
+
+class PairContacts(NamedTuple):
+    """The ``K`` candidate contacts of each of ``P`` pairs: ``dist [N, P, K]`` (negative:
+    penetrating), ``pos [N, P, K, 3]`` (midway between the surfaces), ``normal [N, P, K, 3]`` (from
+    geom 1 to geom 2), ``tangent [N, P, K, 3]`` (the frame's first tangent before it is made
+    orthogonal; zero: MuJoCo's default), ``found [N, P, K]`` (the contact's points exist at any
+    distance: capsule-capsule's second exists only where the axes are parallel)."""
+
+    dist: torch.Tensor
+    pos: torch.Tensor
+    normal: torch.Tensor
+    tangent: torch.Tensor
+    found: torch.Tensor
+
+
+class Primitive(NamedTuple):
+    contacts: int  # K, the contacts each pair gives at most
+    collide: Callable[[PosedGeoms, PosedGeoms, torch.Tensor], PairContacts]  # (geom1, geom2, margin [P])
+
+
+def _one(dist, pos, normal) -> PairContacts:
+    """A primitive's single contact per pair, with MuJoCo's default tangent."""
+    return PairContacts(dist[..., None], pos[..., None, :], normal[..., None, :], torch.zeros_like(pos)[..., None, :],
+                        torch.ones_like(dist, dtype=torch.bool)[..., None])
+
+
+def _plane_sphere(plane_pos, plane_rot, centre, radius):
+    """``(dist, pos, normal)`` of a sphere against a plane (the plane's z axis is the normal)."""
+    normal = plane_rot[..., :, 2]
+    dist = _dot(centre - plane_pos, normal) - radius
+    pos = centre - (dist / 2 + radius).unsqueeze(-1) * normal
+    return dist, pos, normal
+
+
+def _sphere_sphere(centre1, radius1, centre2, radius2, axis1, axis2):
+    """``(dist, pos, normal)`` of two spheres; coincident centres take the normal from the geoms'
+    z axes as MuJoCo does (their cross product, or x where those are parallel)."""
+    gap = centre2 - centre1
+    length = torch.sqrt(_dot(gap, gap))
+    fallback = _cross(axis1, axis2)
+    squared = _dot(fallback, fallback)
+    # clamped inside the root: parallel axes give sqrt(0), whose infinite derivative times the zero
+    # gradient of the branch not taken would be NaN (the values are those of sqrt(.).clamp_min)
+    fallback_length = torch.sqrt(squared.clamp_min(_MINVAL * _MINVAL))
+    x_axis = torch.zeros_like(gap)
+    x_axis[..., 0] = 1.0
+    fallback = torch.where((squared < _MINVAL * _MINVAL).unsqueeze(-1), x_axis, fallback / fallback_length.unsqueeze(-1))
+    coincident = (length < _MINVAL).unsqueeze(-1)
+    normal = torch.where(coincident, fallback, gap / torch.where(coincident.squeeze(-1), 1.0, length).unsqueeze(-1))
+    dist = length - radius1 - radius2
+    return dist, centre1 + (radius1 + dist / 2).unsqueeze(-1) * normal, normal
+
+
+def _capsule_capsule(pos1, axis1, radius1, pos2, axis2, radius2, margin):
+    """MuJoCo's ``mjraw_CapsuleCapsule``: ``(dist, pos, normal, found)``, each ``[N, P, 2, ...]``:
+    the closest points of the two axes, or (parallel axes) up to two of the four end-point tests."""
+    a1, a2 = axis1, axis2  # half-axes, scaled
+    dif = pos1 - pos2
+    ma, mb, mc = _dot(a1, a1), -_dot(a1, a2), _dot(a2, a2)
+    u, v = -_dot(a1, dif), _dot(a2, dif)
+    det = ma * mc - mb * mb
+    parallel = det.abs() < _MINVAL
+    safe_det = torch.where(parallel, 1.0, det)
+    x1, x2 = (mc * u - mb * v) / safe_det, (ma * v - mb * u) / safe_det
+    x2 = torch.where(x1 > 1, (v - mb) / mc, torch.where(x1 < -1, (v + mb) / mc, x2))
+    x1 = x1.clamp(-1, 1)
+    x1 = torch.where(x2 > 1, ((u - mb) / ma).clamp(-1, 1), torch.where(x2 < -1, ((u + mb) / ma).clamp(-1, 1), x1))
+    x2 = x2.clamp(-1, 1)
+    general = (pos1 + x1.unsqueeze(-1) * a1, pos2 + x2.unsqueeze(-1) * a2)
+    # parallel axes: the end points of each against the other's axis, in MuJoCo's order
+    ones = torch.ones_like(x1)
+    candidates = [(ones, ((v - mb) / mc).clamp(-1, 1)), (-ones, ((v + mb) / mc).clamp(-1, 1)),
+                  (((u - mb) / ma).clamp(-1, 1), ones), (((u + mb) / ma).clamp(-1, 1), -ones)]
+    ends1 = torch.stack([pos1 + c[0].unsqueeze(-1) * a1 for c in candidates], dim=-2)  # [N, P, 4, 3]
+    ends2 = torch.stack([pos2 + c[1].unsqueeze(-1) * a2 for c in candidates], dim=-2)
+    gap = ends2 - ends1
+    reach = (margin + radius1 + radius2).unsqueeze(-1)
+    within = _dot(gap, gap) <= reach * reach  # [N, P, 4]: the candidates MuJoCo keeps, in order
+    rank = within.long().cumsum(-1)
+    picks = []
+    for k in (1, 2):
+        chosen = (within & (rank == k)).long().argmax(-1, keepdim=True)  # first candidate of rank k
+        found = (within & (rank == k)).any(-1)
+        picks.append((ends1.gather(-2, chosen.unsqueeze(-1).expand(*chosen.shape, 3)).squeeze(-2),
+                      ends2.gather(-2, chosen.unsqueeze(-1).expand(*chosen.shape, 3)).squeeze(-2), found))
+    p = parallel.unsqueeze(-1)
+    first1 = torch.where(p, picks[0][0], general[0])
+    first2 = torch.where(p, picks[0][1], general[1])
+    centres1 = torch.stack([first1, picks[1][0]], dim=-2)
+    centres2 = torch.stack([first2, picks[1][1]], dim=-2)
+    found = torch.stack([torch.ones_like(parallel), parallel & picks[1][2]], dim=-1)
+    return centres1, centres2, found
+
+
+def _plane_cylinder(plane_pos, plane_rot, pos, rot, size):
+    """MuJoCo's ``mjc_PlaneCylinder``: ``(dist [N, P, 4], pos [N, P, 4, 3], normal [N, P, 3])`` of
+    its four candidate contacts in its order: the rim point nearest the plane, the same point of the
+    other disk, and two points of the nearer disk at 120 degrees from the first (MuJoCo's triangle)."""
+    normal = plane_rot[..., :, 2]
+    axis = rot[..., :, 2]
+    prjaxis = _dot(normal, axis)
+    towards = (prjaxis > 0).unsqueeze(-1)  # make the axis point towards the plane
+    axis, prjaxis = torch.where(towards, -axis, axis), -prjaxis.abs()
+    dist0 = _dot(pos - plane_pos, normal)
+    vec = prjaxis.unsqueeze(-1) * axis - normal  # towards the plane, across the axis
+    squared = _dot(vec, vec)
+    radius, half = size[:, 0], size[:, 1]
+    # a disk parallel to the plane: MuJoCo takes the cylinder's x axis (see _sphere_sphere for the clamp)
+    scaled = vec * (radius / torch.sqrt(squared.clamp_min(_MINVAL * _MINVAL))).unsqueeze(-1)
+    vec = torch.where((squared >= _MINVAL * _MINVAL).unsqueeze(-1), scaled, rot[..., :, 0] * radius.unsqueeze(-1))
+    prjvec = _dot(vec, normal)
+    axis, prjaxis = axis * half.unsqueeze(-1), prjaxis * half
+    side = _cross(vec, axis)
+    side = side * (radius * 3 ** 0.5 / 2 / torch.sqrt(_dot(side, side).clamp_min(_MINVAL * _MINVAL))).unsqueeze(-1)
+    near_disk = pos + axis
+    points = torch.stack([near_disk + vec, pos - axis + vec, near_disk + side - vec / 2, near_disk - side - vec / 2], dim=-2)
+    triangle = dist0 + prjaxis - prjvec / 2
+    dist = torch.stack([dist0 + prjaxis + prjvec, dist0 - prjaxis + prjvec, triangle, triangle], dim=-1)
+    return dist, points - (dist / 2).unsqueeze(-1) * normal.unsqueeze(-2), normal
+
+
+def plane_sphere(plane: PosedGeoms, sphere: PosedGeoms, margin: torch.Tensor) -> PairContacts:
+    return _one(*_plane_sphere(plane.pos, plane.rot, sphere.pos, sphere.size[:, 0]))
+
+
+def plane_capsule(plane: PosedGeoms, capsule: PosedGeoms, margin: torch.Tensor) -> PairContacts:
+    """Each end's sphere against the plane (MuJoCo: the +axis end first), the axis as tangent."""
+    axis = capsule.rot[..., :, 2]
+    half = capsule.size[:, 1, None] * axis
+    ends = torch.stack([capsule.pos + half, capsule.pos - half], dim=-2)
+    dist, pos, normal = _plane_sphere(plane.pos.unsqueeze(-2), plane.rot.unsqueeze(-3), ends, capsule.size[:, 0, None])
+    return PairContacts(dist, pos, normal.expand_as(pos), axis.unsqueeze(-2).expand_as(pos),
+                        torch.ones_like(dist, dtype=torch.bool))
+
+
+def plane_cylinder(plane: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tensor) -> PairContacts:
+    dist, pos, normal = _plane_cylinder(plane.pos, plane.rot, cylinder.pos, cylinder.rot, cylinder.size)
+    return PairContacts(dist, pos, normal.unsqueeze(-2).expand_as(pos), torch.zeros_like(pos),
+                        torch.ones_like(dist, dtype=torch.bool))
+
+
+def sphere_sphere(sphere1: PosedGeoms, sphere2: PosedGeoms, margin: torch.Tensor) -> PairContacts:
+    return _one(*_sphere_sphere(sphere1.pos, sphere1.size[:, 0], sphere2.pos, sphere2.size[:, 0],
+                                sphere1.rot[..., :, 2], sphere2.rot[..., :, 2]))
+
+
+def sphere_capsule(sphere: PosedGeoms, capsule: PosedGeoms, margin: torch.Tensor) -> PairContacts:
+    """The sphere against the sphere at the capsule axis' nearest point."""
+    axis = capsule.rot[..., :, 2]
+    along = _dot(axis, sphere.pos - capsule.pos).clamp(-capsule.size[:, 1], capsule.size[:, 1])
+    nearest = capsule.pos + along.unsqueeze(-1) * axis
+    return _one(*_sphere_sphere(sphere.pos, sphere.size[:, 0], nearest, capsule.size[:, 0], sphere.rot[..., :, 2], axis))
+
+
+def capsule_capsule(capsule1: PosedGeoms, capsule2: PosedGeoms, margin: torch.Tensor) -> PairContacts:
+    """The spheres at the axes' closest points (parallel axes: up to two of them)."""
+    centres1, centres2, found = _capsule_capsule(
+        capsule1.pos, capsule1.size[:, 1, None] * capsule1.rot[..., :, 2], capsule1.size[:, 0],
+        capsule2.pos, capsule2.size[:, 1, None] * capsule2.rot[..., :, 2], capsule2.size[:, 0], margin)
+    r1, r2 = capsule1.size[:, 0, None].expand(-1, 2), capsule2.size[:, 0, None].expand(-1, 2)
+    z1 = capsule1.rot[..., :, 2].unsqueeze(-2).expand_as(centres1)
+    z2 = capsule2.rot[..., :, 2].unsqueeze(-2).expand_as(centres2)
+    dist, pos, normal = _sphere_sphere(centres1, r1, centres2, r2, z1, z2)
+    return PairContacts(dist, pos, normal, torch.zeros_like(pos), found)
+
+
+def capsule_cylinder(capsule: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tensor) -> PairContacts:
+    return _one(*_capsule_cylinder(capsule.pos, capsule.size[:, 1, None] * capsule.rot[..., :, 2], capsule.size[:, 0],
+                                   cylinder.pos, cylinder.rot, cylinder.size))
+
+
+#: the primitive of each pair of geom types (MuJoCo's type order), in the order slots are laid out
+PRIMITIVES: dict[tuple[str, str], Primitive] = {
+    ("plane", "sphere"): Primitive(1, plane_sphere),
+    ("plane", "capsule"): Primitive(2, plane_capsule),
+    ("plane", "cylinder"): Primitive(4, plane_cylinder),
+    ("sphere", "sphere"): Primitive(1, sphere_sphere),
+    ("sphere", "capsule"): Primitive(1, sphere_capsule),
+    ("capsule", "capsule"): Primitive(2, capsule_capsule),
+    ("capsule", "cylinder"): Primitive(1, capsule_cylinder),
+}
