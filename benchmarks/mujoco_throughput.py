@@ -59,7 +59,8 @@ def make_policy(env):
     return TensorDictModule(net, ["observation"], ["action"])
 
 
-def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int) -> tuple[dict, dict, dict]:
+def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int,
+               mjx_max_n: int = MJX_MAX_N) -> tuple[dict, dict, dict]:
     """``(name -> fn, name -> env-steps per call, notes)`` for one row (notes: MJX's compile time,
     or why it did not run)."""
     import gymnasium as gym
@@ -101,8 +102,12 @@ def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int) -> 
     fns = {"ours": ours, "ours fwd+bwd": ours_fwd_bwd, "gymnasium": gymnasium_single, "mj_step (C)": mj_step_c}
     counts = {"ours": n * steps, "ours fwd+bwd": n * WINDOW, "gymnasium": gym_steps, "mj_step (C)": gym_steps}
     mjx_steps = max(1, min(steps, MJX_ENV_STEPS // n))  # MJX on the CPU runs a few hundred env-steps/s
-    mjx = (mjx_rollout(model, frame_skip, n, mjx_steps) if n <= MJX_MAX_N else
-           f"N > {MJX_MAX_N}: jaxlib's batched LAPACK calls (MJX's constraint solve) hung on the CPU at N = 1024")
+    if n <= mjx_max_n:
+        mjx = mjx_rollout(model, frame_skip, n, mjx_steps)
+    elif mjx_max_n < MJX_MAX_N:
+        mjx = f"not timed: N > mjx_max_n={mjx_max_n}"
+    else:
+        mjx = f"N > {MJX_MAX_N}: jaxlib's batched LAPACK calls (MJX's constraint solve) hung on the CPU at N = 1024"
     if isinstance(mjx, tuple):
         fns["MJX (CPU)"], counts["MJX (CPU)"] = mjx[0], n * mjx_steps
     if n <= sync_max:
@@ -153,8 +158,8 @@ def mjx_rollout(model, frame_skip: int, n: int, steps: int):
     rollout(batch, actions).block_until_ready()  # compile
     compile_s = time.perf_counter() - began
 
-    def run():
-        rollout(batch, actions).block_until_ready()
+    def run():  # the envs' final qpos
+        return rollout(batch, actions).block_until_ready()
     return run, compile_s
 
 
@@ -162,6 +167,8 @@ def mjx_rollout(model, frame_skip: int, n: int, steps: int):
 class MuJoCoThroughputSettings(C.BenchmarkSettings):
     tasks: list[str] = field(default_factory=lambda: list(TASKS))
     sizes: list[int] | None = None  # N values (default 1 64 1024 4096)
+    # MJX is timed up to this N (each N compiles for a minute or more; 0: never)
+    mjx_max_n: int = MJX_MAX_N
 
 
 def main(argv=None) -> dict:
@@ -180,7 +187,8 @@ def main(argv=None) -> dict:
     for task in args.tasks:
         for n in sizes:
             steps = 2 if args.quick else max(2, min(50, 20000 // n))
-            fns, counts, notes = candidates(task, n, steps, gym_steps, sync_max=4 if args.quick else 64)
+            fns, counts, notes = candidates(task, n, steps, gym_steps, sync_max=4 if args.quick else 64,
+                                            mjx_max_n=min(args.mjx_max_n, MJX_MAX_N))
             times = C.interleaved(fns, rounds)
             cands = {}
             for name, t in times.items():

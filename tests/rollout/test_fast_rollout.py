@@ -121,7 +121,8 @@ def test_terminations_and_partial_resets_match_envbase():
     assert_same_tensordict(got, ref)
 
 
-@pytest.mark.parametrize("name", LIGHTER)
+# the Humanoid's values are compared above; its gradient through this generic loop adds 30-50 s, not coverage
+@pytest.mark.parametrize("name", [name for name in LIGHTER if name != "Humanoid-v5"])
 def test_policy_values_and_gradients_match_envbase(name):
     """A TanhNormal actor sampling with rsample; gradients of the return w.r.t. its weights."""
     env = make_fast_env(name, dtype=torch.float64)

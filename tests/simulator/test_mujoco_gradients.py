@@ -89,7 +89,9 @@ def test_gradcheck_one_step(name):
     action = (0.3 * torch.randn(n, env.action_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))
     inputs = (action.requires_grad_(), state["qpos"].clone().requires_grad_(), state["qvel"].clone().requires_grad_(),
               env.params["body_mass"].clone().requires_grad_())
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+    # the Humanoid (78 inputs, 48 outputs): gradcheck's fast mode, a random directional derivative
+    # of a random projection of the outputs against its finite difference (the full Jacobian: 40 s)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=name == "Humanoid-v5")
 
 
 def rollout_return(env, state, actions, params):
@@ -160,12 +162,12 @@ def test_gradients_finite_at_touchdown_rest_and_deep_penetration(name, depth):
 
 @pytest.mark.parametrize("name", CONTACT_TASKS)
 def test_long_random_rollouts_stay_finite(name):
-    """Random actions in float32 never produce NaN: 400 HalfCheetah steps (it never resets), 300 steps
-    of Hopper and Walker2d (they fall and reset), 150 of the Ant (20 force evaluations per step) and
-    of the Humanoid (falls and resets)."""
+    """Random actions in float32 never produce NaN: 200 HalfCheetah steps (it never resets), 150 steps
+    of Hopper and Walker2d (they fall and reset), 80 of the Ant (20 force evaluations per step) and
+    of the Humanoid (falls and resets). The stress benchmark runs 1000 steps of harder actions."""
     env = make_env(name, num_envs=16, seed=0, max_episode_steps=1000)
     with torch.no_grad():
-        td = env.rollout({"HalfCheetah-v5": 400, "Ant-v5": 150, "Humanoid-v5": 150}.get(name, 300),
+        td = env.rollout({"HalfCheetah-v5": 200, "Ant-v5": 80, "Humanoid-v5": 80}.get(name, 150),
                          break_when_any_done=False)
     assert torch.isfinite(td["next", "observation"]).all()
     assert torch.isfinite(td["next", "reward"]).all()
