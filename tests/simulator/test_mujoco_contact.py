@@ -393,11 +393,70 @@ def _two_bodies(tmp_path, geom1: str, geom2: str, dtype=torch.float64):
 
 @pytest.mark.filterwarnings("ignore")
 def test_a_pair_without_a_primitive_is_refused_with_what_is_available(tmp_path):
-    tree = _two_bodies(tmp_path, 'type="sphere" size="0.03"', 'type="cylinder" size="0.05 0.05"')
+    tree = _two_bodies(tmp_path, 'type="cylinder" size="0.03 0.05"', 'type="cylinder" size="0.05 0.05"')
     assert tree.contact_model == "smooth"  # chosen when MuJoCo's contact cannot cover the model
-    with pytest.raises(ValueError, match=r"'a' \(sphere\) and 'b' \(cylinder\).*collides only.*capsule-cylinder"
+    with pytest.raises(ValueError, match=r"'a' \(cylinder\) and 'b' \(cylinder\).*collides only.*capsule-cylinder"
                                          r".*contact='smooth'"):
         tree.use_contact_model("mujoco")
+
+
+SPHERE = 'type="sphere" size="0.03"'
+
+
+def _sphere_cylinder_poses(count: int, rng) -> np.ndarray:
+    """Free-joint qpos of the two bodies: the sphere anywhere within reach of a cylinder (radius
+    and half-height 0.05) turned at random about the origin, inside it too."""
+    poses = np.zeros((count, 14))
+    poses[:, :3] = rng.uniform(-0.1, 0.1, (count, 3))
+    poses[:, 3] = 1.0
+    poses[:, 10:14] = rng.normal(size=(count, 4))
+    poses[:, 10:14] /= np.linalg.norm(poses[:, 10:14], axis=1, keepdims=True)
+    return poses
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_sphere_cylinder_matches_mj_collision(tmp_path):
+    """MuJoCo's ``mjc_SphereCylinder`` at random poses: beside the side, over a cap, near a rim and
+    with the centre inside (through the nearer surface): the same contacts, distance, position and
+    frame."""
+    tree = _two_bodies(tmp_path, SPHERE, CYLINDER)
+    assert tree.contact_model == "mujoco"
+    mm = mujoco.MjModel.from_xml_path(str(tmp_path / "pair.xml"))
+    data = mujoco.MjData(mm)
+    poses = _sphere_cylinder_poses(600, np.random.default_rng(0))
+    c = collide(tree.contact_slots, forward_kinematics(tree, torch.as_tensor(poses)))
+    kinds = set()
+    for k, pose in enumerate(poses):
+        data.qpos[:] = pose
+        mujoco.mj_forward(mm, data)
+        assert bool(c.active[k, 0]) == (data.ncon == 1), k
+        if data.ncon:
+            assert c.dist[k, 0].item() == pytest.approx(data.contact.dist[0], abs=1e-12)
+            np.testing.assert_allclose(c.pos[k, 0].numpy(), data.contact.pos[0], atol=1e-12)
+            np.testing.assert_allclose(c.frame[k, 0].numpy().ravel(), data.contact.frame[0], atol=1e-12)
+            local = data.xmat[2].reshape(3, 3).T @ (pose[:3] - pose[7:10])  # the centre in the cylinder's frame
+            beside, over = abs(local[2]) < 0.05, np.hypot(*local[:2]) < 0.05
+            kinds.add("inside" if beside and over else "side" if beside else "cap" if over else "rim")
+    assert kinds == {"inside", "side", "cap", "rim"}
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("where", [[0.0, 0.07, 0.01], [0.01, 0.0, 0.07], [0.045, 0.0, 0.06], [0.01, 0.0, 0.03],
+                                   [0.0, 0.03, 0.005]], ids=["side", "cap", "rim", "inside-cap", "inside-side"])
+def test_sphere_cylinder_gradcheck(tmp_path, where):
+    tree = _two_bodies(tmp_path, SPHERE, CYLINDER)
+    rest = torch.tensor([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.96, 0.2, 0.1, 0.15]], dtype=torch.float64)
+
+    def contact(centre, turn):
+        quat = rest[:, 7:] + turn
+        qpos = torch.cat([centre, rest[:, :4], rest[:, 4:7], quat / quat.norm(dim=-1, keepdim=True)], dim=-1)
+        c = collide(tree.contact_slots, forward_kinematics(tree, qpos))
+        return c.dist, c.pos, c.frame[:, :, 0]
+
+    centre = torch.tensor([where], dtype=torch.float64, requires_grad=True)
+    assert collide(tree.contact_slots, forward_kinematics(tree, torch.cat(
+        [centre.detach(), rest[:, :7], rest[:, 7:] / rest[:, 7:].norm()], -1))).active.all()
+    torch.autograd.gradcheck(contact, (centre, torch.zeros(1, 4, dtype=torch.float64, requires_grad=True)))
 
 
 CAPSULE, CYLINDER = 'type="capsule" size="0.02 0.1"', 'type="cylinder" size="0.05 0.05"'

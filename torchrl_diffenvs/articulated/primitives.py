@@ -5,7 +5,7 @@ Each primitive takes the two geoms posed in the world ([`PosedGeoms`][torchrl_di
 fixed number ``K`` of contacts per pair ([`PairContacts`][torchrl_diffenvs.articulated.primitives.PairContacts]):
 plane-sphere and sphere-sphere one, plane-capsule two (one per end), plane-cylinder up to four
 (``mjc_PlaneCylinder``: the lowest rim point, the opposite end's and two more on the lowest disk),
-sphere-capsule one, capsule-capsule one (two where the axes are parallel), capsule-cylinder one
+sphere-capsule and sphere-cylinder one, capsule-capsule one (two where the axes are parallel), capsule-cylinder one
 ([`capsule_cylinder`][torchrl_diffenvs.articulated.capsule_cylinder]). The same ops run whatever touches.
 
 To collide a new pair of geom types: write its function with this signature and add it to
@@ -187,6 +187,36 @@ def sphere_capsule(sphere: PosedGeoms, capsule: PosedGeoms, margin: torch.Tensor
     return _one(*_sphere_sphere(sphere.pos, sphere.size[:, 0], nearest, capsule.size[:, 0], sphere.rot[..., :, 2], axis))
 
 
+def sphere_cylinder(sphere: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tensor) -> PairContacts:
+    """MuJoCo's ``mjc_SphereCylinder``: the sphere against the side (a sphere at the centre's
+    projection on the axis), a cap (the cap's plane) or, beyond both, the nearest rim point. A
+    centre inside the cylinder leaves by the nearer of the side and the cap."""
+    radius, half = cylinder.size[:, 0], cylinder.size[:, 1]
+    axis = cylinder.rot[..., :, 2]
+    offset = sphere.pos - cylinder.pos
+    along = _dot(axis, offset)
+    on_axis = axis * along.unsqueeze(-1)
+    across = offset - on_axis
+    squared = _dot(across, across)
+    # clamped inside the root: see _sphere_sphere (a centre on the axis takes the side or cap branch)
+    spread = torch.sqrt(squared.clamp_min(_MINVAL * _MINVAL))
+    beside, over = along.abs() < half, squared < radius * radius
+    cap_nearer = half - along.abs() < radius - spread  # inside: leave through the nearer surface
+    beside, over = beside & ~(over & cap_nearer), over & ~(beside & ~cap_nearer)
+    z1, z2 = sphere.rot[..., :, 2], axis
+    side = _sphere_sphere(sphere.pos, sphere.size[:, 0], cylinder.pos + on_axis, radius, z1, z2)
+    up = torch.where(along > 0, 1.0, -1.0).to(along.dtype).unsqueeze(-1)
+    cap_normal = axis * up  # the cap's outward normal; the contact's points into the cylinder
+    cap_dist = _dot(sphere.pos - (cylinder.pos + cap_normal * half.unsqueeze(-1)), cap_normal) - sphere.size[:, 0]
+    cap = (cap_dist, sphere.pos - cap_normal * (sphere.size[:, 0] + cap_dist / 2).unsqueeze(-1), -cap_normal)
+    rim = cylinder.pos + cap_normal * half.unsqueeze(-1) + across * (radius / spread).unsqueeze(-1)
+    corner = _sphere_sphere(sphere.pos, sphere.size[:, 0], rim, torch.zeros_like(radius), z1, z2)
+    picked = [torch.where(beside.unsqueeze(-1) if a.dim() > beside.dim() else beside, a,
+                          torch.where(over.unsqueeze(-1) if a.dim() > over.dim() else over, b, c))
+              for a, b, c in zip(side, cap, corner)]
+    return _one(*picked)
+
+
 def capsule_capsule(capsule1: PosedGeoms, capsule2: PosedGeoms, margin: torch.Tensor) -> PairContacts:
     """The spheres at the axes' closest points (parallel axes: up to two of them)."""
     centres1, centres2, found = _capsule_capsule(
@@ -211,6 +241,7 @@ PRIMITIVES: dict[tuple[str, str], Primitive] = {
     ("plane", "cylinder"): Primitive(4, plane_cylinder),
     ("sphere", "sphere"): Primitive(1, sphere_sphere),
     ("sphere", "capsule"): Primitive(1, sphere_capsule),
+    ("sphere", "cylinder"): Primitive(1, sphere_cylinder),
     ("capsule", "capsule"): Primitive(2, capsule_capsule),
     ("capsule", "cylinder"): Primitive(1, capsule_cylinder),
 }
