@@ -402,6 +402,75 @@ def test_a_pair_without_a_primitive_is_refused_with_what_is_available(tmp_path):
 
 SPHERE = 'type="sphere" size="0.03"'
 
+BOX_ON_A_PLANE = """<mujoco><option timestep="0.005"/><worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1" margin="0.003"/>
+    <body name="box" pos="0 0 0.2"><freejoint/><geom name="box" type="box" size="0.1 0.06 0.04" margin="0.002"/></body>
+    </worldbody></mujoco>"""
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_plane_box_contacts_and_steps_match_mujoco(tmp_path):
+    """MuJoCo's ``mjc_PlaneBox`` at random poses (tilted, resting, deep): the same contacts in the
+    same order (count, distance, position, frame); and one step of a box dropped on the floor,
+    tumbling and sliding, from MuJoCo's states against ``mj_step``."""
+    path = tmp_path / "box.xml"
+    path.write_text(BOX_ON_A_PLANE)
+    model = load_mjcf(str(path))
+    tree = RigidBodyTree.from_model(model)
+    assert tree.contact_model == "mujoco"
+    mm = mujoco.MjModel.from_xml_path(str(path))
+    data = mujoco.MjData(mm)
+    rng = np.random.default_rng(0)
+    poses = np.zeros((400, 7))
+    poses[:, 2] = rng.uniform(-0.05, 0.15, 400)
+    poses[:, 3:] = rng.normal(size=(400, 4))
+    poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+    poses[:50, 3:] = [1.0, 0.0, 0.0, 0.0]  # flat: four corners at one height
+    c = collide(tree.contact_slots, forward_kinematics(tree, torch.as_tensor(poses)))
+    counts = set()
+    for k, pose in enumerate(poses):
+        data.qpos[:] = pose
+        mujoco.mj_forward(mm, data)
+        ours = np.flatnonzero(c.active[k].numpy())
+        assert len(ours) == data.ncon, k
+        counts.add(data.ncon)
+        for i, j in zip(ours, range(data.ncon)):  # in MuJoCo's order
+            assert c.dist[k, i].item() == pytest.approx(data.contact.dist[j], abs=1e-12)
+            np.testing.assert_allclose(c.pos[k, i].numpy(), data.contact.pos[j], atol=1e-12)
+            np.testing.assert_allclose(c.frame[k, i].numpy().ravel(), data.contact.frame[j], atol=1e-12)
+    assert {0, 1, 2, 4} <= counts
+    params = {k: v.unsqueeze(0) for k, v in default_params(model).items()}
+    params["contact_friction"] = torch.as_tensor(tree.contact_pair_friction).unsqueeze(0)
+    mujoco.mj_resetData(mm, data)
+    data.qvel[:] = [0.5, -0.3, 0.0, 2.0, -1.0, 3.0]  # tumbling onto the floor
+    gaps, touching = [], 0
+    for _ in range(150):
+        qpos, qvel = torch.as_tensor(data.qpos.copy()).unsqueeze(0), torch.as_tensor(data.qvel.copy()).unsqueeze(0)
+        mujoco.mj_step(mm, data)
+        touching += data.ncon > 0
+        result = step(tree, qpos, qvel, torch.zeros(1, 0, dtype=torch.float64), params, mm.opt.timestep,
+                      model.integrator, invweight0(tree, params))
+        gaps.append(max(np.abs(result.qpos[0].numpy() - data.qpos).max(), np.abs(result.qvel[0].numpy() - data.qvel).max()))
+    assert touching > 60 and max(gaps) < 1e-9, (touching, max(gaps))
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_plane_box_gradcheck(tmp_path):
+    path = tmp_path / "box.xml"
+    path.write_text(BOX_ON_A_PLANE)
+    tree = RigidBodyTree.from_model(load_mjcf(str(path)))
+    turn = torch.tensor([[0.97, 0.1, 0.2, 0.05]], dtype=torch.float64)
+
+    def contact(height, quat):
+        qpos = torch.cat([torch.zeros(1, 2, dtype=torch.float64), height, quat / quat.norm(dim=-1, keepdim=True)], -1)
+        c = collide(tree.contact_slots, forward_kinematics(tree, qpos))
+        return c.dist, c.pos
+
+    height = torch.tensor([[0.05]], dtype=torch.float64, requires_grad=True)
+    qpos = torch.cat([torch.zeros(1, 2, dtype=torch.float64), height.detach(), turn / turn.norm()], -1)
+    assert collide(tree.contact_slots, forward_kinematics(tree, qpos)).active.sum() >= 1
+    torch.autograd.gradcheck(contact, (height, turn.clone().requires_grad_(True)))
+
 
 def _sphere_cylinder_poses(count: int, rng) -> np.ndarray:
     """Free-joint qpos of the two bodies: the sphere anywhere within reach of a cylinder (radius

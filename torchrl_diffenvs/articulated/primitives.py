@@ -5,6 +5,7 @@ Each primitive takes the two geoms posed in the world ([`PosedGeoms`][torchrl_di
 fixed number ``K`` of contacts per pair ([`PairContacts`][torchrl_diffenvs.articulated.primitives.PairContacts]):
 plane-sphere and sphere-sphere one, plane-capsule two (one per end), plane-cylinder up to four
 (``mjc_PlaneCylinder``: the lowest rim point, the opposite end's and two more on the lowest disk),
+plane-box up to four (``mjc_PlaneBox``: the lower corners within the margin),
 sphere-capsule and sphere-cylinder one, capsule-capsule one (two where the axes are parallel), capsule-cylinder one
 ([`capsule_cylinder`][torchrl_diffenvs.articulated.capsule_cylinder]). The same ops run whatever touches.
 
@@ -174,6 +175,32 @@ def plane_cylinder(plane: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tensor
                         torch.ones_like(dist, dtype=torch.bool))
 
 
+#: the box's corners in MuJoCo's order (corner i has +size_k where bit k of i is set)
+_BOX_CORNERS = torch.tensor([[1.0 if i & (1 << k) else -1.0 for k in range(3)] for i in range(8)], dtype=torch.float64)
+
+
+def plane_box(plane: PosedGeoms, box: PosedGeoms, margin: torch.Tensor) -> PairContacts:
+    """MuJoCo's ``mjc_PlaneBox``: the corners below the box's centre (towards the plane) within the
+    margin, the first four in MuJoCo's corner order, one contact each. Slot ``k`` holds the
+    ``k``-th such corner (``found``: there is one)."""
+    normal = plane.rot[..., :, 2]
+    centre = _dot(box.pos - plane.pos, normal)  # [N, P]
+    local = _BOX_CORNERS.to(box.size) * box.size.unsqueeze(-2)  # [P, 8, 3]
+    corners = (box.rot.unsqueeze(-3) @ local.unsqueeze(-1)).squeeze(-1)  # [N, P, 8, 3], from the centre
+    below = _dot(normal.unsqueeze(-2), corners)  # [N, P, 8]
+    dist = centre.unsqueeze(-1) + below
+    within = (dist <= margin.unsqueeze(-1)) & (below <= 0)
+    rank = within.long().cumsum(-1)
+    picks = [(within & (rank == k)) for k in range(1, 5)]
+    chosen = torch.stack([p.long().argmax(-1) for p in picks], dim=-1)  # [N, P, 4]: the k-th corner kept
+    found = torch.stack([p.any(-1) for p in picks], dim=-1)
+    dist = dist.gather(-1, chosen)
+    corner = corners.gather(-2, chosen.unsqueeze(-1).expand(*chosen.shape, 3))
+    pos = box.pos.unsqueeze(-2) + corner - (dist / 2).unsqueeze(-1) * normal.unsqueeze(-2)
+    normal = normal.unsqueeze(-2).expand_as(pos)
+    return PairContacts(dist, pos, normal, torch.zeros_like(pos), found)
+
+
 def sphere_sphere(sphere1: PosedGeoms, sphere2: PosedGeoms, margin: torch.Tensor) -> PairContacts:
     return _one(*_sphere_sphere(sphere1.pos, sphere1.size[:, 0], sphere2.pos, sphere2.size[:, 0],
                                 sphere1.rot[..., :, 2], sphere2.rot[..., :, 2]))
@@ -239,6 +266,7 @@ PRIMITIVES: dict[tuple[str, str], Primitive] = {
     ("plane", "sphere"): Primitive(1, plane_sphere),
     ("plane", "capsule"): Primitive(2, plane_capsule),
     ("plane", "cylinder"): Primitive(4, plane_cylinder),
+    ("plane", "box"): Primitive(4, plane_box),
     ("sphere", "sphere"): Primitive(1, sphere_sphere),
     ("sphere", "capsule"): Primitive(1, sphere_capsule),
     ("sphere", "cylinder"): Primitive(1, sphere_cylinder),
