@@ -252,7 +252,7 @@ def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], 
         "measured": measured.get("date") or today(),
         "machine": measured.get("machine") or machine_name(device),
         "command": measured.get("command") or " ".join(["python", f"benchmarks/{script}", *portable_args(sys.argv[1:])]),
-        "source": f"benchmarks/{source or name}.py",
+        "source": f"benchmarks/{source}.py" if source else f"benchmarks/{script}",
         "tables": tables,
     }
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -39,7 +39,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
-from torchrl_diffenvs.checks import parse_cli  # noqa: E402
+from torchrl_diffenvs.checks import checked, is_int, parse_cli  # noqa: E402
 
 TASKS = ("HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5", "Ant-v5")
 WINDOW = 8  # H of the forward+backward window
@@ -102,7 +102,7 @@ def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int,
     fns = {"ours": ours, "ours fwd+bwd": ours_fwd_bwd, "gymnasium": gymnasium_single, "mj_step (C)": mj_step_c}
     counts = {"ours": n * steps, "ours fwd+bwd": n * WINDOW, "gymnasium": gym_steps, "mj_step (C)": gym_steps}
     mjx_steps = max(1, min(steps, MJX_ENV_STEPS // n))  # MJX on the CPU runs a few hundred env-steps/s
-    if n <= mjx_max_n:
+    if n <= min(mjx_max_n, MJX_MAX_N):
         mjx = mjx_rollout(model, frame_skip, n, mjx_steps)
     elif mjx_max_n < MJX_MAX_N:
         mjx = f"not timed: N > mjx_max_n={mjx_max_n}"
@@ -160,6 +160,7 @@ def mjx_rollout(model, frame_skip: int, n: int, steps: int):
 
     def run():  # the envs' final qpos
         return rollout(batch, actions).block_until_ready()
+    run.start_qpos = batch.qpos  # where the timed rollouts start (what a test compares against)
     return run, compile_s
 
 
@@ -167,8 +168,9 @@ def mjx_rollout(model, frame_skip: int, n: int, steps: int):
 class MuJoCoThroughputSettings(C.BenchmarkSettings):
     tasks: list[str] = field(default_factory=lambda: list(TASKS))
     sizes: list[int] | None = None  # N values (default 1 64 1024 4096)
-    # MJX is timed up to this N (each N compiles for a minute or more; 0: never)
-    mjx_max_n: int = MJX_MAX_N
+    # MJX is timed up to this N, at most MJX_MAX_N (each N compiles for a minute or more; 0: never)
+    mjx_max_n: int = checked(MJX_MAX_N, lambda v: None if is_int(v) and 0 <= v <= MJX_MAX_N
+                             else f"expected an integer in [0, {MJX_MAX_N}]")
 
 
 def main(argv=None) -> dict:
@@ -188,7 +190,7 @@ def main(argv=None) -> dict:
         for n in sizes:
             steps = 2 if args.quick else max(2, min(50, 20000 // n))
             fns, counts, notes = candidates(task, n, steps, gym_steps, sync_max=4 if args.quick else 64,
-                                            mjx_max_n=min(args.mjx_max_n, MJX_MAX_N))
+                                            mjx_max_n=args.mjx_max_n)
             times = C.interleaved(fns, rounds)
             cands = {}
             for name, t in times.items():

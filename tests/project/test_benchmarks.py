@@ -390,7 +390,7 @@ def test_mjx_rollout_runs():
     assert compile_s > 0
     qpos = np.asarray(run())
     assert qpos.shape == (2, model.nq) and np.isfinite(qpos).all()
-    assert np.abs(qpos - model.qpos0).max() > 1e-4
+    assert np.abs(qpos - np.asarray(run.start_qpos)).max() > 1e-4
 
 
 def test_jax_comparison_quick(tmp_path):

@@ -472,29 +472,44 @@ def test_plane_box_gradcheck(tmp_path):
     torch.autograd.gradcheck(contact, (height, turn.clone().requires_grad_(True)))
 
 
+TALL_CYLINDER = 'type="cylinder" size="0.04 0.09"'  # radius and half-height differ: a swap shows
+
+
 def _sphere_cylinder_poses(count: int, rng) -> np.ndarray:
-    """Free-joint qpos of the two bodies: the sphere anywhere within reach of a cylinder (radius
-    and half-height 0.05) turned at random about the origin, inside it too."""
+    """Free-joint qpos of the two bodies: the sphere (turned at random) anywhere within reach of a
+    cylinder (radius 0.04, half-height 0.09) turned at random about the origin, inside it too."""
     poses = np.zeros((count, 14))
-    poses[:, :3] = rng.uniform(-0.1, 0.1, (count, 3))
-    poses[:, 3] = 1.0
+    poses[:, :3] = rng.uniform(-0.14, 0.14, (count, 3))
+    poses[:, 3:7] = rng.normal(size=(count, 4))
     poses[:, 10:14] = rng.normal(size=(count, 4))
-    poses[:, 10:14] /= np.linalg.norm(poses[:, 10:14], axis=1, keepdims=True)
+    for q in (poses[:, 3:7], poses[:, 10:14]):
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
     return poses
+
+
+def _sphere_cylinder_branch(centre) -> str:
+    """MuJoCo's branch for a sphere centred at ``centre`` (the cylinder's frame, TALL_CYLINDER)."""
+    beside, over = abs(centre[2]) < 0.09, np.hypot(*centre[:2]) < 0.04
+    if beside and over:
+        return "inside, out through the cap" if 0.09 - abs(centre[2]) < 0.04 - np.hypot(*centre[:2]) else "inside, out through the side"
+    return "side" if beside else "cap" if over else "rim"
 
 
 @pytest.mark.filterwarnings("ignore")
 def test_sphere_cylinder_matches_mj_collision(tmp_path):
     """MuJoCo's ``mjc_SphereCylinder`` at random poses: beside the side, over a cap, near a rim and
-    with the centre inside (through the nearer surface): the same contacts, distance, position and
-    frame."""
-    tree = _two_bodies(tmp_path, SPHERE, CYLINDER)
+    with the centre inside (out through the nearer surface), and centred on the axis: the same
+    contacts, distance, position and frame."""
+    tree = _two_bodies(tmp_path, SPHERE, TALL_CYLINDER)
     assert tree.contact_model == "mujoco"
     mm = mujoco.MjModel.from_xml_path(str(tmp_path / "pair.xml"))
     data = mujoco.MjData(mm)
-    poses = _sphere_cylinder_poses(600, np.random.default_rng(0))
+    poses = _sphere_cylinder_poses(800, np.random.default_rng(0))
+    poses[:40, 10:14] = [1.0, 0.0, 0.0, 0.0]  # an upright cylinder, the sphere on its axis
+    poses[:40, :2] = 0.0
+    poses[:40, 2] = np.linspace(-0.14, 0.14, 40)
     c = collide(tree.contact_slots, forward_kinematics(tree, torch.as_tensor(poses)))
-    kinds = set()
+    branches = set()
     for k, pose in enumerate(poses):
         data.qpos[:] = pose
         mujoco.mj_forward(mm, data)
@@ -503,29 +518,49 @@ def test_sphere_cylinder_matches_mj_collision(tmp_path):
             assert c.dist[k, 0].item() == pytest.approx(data.contact.dist[0], abs=1e-12)
             np.testing.assert_allclose(c.pos[k, 0].numpy(), data.contact.pos[0], atol=1e-12)
             np.testing.assert_allclose(c.frame[k, 0].numpy().ravel(), data.contact.frame[0], atol=1e-12)
-            local = data.xmat[2].reshape(3, 3).T @ (pose[:3] - pose[7:10])  # the centre in the cylinder's frame
-            beside, over = abs(local[2]) < 0.05, np.hypot(*local[:2]) < 0.05
-            kinds.add("inside" if beside and over else "side" if beside else "cap" if over else "rim")
-    assert kinds == {"inside", "side", "cap", "rim"}
+            branches.add(_sphere_cylinder_branch(data.xmat[2].reshape(3, 3).T @ (pose[:3] - pose[7:10])))
+    assert branches == {"side", "cap", "rim", "inside, out through the cap", "inside, out through the side"}
 
 
 @pytest.mark.filterwarnings("ignore")
-@pytest.mark.parametrize("where", [[0.0, 0.07, 0.01], [0.01, 0.0, 0.07], [0.045, 0.0, 0.06], [0.01, 0.0, 0.03],
-                                   [0.0, 0.03, 0.005]], ids=["side", "cap", "rim", "inside-cap", "inside-side"])
-def test_sphere_cylinder_gradcheck(tmp_path, where):
-    tree = _two_bodies(tmp_path, SPHERE, CYLINDER)
-    rest = torch.tensor([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.96, 0.2, 0.1, 0.15]], dtype=torch.float64)
+@pytest.mark.parametrize("where,branch", [([0.0, 0.06, 0.01], "side"), ([0.01, 0.0, 0.11], "cap"),
+                                          ([0.05, 0.0, 0.1], "rim"), ([0.01, 0.0, 0.07], "inside, out through the cap"),
+                                          ([0.0, 0.03, 0.005], "inside, out through the side")])
+def test_sphere_cylinder_gradcheck(tmp_path, where, branch):
+    """The gradient of the contact w.r.t. the sphere's centre and the cylinder's orientation, in each
+    of MuJoCo's branches (``where``: the centre in the cylinder's frame)."""
+    tree = _two_bodies(tmp_path, SPHERE, TALL_CYLINDER)
+    quat = torch.tensor([[0.96, 0.2, 0.1, 0.15]], dtype=torch.float64)
+    quat = quat / quat.norm()
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, quat[0].numpy())
+    rot = torch.as_tensor(rot.reshape(3, 3))
+    assert _sphere_cylinder_branch(np.asarray(where)) == branch
+    centre = (rot @ torch.tensor(where, dtype=torch.float64)).unsqueeze(0).requires_grad_(True)
+    still = torch.tensor([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
 
     def contact(centre, turn):
-        quat = rest[:, 7:] + turn
-        qpos = torch.cat([centre, rest[:, :4], rest[:, 4:7], quat / quat.norm(dim=-1, keepdim=True)], dim=-1)
+        q = quat + turn
+        qpos = torch.cat([centre, still, q / q.norm(dim=-1, keepdim=True)], dim=-1)
         c = collide(tree.contact_slots, forward_kinematics(tree, qpos))
         return c.dist, c.pos, c.frame[:, :, 0]
 
-    centre = torch.tensor([where], dtype=torch.float64, requires_grad=True)
-    assert collide(tree.contact_slots, forward_kinematics(tree, torch.cat(
-        [centre.detach(), rest[:, :7], rest[:, 7:] / rest[:, 7:].norm()], -1))).active.all()
+    assert collide(tree.contact_slots, forward_kinematics(tree, torch.cat([centre.detach(), still, quat], -1))).active.all()
     torch.autograd.gradcheck(contact, (centre, torch.zeros(1, 4, dtype=torch.float64, requires_grad=True)))
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("height", [0.5, 0.11, 0.06, -0.07])
+def test_sphere_centred_on_a_cylinders_axis_has_finite_gradients(tmp_path, height):
+    """A sphere right above (or inside) an upright cylinder, on its axis, in contact or far away:
+    the side branch's sphere-sphere has coincident centres there, not taken but evaluated."""
+    tree = _two_bodies(tmp_path, SPHERE, TALL_CYLINDER)
+    qpos = torch.tensor([[0.0, 0.0, height, 1, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0]], dtype=torch.float64, requires_grad=True)
+    c = collide(tree.contact_slots, forward_kinematics(tree, qpos))
+    (everything,) = torch.autograd.grad(c.dist.sum() + c.pos.sum() + c.frame.sum(), qpos, retain_graph=True)
+    assert torch.isfinite(everything).all()
+    (grad,) = torch.autograd.grad(c.dist.sum(), qpos)
+    assert grad[0, 2].item() == pytest.approx(1.0 if height > 0 else -1.0)  # the distance to the nearer cap
 
 
 CAPSULE, CYLINDER = 'type="capsule" size="0.02 0.1"', 'type="cylinder" size="0.05 0.05"'

@@ -171,6 +171,7 @@ def test_long_random_rollouts_stay_finite(name):
                          break_when_any_done=False)
     assert torch.isfinite(td["next", "observation"]).all()
     assert torch.isfinite(td["next", "reward"]).all()
+    assert td["next", "done"].any() == (name != "HalfCheetah-v5")  # the others fall and reset
 
 
 def test_gradient_is_zero_across_an_auto_reset():

@@ -29,7 +29,7 @@ from torchrl_diffenvs.training import (
     load_checkpoint,
     save_checkpoint,
 )
-from torchrl_diffenvs.training.config import LOSSES, merge_overrides
+from torchrl_diffenvs.training.config import LOSSES, make_env_from_config, merge_overrides
 
 from _train_helpers import (  # noqa: F401  (shared with the other areas' training tests)
     COMMON, CONFIGS, CONTACT_ENVS, ROOT, SCRIPT, STEPS_PER_ITER, TINY, _cli, make_cfg, read_jsonl, results_table,
@@ -277,6 +277,16 @@ def test_every_env_and_loss_trains_a_few_iterations(env, loss, tmp_path):
         assert any(k.startswith("train/grad_norm") for k in train_rows[-1])
     assert (tmp_path / "checkpoints" / "last.pt").is_file()
     assert json.loads((tmp_path / "final_metrics.json").read_text())["eval/return"] == result["eval/return"]
+
+
+def test_a_physical_parameter_override_is_saved_with_the_checkpoint(tmp_path):
+    """``+env.params.X=v`` trains on the edited physics and the checkpoint's config keeps it: what
+    evaluation, resume and the benchmarks that read a checkpoint (policy_anatomy) rebuild its env from."""
+    run = train_script.run(tiny_cfg("pendulum", "bptt", 1, "+env.params.mass=2.5"), tmp_path)
+    config = load_checkpoint(run["checkpoint"])["config"]
+    assert config["env"]["params"] == {"mass": 2.5}
+    env = make_env_from_config(OmegaConf.create(config), 2, seed=0)
+    assert torch.all(env.params["mass"] == 2.5)
 
 
 # ---------------------------------------------------------------------- logging

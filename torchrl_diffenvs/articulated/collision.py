@@ -226,10 +226,10 @@ def collide(slots: ContactSlots, kin) -> Contacts:
         primitive = PRIMITIVES[kind]
         pairs = geom1.body.numel()
         margin = slots.margin[first:first + primitive.contacts * pairs:primitive.contacts]
-        found = primitive.collide(_posed(kin, geom1), _posed(kin, geom2), margin)
-        dists.append(found.dist.flatten(1))
-        poss.append(found.pos.flatten(1, 2))
-        frames.append(_make_frame(found.normal, found.tangent).flatten(1, 2))
-        founds.append(found.found.flatten(1))
+        contacts = primitive.collide(_posed(kin, geom1), _posed(kin, geom2), margin)
+        dists.append(contacts.dist.flatten(1))
+        poss.append(contacts.pos.flatten(1, 2))
+        frames.append(_make_frame(contacts.normal, contacts.tangent).flatten(1, 2))
+        founds.append(contacts.found.flatten(1))
     dist, found = torch.cat(dists, dim=1), torch.cat(founds, dim=1)
     return Contacts(dist, torch.cat(poss, dim=1), torch.cat(frames, dim=1), found & (dist < slots.margin), found)

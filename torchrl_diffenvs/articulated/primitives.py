@@ -72,7 +72,12 @@ def _sphere_sphere(centre1, radius1, centre2, radius2, axis1, axis2):
     """``(dist, pos, normal)`` of two spheres; coincident centres take the normal from the geoms'
     z axes as MuJoCo does (their cross product, or x where those are parallel)."""
     gap = centre2 - centre1
-    length = torch.sqrt(_dot(gap, gap))
+    squared_length = _dot(gap, gap)
+    # coincident centres (a sphere centred on a capsule's or cylinder's axis) give sqrt(0), whose
+    # derivative is infinite: that root is detached (its value kept), the others differentiated
+    same_centre = squared_length < _MINVAL * _MINVAL
+    length = torch.where(same_centre, torch.sqrt(squared_length).detach(),
+                         torch.sqrt(torch.where(same_centre, 1.0, squared_length)))
     fallback = _cross(axis1, axis2)
     squared = _dot(fallback, fallback)
     # clamped inside the root: parallel axes give sqrt(0), whose infinite derivative times the zero
@@ -225,7 +230,7 @@ def sphere_cylinder(sphere: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tens
     on_axis = axis * along.unsqueeze(-1)
     across = offset - on_axis
     squared = _dot(across, across)
-    # clamped inside the root: see _sphere_sphere (a centre on the axis takes the side or cap branch)
+    # clamped inside the root (a centre on the axis takes the side or cap branch): see _sphere_sphere
     spread = torch.sqrt(squared.clamp_min(_MINVAL * _MINVAL))
     beside, over = along.abs() < half, squared < radius * radius
     cap_nearer = half - along.abs() < radius - spread  # inside: leave through the nearer surface
