@@ -266,7 +266,6 @@ def capsule_cylinder(capsule: PosedGeoms, cylinder: PosedGeoms, margin: torch.Te
                                    cylinder.pos, cylinder.rot, cylinder.size))
 
 
-#: the primitive of each pair of geom types (MuJoCo's type order), in the order slots are laid out
 PRIMITIVES: dict[tuple[str, str], Primitive] = {
     ("plane", "sphere"): Primitive(1, plane_sphere),
     ("plane", "capsule"): Primitive(2, plane_capsule),
@@ -278,3 +277,5 @@ PRIMITIVES: dict[tuple[str, str], Primitive] = {
     ("capsule", "capsule"): Primitive(2, capsule_capsule),
     ("capsule", "cylinder"): Primitive(1, capsule_cylinder),
 }
+"""The primitive of each pair of geom types (keys in MuJoCo's type order: plane < sphere < capsule <
+ellipsoid < cylinder < box), in the order the contact slots are laid out."""
