@@ -398,6 +398,10 @@ def test_a_pair_without_a_primitive_is_refused_with_what_is_available(tmp_path):
     with pytest.raises(ValueError, match=r"'a' \(cylinder\) and 'b' \(cylinder\).*collides only.*capsule-cylinder"
                                          r".*contact='smooth'"):
         tree.use_contact_model("mujoco")
+    # two boxes: MuJoCo's contact here has no box-box primitive, the smooth model no shape for a box
+    with pytest.raises(ValueError, match=r"'a' of type box can touch another body's geom.*no primitive for "
+                                         r"'a'-'b': neither contact model covers the model"):
+        _two_bodies(tmp_path, 'type="box" size="0.03 0.03 0.03"', 'type="box" size="0.05 0.05 0.05"')
 
 
 SPHERE = 'type="sphere" size="0.03"'
@@ -470,6 +474,101 @@ def test_plane_box_gradcheck(tmp_path):
     qpos = torch.cat([torch.zeros(1, 2, dtype=torch.float64), height.detach(), turn / turn.norm()], -1)
     assert collide(tree.contact_slots, forward_kinematics(tree, qpos)).active.sum() >= 1
     torch.autograd.gradcheck(contact, (height, turn.clone().requires_grad_(True)))
+
+
+BOX = 'type="box" size="0.05 0.08 0.11"'  # three different half-sizes: a swapped axis shows
+
+
+def _sphere_box_branch(centre) -> str:
+    """MuJoCo's branch for a sphere centred at ``centre`` (the box's frame, BOX): outside, the box's
+    nearest point is on a face, an edge or a corner; inside, it leaves through the nearest face."""
+    beyond = int((np.abs(centre) > [0.05, 0.08, 0.11]).sum())
+    return ["inside", "face", "edge", "corner"][beyond]
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_sphere_box_matches_mj_collision(tmp_path):
+    """MuJoCo's ``mjraw_SphereBox`` at random poses (the sphere near a face, an edge, a corner, and
+    centred inside the box, on a face's plane too): the same contacts, distance, position and frame."""
+    tree = _two_bodies(tmp_path, SPHERE, BOX)
+    assert tree.contact_model == "mujoco"
+    mm = mujoco.MjModel.from_xml_path(str(tmp_path / "pair.xml"))
+    data = mujoco.MjData(mm)
+    poses = _sphere_cylinder_poses(1000, np.random.default_rng(1))
+    poses[:30, 10:14] = [1.0, 0.0, 0.0, 0.0]  # an unturned box, centres inside it
+    poses[:30, :3] = np.random.default_rng(2).uniform(-0.04, 0.04, (30, 3))
+    poses[:10, 0], poses[:10, 1] = 0.03, -0.06  # as near +x as -y (0.02, to rounding): the order decides
+    c = collide(tree.contact_slots, forward_kinematics(tree, torch.as_tensor(poses)))
+    branches = set()
+    for k, pose in enumerate(poses):
+        data.qpos[:] = pose
+        mujoco.mj_forward(mm, data)
+        assert bool(c.active[k, 0]) == (data.ncon == 1), k
+        if data.ncon:
+            assert c.dist[k, 0].item() == pytest.approx(data.contact.dist[0], abs=1e-12)
+            np.testing.assert_allclose(c.pos[k, 0].numpy(), data.contact.pos[0], atol=1e-12)
+            np.testing.assert_allclose(c.frame[k, 0].numpy().ravel(), data.contact.frame[0], atol=1e-12)
+            branches.add(_sphere_box_branch(data.xmat[2].reshape(3, 3).T @ (pose[:3] - pose[7:10])))
+    assert branches == {"inside", "face", "edge", "corner"}
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("where", [[0.0, 0.1, 0.02], [0.07, 0.09, 0.0], [0.06, -0.09, 0.12], [0.01, 0.05, -0.02]])
+def test_sphere_box_gradcheck(tmp_path, where):
+    """The gradient of the contact w.r.t. the sphere's centre and the box's orientation, the box's
+    nearest point on a face, an edge, a corner, and the centre inside (``where``: the box's frame)."""
+    tree = _two_bodies(tmp_path, SPHERE, BOX)
+    quat = torch.tensor([[0.96, 0.2, 0.1, 0.15]], dtype=torch.float64)
+    quat = quat / quat.norm()
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, quat[0].numpy())
+    centre = (torch.as_tensor(rot.reshape(3, 3)) @ torch.tensor(where, dtype=torch.float64)).unsqueeze(0)
+    still = torch.tensor([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+
+    def contact(centre, turn):
+        q = quat + turn
+        qpos = torch.cat([centre, still, q / q.norm(dim=-1, keepdim=True)], dim=-1)
+        c = collide(tree.contact_slots, forward_kinematics(tree, qpos))
+        return c.dist, c.pos, c.frame[:, :, 0]
+
+    assert collide(tree.contact_slots, forward_kinematics(tree, torch.cat([centre, still, quat], -1))).active.all()
+    torch.autograd.gradcheck(contact, (centre.requires_grad_(True), torch.zeros(1, 4, dtype=torch.float64, requires_grad=True)))
+
+
+BALL_ON_A_BOX = """<mujoco><option timestep="0.005"/><worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <body name="box" pos="0 0 0.04"><freejoint/><geom name="box" type="box" size="0.1 0.06 0.04"/></body>
+    <body name="ball" pos="0.0 0.02 0.15"><freejoint/><geom name="ball" type="sphere" size="0.03"/></body>
+    </worldbody></mujoco>"""
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_a_ball_dropped_on_a_box_steps_as_mj_step(tmp_path):
+    """A ball falls onto a box lying on the floor, rolls along it and off its edge: each step
+    from MuJoCo's state against ``mj_step`` (sphere-box and plane-box contacts in one solve). The
+    smooth model has no shape for a box between bodies and says so."""
+    path = tmp_path / "ball.xml"
+    path.write_text(BALL_ON_A_BOX)
+    model = load_mjcf(str(path))
+    tree = RigidBodyTree.from_model(model)
+    assert tree.contact_model == "mujoco"
+    with pytest.raises(ValueError, match=r"'box' of type box can touch another body's geom, but the smooth contact "
+                                         r"model .* only for spheres, capsules and cylinders: use contact='mujoco'"):
+        tree.use_contact_model("smooth")
+    mm = mujoco.MjModel.from_xml_path(str(path))
+    data = mujoco.MjData(mm)
+    params = {k: v.unsqueeze(0) for k, v in default_params(model).items()}
+    params["contact_friction"] = torch.as_tensor(tree.contact_pair_friction).unsqueeze(0)
+    data.qvel[6:9] = [0.4, 0.0, 0.0]
+    gaps, on_the_box = [], 0
+    for _ in range(250):
+        qpos, qvel = torch.as_tensor(data.qpos.copy()).unsqueeze(0), torch.as_tensor(data.qvel.copy()).unsqueeze(0)
+        mujoco.mj_step(mm, data)
+        on_the_box += any({data.contact.geom[i][0], data.contact.geom[i][1]} == {1, 2} for i in range(data.ncon))
+        result = step(tree, qpos, qvel, torch.zeros(1, 0, dtype=torch.float64), params, mm.opt.timestep,
+                      model.integrator, invweight0(tree, params))
+        gaps.append(max(np.abs(result.qpos[0].numpy() - data.qpos).max(), np.abs(result.qvel[0].numpy() - data.qvel).max()))
+    assert on_the_box > 20 and max(gaps) < 1e-9, (on_the_box, max(gaps))
 
 
 TALL_CYLINDER = 'type="cylinder" size="0.04 0.09"'  # radius and half-height differ: a swap shows

@@ -6,7 +6,7 @@ fixed number ``K`` of contacts per pair ([`PairContacts`][torchrl_diffenvs.artic
 plane-sphere and sphere-sphere one, plane-capsule two (one per end), plane-cylinder up to four
 (``mjc_PlaneCylinder``: the lowest rim point, the opposite end's and two more on the lowest disk),
 plane-box up to four (``mjc_PlaneBox``: the lower corners within the margin),
-sphere-capsule and sphere-cylinder one, capsule-capsule one (two where the axes are parallel), capsule-cylinder one
+sphere-capsule, sphere-cylinder and sphere-box one, capsule-capsule one (two where the axes are parallel), capsule-cylinder one
 ([`capsule_cylinder`][torchrl_diffenvs.articulated.capsule_cylinder]). The same ops run whatever touches.
 
 To collide a new pair of geom types: write its function with this signature and add it to
@@ -249,6 +249,33 @@ def sphere_cylinder(sphere: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tens
     return _one(*picked)
 
 
+def sphere_box(sphere: PosedGeoms, box: PosedGeoms, margin: torch.Tensor) -> PairContacts:
+    """MuJoCo's ``mjraw_SphereBox``: the sphere against the box's nearest point (its centre clamped
+    to the box, in the box's frame); a centre inside the box leaves through the nearest face (the
+    first in MuJoCo's order -x, +x, -y, +y, -z, +z where two are as near)."""
+    radius, half = sphere.size[:, 0], box.size  # [P], [P, 3]
+    centre = (box.rot.transpose(-1, -2) @ (sphere.pos - box.pos).unsqueeze(-1)).squeeze(-1)  # the box's frame
+    clamped = torch.maximum(torch.minimum(centre, half), -half)
+    towards = clamped - centre  # from the centre to the box
+    squared = _dot(towards, towards)
+    # clamped inside the root (a centre inside the box takes the face branch): see _sphere_sphere
+    length = torch.sqrt(squared.clamp_min(_MINVAL * _MINVAL))
+    inside = length <= _MINVAL
+    outward = towards / length.unsqueeze(-1)
+    outside_pos = (clamped + centre + outward * radius.unsqueeze(-1)) / 2
+    # inside: the nearest face; face 2k is at -half_k and 2k+1 at +half_k, the normal points inwards
+    faces = torch.stack([half + centre, half - centre], dim=-1).flatten(-2)  # [N, P, 6]: -x, +x, -y, ...
+    closest, face = faces.min(-1)
+    nearest = torch.zeros_like(faces).scatter(-1, face.unsqueeze(-1), 1.0).unflatten(-1, (3, 2))
+    nearest = nearest[..., 0] - nearest[..., 1]  # +1 towards a -face's axis, -1 for a +face
+    inside_pos = centre + nearest * ((radius - closest) / 2).unsqueeze(-1)
+    dist = torch.where(inside, -closest, length) - radius
+    local_pos = torch.where(inside.unsqueeze(-1), inside_pos, outside_pos)
+    local_normal = torch.where(inside.unsqueeze(-1), nearest, outward)
+    pos = box.pos + (box.rot @ local_pos.unsqueeze(-1)).squeeze(-1)
+    return _one(dist, pos, (box.rot @ local_normal.unsqueeze(-1)).squeeze(-1))
+
+
 def capsule_capsule(capsule1: PosedGeoms, capsule2: PosedGeoms, margin: torch.Tensor) -> PairContacts:
     """The spheres at the axes' closest points (parallel axes: up to two of them)."""
     centres1, centres2, found = _capsule_capsule(
@@ -274,6 +301,7 @@ PRIMITIVES: dict[tuple[str, str], Primitive] = {
     ("sphere", "sphere"): Primitive(1, sphere_sphere),
     ("sphere", "capsule"): Primitive(1, sphere_capsule),
     ("sphere", "cylinder"): Primitive(1, sphere_cylinder),
+    ("sphere", "box"): Primitive(1, sphere_box),
     ("capsule", "capsule"): Primitive(2, capsule_capsule),
     ("capsule", "cylinder"): Primitive(1, capsule_cylinder),
 }

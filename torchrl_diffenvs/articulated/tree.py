@@ -96,6 +96,8 @@ class RigidBodyTree:
     # how contact is simulated (see use_contact_model), and MuJoCo's contact slots
     contact_model: str = "mujoco"
     contact_slots: ContactSlots | None = None
+    # why the smooth model cannot simulate this model's contacts (a pair it has no shape for); None: it can
+    smooth_refusal: str | None = None
     # how the backward differentiates MuJoCo's constraint solve (see use_contact_gradient)
     contact_gradient: ContactGradient = ContactGradient()
     # the physics step the integrators call while a compiled rollout runs (see integrators.stepping_with); None: eager
@@ -108,6 +110,9 @@ class RigidBodyTree:
         if contact not in CONTACT_MODELS:
             raise ValueError(f"{self.model.path}: unknown contact model {contact!r}; valid: "
                              f"{', '.join(repr(c) for c in CONTACT_MODELS)}")
+        if contact == "smooth" and self.smooth_refusal is not None:
+            raise ValueError(f"{self.smooth_refusal}: use contact='mujoco' (MuJoCo's collision covers the "
+                             "model), or set contype/conaffinity to exclude the pair")
         if contact == "mujoco" and self.contact_slots is None:
             self.contact_slots = contact_slots(self.model, self.contact_pairs, self.body_pos.dtype, self.body_pos.device)
         self.contact_model = contact
@@ -231,10 +236,16 @@ class RigidBodyTree:
                 for offset, radius in local:
                     points.append((model.geom_body[g], offset, radius, slot, model.geom_pos[p], normal))
         geom_pairs = []  # (A, B, A's segment, B's segment, radii, slot)
+        smooth_refusal = None  # why the smooth model cannot simulate this model's contacts (None: it can)
         for g1, g2 in _colliding_geom_pairs(model):
-            geom_pairs.append((model.geom_body[g1], model.geom_body[g2], _segment(model, g1), _segment(model, g2),
-                               (model.geom_size[g1, 0], model.geom_size[g2, 0]), len(pairs),
-                               max(model.geom_condim[g1], model.geom_condim[g2]) > 1))
+            try:
+                segments = _segment(model, g1), _segment(model, g2)
+            except ValueError as error:
+                smooth_refusal = smooth_refusal or str(error)
+            else:
+                geom_pairs.append((model.geom_body[g1], model.geom_body[g2], *segments,
+                                   (model.geom_size[g1, 0], model.geom_size[g2, 0]), len(pairs),
+                                   max(model.geom_condim[g1], model.geom_condim[g2]) > 1))
             pairs.append((model.geom_names[g1], model.geom_names[g2]))
             pair_friction.append(friction(g1, g2))
         tendon_coef = np.asarray(model.tendon_coef).reshape(len(model.tendon_names), nv)
@@ -286,9 +297,15 @@ class RigidBodyTree:
             simple_dof_index=idx([d for d, _ in simple_dofs]), simple_dof_body=idx([b for _, b in simple_dofs]),
             root_subtree_mask=t(_root_subtree_mask(model)),
             body_inertial_frame=t(np.linalg.eigh(model.body_inertia)[1]),
+            smooth_refusal=smooth_refusal,
         )
+        missing = unsupported_pairs(model)
+        if missing and smooth_refusal is not None:
+            raise ValueError(f"{smooth_refusal}, and MuJoCo's contact model here has no primitive for "
+                             f"{', '.join(f'{a!r}-{b!r}' for a, b in missing)}: neither contact model covers "
+                             "the model (set contype/conaffinity to exclude those pairs)")
         if contact is None:
-            contact = "smooth" if unsupported_pairs(model) else "mujoco"
+            contact = "smooth" if missing else "mujoco"
         return tree.use_contact_model(contact)
 
 
@@ -349,9 +366,8 @@ def _segment(model: ArticulatedModel, g: int) -> np.ndarray:
         half = rot[:, 2] * length
         return np.stack([pos - half, pos + half])
     raise ValueError(
-        f"{model.path}: geom {model.geom_names[g]!r} of type {kind} can touch another body's geom, but "
-        "contact between bodies is only modelled for spheres, capsules and cylinders (set contype/conaffinity "
-        "to exclude it)")
+        f"{model.path}: geom {model.geom_names[g]!r} of type {kind} can touch another body's geom, but the "
+        "smooth contact model shapes contact between bodies only for spheres, capsules and cylinders")
 
 
 def _contact_points(model: ArticulatedModel, g: int) -> list[tuple[np.ndarray, float]]:
