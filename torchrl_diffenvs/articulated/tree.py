@@ -239,11 +239,11 @@ class RigidBodyTree:
         smooth_refusal = None  # why the smooth model cannot simulate this model's contacts (None: it can)
         for g1, g2 in _colliding_geom_pairs(model):
             try:
-                segments = _segment(model, g1), _segment(model, g2)
+                cores = _segment(model, g1), _segment(model, g2)
             except ValueError as error:
                 smooth_refusal = smooth_refusal or str(error)
             else:
-                geom_pairs.append((model.geom_body[g1], model.geom_body[g2], *segments,
+                geom_pairs.append((model.geom_body[g1], model.geom_body[g2], *cores,
                                    (model.geom_size[g1, 0], model.geom_size[g2, 0]), len(pairs),
                                    max(model.geom_condim[g1], model.geom_condim[g2]) > 1))
             pairs.append((model.geom_names[g1], model.geom_names[g2]))
