@@ -20,6 +20,7 @@ from torchrl_diffenvs.articulated.pipeline import accelerations, body_contact_wr
 from torchrl_diffenvs.envs import make_env  # noqa: E402
 
 from _env_helpers import REPO, load_script  # noqa: E402
+from _mujoco_steps import gaps_to_mj_step  # noqa: E402
 
 # the Pusher's pushing trajectories (MuJoCo's own) come from the benchmark that reports them
 CONTACT_MODEL = load_script("contact_model", REPO / "benchmarks" / "contact_model.py")
@@ -398,10 +399,10 @@ def test_a_pair_without_a_primitive_is_refused_with_what_is_available(tmp_path):
     with pytest.raises(ValueError, match=r"'a' \(cylinder\) and 'b' \(cylinder\).*collides only.*capsule-cylinder"
                                          r".*contact='smooth'"):
         tree.use_contact_model("mujoco")
-    # two boxes: MuJoCo's contact here has no box-box primitive, the smooth model no shape for a box
-    with pytest.raises(ValueError, match=r"'a' of type box can touch another body's geom.*no primitive for "
+    # two ellipsoids: MuJoCo's contact here has no ellipsoid primitive, the smooth model no shape for one
+    with pytest.raises(ValueError, match=r"'a' of type ellipsoid can touch another body's geom.*no primitive for "
                                          r"'a'-'b': neither contact model covers the model"):
-        _two_bodies(tmp_path, 'type="box" size="0.03 0.03 0.03"', 'type="box" size="0.05 0.05 0.05"')
+        _two_bodies(tmp_path, 'type="ellipsoid" size="0.03 0.04 0.05"', 'type="ellipsoid" size="0.05 0.04 0.03"')
 
 
 SPHERE = 'type="sphere" size="0.03"'
@@ -443,19 +444,11 @@ def test_plane_box_contacts_and_steps_match_mujoco(tmp_path):
             np.testing.assert_allclose(c.pos[k, i].numpy(), data.contact.pos[j], atol=1e-12)
             np.testing.assert_allclose(c.frame[k, i].numpy().ravel(), data.contact.frame[j], atol=1e-12)
     assert {0, 1, 2, 4} <= counts
-    params = {k: v.unsqueeze(0) for k, v in default_params(model).items()}
-    params["contact_friction"] = torch.as_tensor(tree.contact_pair_friction).unsqueeze(0)
     mujoco.mj_resetData(mm, data)
     data.qvel[:] = [0.5, -0.3, 0.0, 2.0, -1.0, 3.0]  # tumbling onto the floor
-    gaps, touching = [], 0
-    for _ in range(150):
-        qpos, qvel = torch.as_tensor(data.qpos.copy()).unsqueeze(0), torch.as_tensor(data.qvel.copy()).unsqueeze(0)
-        mujoco.mj_step(mm, data)
-        touching += data.ncon > 0
-        result = step(tree, qpos, qvel, torch.zeros(1, 0, dtype=torch.float64), params, mm.opt.timestep,
-                      model.integrator, invweight0(tree, params))
-        gaps.append(max(np.abs(result.qpos[0].numpy() - data.qpos).max(), np.abs(result.qvel[0].numpy() - data.qvel).max()))
-    assert touching > 60 and max(gaps) < 1e-9, (touching, max(gaps))
+    contacts = []
+    gaps = gaps_to_mj_step(tree, mm, data, 150, lambda d: contacts.append(d.ncon))
+    assert sum(n > 0 for n in contacts) > 60 and gaps.max() < 1e-9, (contacts, gaps.max())
 
 
 @pytest.mark.filterwarnings("ignore")
@@ -557,18 +550,11 @@ def test_a_ball_dropped_on_a_box_steps_as_mj_step(tmp_path):
         tree.use_contact_model("smooth")
     mm = mujoco.MjModel.from_xml_path(str(path))
     data = mujoco.MjData(mm)
-    params = {k: v.unsqueeze(0) for k, v in default_params(model).items()}
-    params["contact_friction"] = torch.as_tensor(tree.contact_pair_friction).unsqueeze(0)
     data.qvel[6:9] = [0.4, 0.0, 0.0]
-    gaps, on_the_box = [], 0
-    for _ in range(250):
-        qpos, qvel = torch.as_tensor(data.qpos.copy()).unsqueeze(0), torch.as_tensor(data.qvel.copy()).unsqueeze(0)
-        mujoco.mj_step(mm, data)
-        on_the_box += any({data.contact.geom[i][0], data.contact.geom[i][1]} == {1, 2} for i in range(data.ncon))
-        result = step(tree, qpos, qvel, torch.zeros(1, 0, dtype=torch.float64), params, mm.opt.timestep,
-                      model.integrator, invweight0(tree, params))
-        gaps.append(max(np.abs(result.qpos[0].numpy() - data.qpos).max(), np.abs(result.qvel[0].numpy() - data.qvel).max()))
-    assert on_the_box > 20 and max(gaps) < 1e-9, (on_the_box, max(gaps))
+    on_the_box = []
+    gaps = gaps_to_mj_step(tree, mm, data, 250, lambda d: on_the_box.append(
+        any({d.contact.geom[i][0], d.contact.geom[i][1]} == {1, 2} for i in range(d.ncon))))
+    assert sum(on_the_box) > 20 and gaps.max() < 1e-9, (sum(on_the_box), gaps.max())
 
 
 TALL_CYLINDER = 'type="cylinder" size="0.04 0.09"'  # radius and half-height differ: a swap shows

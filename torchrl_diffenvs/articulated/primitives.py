@@ -7,7 +7,9 @@ plane-sphere and sphere-sphere one, plane-capsule two (one per end), plane-cylin
 (``mjc_PlaneCylinder``: the lowest rim point, the opposite end's and two more on the lowest disk),
 plane-box up to four (``mjc_PlaneBox``: the lower corners within the margin),
 sphere-capsule, sphere-cylinder and sphere-box one, capsule-capsule one (two where the axes are parallel), capsule-cylinder one
-([`capsule_cylinder`][torchrl_diffenvs.articulated.capsule_cylinder]). The same ops run whatever touches.
+([`capsule_cylinder`][torchrl_diffenvs.articulated.capsule_cylinder]), capsule-box up to two
+(``mjc_CapsuleBox``, [`capsule_box`][torchrl_diffenvs.articulated.capsule_box]), box-box up to eight (``mjc_BoxBox``: the
+clipped face or the edges' closest points, [`box_box`][torchrl_diffenvs.articulated.box_box]). The same ops run whatever touches.
 
 To collide a new pair of geom types: write its function with this signature and add it to
 [`PRIMITIVES`][torchrl_diffenvs.articulated.primitives.PRIMITIVES] under the two types in MuJoCo's
@@ -20,6 +22,8 @@ from typing import Callable, NamedTuple
 
 import torch
 
+from .box_box import box_box
+from .capsule_box import capsule_box
 from .capsule_cylinder import capsule_cylinder as _capsule_cylinder
 from .spatial import _MINVAL, _cross, _dot
 
@@ -52,6 +56,11 @@ class PairContacts(NamedTuple):
 class Primitive(NamedTuple):
     contacts: int  # K, the contacts each pair gives at most
     collide: Callable[[PosedGeoms, PosedGeoms, torch.Tensor], PairContacts]  # (geom1, geom2, margin [P])
+
+
+def _where(mask, a, b):
+    """``torch.where`` of a per-contact ``mask [N, P]`` over values with or without a last axis of 3."""
+    return torch.where(mask.reshape(*mask.shape, *[1] * (a.dim() - mask.dim())), a, b)
 
 
 def _one(dist, pos, normal) -> PairContacts:
@@ -243,10 +252,7 @@ def sphere_cylinder(sphere: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tens
     cap = (cap_dist, sphere.pos - cap_normal * (sphere.size[:, 0] + cap_dist / 2).unsqueeze(-1), -cap_normal)
     rim = cylinder.pos + cap_normal * half.unsqueeze(-1) + across * (radius / spread).unsqueeze(-1)
     corner = _sphere_sphere(sphere.pos, sphere.size[:, 0], rim, torch.zeros_like(radius), z1, z2)
-    picked = [torch.where(beside.unsqueeze(-1) if a.dim() > beside.dim() else beside, a,
-                          torch.where(over.unsqueeze(-1) if a.dim() > over.dim() else over, b, c))
-              for a, b, c in zip(side, cap, corner)]
-    return _one(*picked)
+    return _one(*(_where(beside, a, _where(over, b, c)) for a, b, c in zip(side, cap, corner)))
 
 
 def sphere_box(sphere: PosedGeoms, box: PosedGeoms, margin: torch.Tensor) -> PairContacts:
@@ -304,6 +310,8 @@ PRIMITIVES: dict[tuple[str, str], Primitive] = {
     ("sphere", "box"): Primitive(1, sphere_box),
     ("capsule", "capsule"): Primitive(2, capsule_capsule),
     ("capsule", "cylinder"): Primitive(1, capsule_cylinder),
+    ("capsule", "box"): Primitive(2, capsule_box),
+    ("box", "box"): Primitive(8, box_box),
 }
 """The primitive of each pair of geom types (keys in MuJoCo's type order: plane < sphere < capsule <
 ellipsoid < cylinder < box), in the order the contact slots are laid out."""
