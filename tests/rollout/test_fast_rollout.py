@@ -76,8 +76,9 @@ def test_every_env_takes_the_fast_path(name):
 LIGHTER = [name for name in single_agent_envs() if name != "HumanoidStandup-v5"]
 
 
-@pytest.mark.parametrize("name", LIGHTER)
-@pytest.mark.parametrize("break_when_any_done", [True, False])
+# the Humanoid runs to its first fall only: the auto-resets after it are every other task's (its steps cost 5x)
+@pytest.mark.parametrize("name,break_when_any_done", [(name, stop) for name in LIGHTER for stop in (True, False)
+                                                      if not (name == "Humanoid-v5" and not stop)])
 def test_random_actions_match_envbase(name, break_when_any_done):
     env = make_fast_env(name)
     got, ref = both_paths(env, STEPS, break_when_any_done=break_when_any_done)

@@ -170,7 +170,8 @@ def torchrun(cwd: Path, *overrides: str, timeout: float = 240, env_extra: dict |
                           timeout=timeout)
 
 
-@pytest.mark.parametrize("loss", sorted(TINY))
+# BPTT's run is SHAC's actor without the critic (its data-parallel step is checked exactly above)
+@pytest.mark.parametrize("loss", ["ppo", "sac", "shac"])
 def test_torchrun_trains_with_two_ranks_and_only_rank_zero_writes(loss, tmp_path):
     steps = GLOBAL_STEPS_PER_ITERATION[loss]
     run_dir = tmp_path / "run"
