@@ -253,9 +253,10 @@ def test_merge_overrides_keeps_the_saved_run_and_lets_today_win():
 
 # ---------------------------------------------------------------------- every env x loss trains
 # every learner on every classic env and on HalfCheetah; the other MuJoCo tasks (their runs cost
-# 10-40 s each) with a gradient learner, AHAC (which reads the contact force) and a TorchRL learner:
-# the learners' code paths are the same on every MuJoCo task
-MUJOCO_LOSSES = {"HalfCheetah-v5": LOSSES, "Hopper-v5": ("shac", "ahac", "ppo"), "Humanoid-v5": ("shac",),
+# 10-40 s each) with a gradient learner and AHAC (which reads the contact force) through Hopper's
+# falls, the Humanoid's and the Pusher's models, the Pusher with a TorchRL learner too: the learners'
+# code paths are the same on every MuJoCo task
+MUJOCO_LOSSES = {"HalfCheetah-v5": LOSSES, "Hopper-v5": ("shac", "ahac"), "Humanoid-v5": ("shac",),
                  "Pusher-v5": ("shac", "ahac", "ppo")}
 
 
@@ -400,7 +401,7 @@ def test_resumed_run_continues_exactly_where_the_stopped_run_was(loss, tmp_path)
     same env states and random streams were restored."""
     steps = STEPS_PER_ITER[loss]
     extra = [f"train.checkpoint_interval={2 * steps}", f"eval.interval={2 * steps}"]
-    env = "Hopper-v5" if loss == "ahac" else "pendulum"  # AHAC needs an env that reports contact forces
+    env = "HalfCheetah-v5" if loss == "ahac" else "pendulum"  # AHAC needs an env that reports contact forces
     cfg = tiny_cfg(env, loss, 4, *extra)
     result_a = train_script.run(cfg, tmp_path / "a")
     stopped = tmp_path / "a" / "checkpoints" / f"ckpt_{2 * steps:012d}.pt"
