@@ -472,6 +472,24 @@ def test_plane_box_gradcheck(tmp_path):
 BOX = 'type="box" size="0.05 0.08 0.11"'  # three different half-sizes: a swapped axis shows
 
 
+def _single_contacts_match(tree, mm, data, poses, branch_of) -> set[str]:
+    """A sphere (body 1) against a geom of body 2 at free-joint ``poses [P, 14]``: our one contact
+    slot as ``mj_collision``'s contact (there or not; distance, position, frame to 1e-12); the
+    branches (``branch_of`` the sphere's centre in body 2's frame) of the poses in contact."""
+    c = collide(tree.contact_slots, forward_kinematics(tree, torch.as_tensor(poses)))
+    branches = set()
+    for k, pose in enumerate(poses):
+        data.qpos[:] = pose
+        mujoco.mj_forward(mm, data)
+        assert bool(c.active[k, 0]) == (data.ncon == 1), k
+        if data.ncon:
+            assert c.dist[k, 0].item() == pytest.approx(data.contact.dist[0], abs=1e-12)
+            np.testing.assert_allclose(c.pos[k, 0].numpy(), data.contact.pos[0], atol=1e-12)
+            np.testing.assert_allclose(c.frame[k, 0].numpy().ravel(), data.contact.frame[0], atol=1e-12)
+            branches.add(branch_of(data.xmat[2].reshape(3, 3).T @ (pose[:3] - pose[7:10])))
+    return branches
+
+
 def _sphere_box_branch(centre) -> str:
     """MuJoCo's branch for a sphere centred at ``centre`` (the box's frame, BOX): outside, the box's
     nearest point is on a face, an edge or a corner; inside, it leaves through the nearest face."""
@@ -491,17 +509,7 @@ def test_sphere_box_matches_mj_collision(tmp_path):
     poses[:30, 10:14] = [1.0, 0.0, 0.0, 0.0]  # an unturned box, centres inside it
     poses[:30, :3] = np.random.default_rng(2).uniform(-0.04, 0.04, (30, 3))
     poses[:10, 0], poses[:10, 1] = 0.03, -0.06  # as near +x as -y (0.02, to rounding): the order decides
-    c = collide(tree.contact_slots, forward_kinematics(tree, torch.as_tensor(poses)))
-    branches = set()
-    for k, pose in enumerate(poses):
-        data.qpos[:] = pose
-        mujoco.mj_forward(mm, data)
-        assert bool(c.active[k, 0]) == (data.ncon == 1), k
-        if data.ncon:
-            assert c.dist[k, 0].item() == pytest.approx(data.contact.dist[0], abs=1e-12)
-            np.testing.assert_allclose(c.pos[k, 0].numpy(), data.contact.pos[0], atol=1e-12)
-            np.testing.assert_allclose(c.frame[k, 0].numpy().ravel(), data.contact.frame[0], atol=1e-12)
-            branches.add(_sphere_box_branch(data.xmat[2].reshape(3, 3).T @ (pose[:3] - pose[7:10])))
+    branches = _single_contacts_match(tree, mm, data, poses, _sphere_box_branch)
     assert branches == {"inside", "face", "edge", "corner"}
 
 
@@ -593,17 +601,7 @@ def test_sphere_cylinder_matches_mj_collision(tmp_path):
     poses[:40, 10:14] = [1.0, 0.0, 0.0, 0.0]  # an upright cylinder, the sphere on its axis
     poses[:40, :2] = 0.0
     poses[:40, 2] = np.linspace(-0.14, 0.14, 40)
-    c = collide(tree.contact_slots, forward_kinematics(tree, torch.as_tensor(poses)))
-    branches = set()
-    for k, pose in enumerate(poses):
-        data.qpos[:] = pose
-        mujoco.mj_forward(mm, data)
-        assert bool(c.active[k, 0]) == (data.ncon == 1), k
-        if data.ncon:
-            assert c.dist[k, 0].item() == pytest.approx(data.contact.dist[0], abs=1e-12)
-            np.testing.assert_allclose(c.pos[k, 0].numpy(), data.contact.pos[0], atol=1e-12)
-            np.testing.assert_allclose(c.frame[k, 0].numpy().ravel(), data.contact.frame[0], atol=1e-12)
-            branches.add(_sphere_cylinder_branch(data.xmat[2].reshape(3, 3).T @ (pose[:3] - pose[7:10])))
+    branches = _single_contacts_match(tree, mm, data, poses, _sphere_cylinder_branch)
     assert branches == {"side", "cap", "rim", "inside, out through the cap", "inside, out through the side"}
 
 
