@@ -8,7 +8,9 @@ same ops run whatever touches.
 
 Each contact has MuJoCo's ``pos``, ``frame`` (normal first, pointing from geom 1 to geom 2),
 ``dist`` and the pair's mixed parameters (``condim``, friction, ``solref``, ``solimp``,
-``includemargin``: `_mix`, as ``mj_contactParam``).
+``includemargin``: `_mix`, as ``mj_contactParam``). ``condim`` 1 (frictionless), 3 (sliding
+friction), 4 (and torsional) and 6 (and rolling) are supported, with MuJoCo's default pyramidal
+friction cones; elliptic cones are refused.
 """
 from __future__ import annotations
 
@@ -78,10 +80,16 @@ def _mix(model: ArticulatedModel, g1: int, g2: int) -> dict:
         solref = mix * r1 + (1 - mix) * r2 if (r1[0] > 0 and r2[0] > 0) else np.minimum(r1, r2)
         solimp = mix * model.geom_solimp[g1] + (1 - mix) * model.geom_solimp[g2]
         fri = np.maximum(model.geom_friction[g1], model.geom_friction[g2])
-    if condim not in (1, 3):
+    if condim not in (1, 3, 4, 6):
         raise ValueError(f"{model.path}: geoms {model.geom_names[g1]!r} and {model.geom_names[g2]!r}: condim "
-                         f"{condim} is not supported by MuJoCo's contact model here; supported: 1 and 3")
-    return dict(condim=condim, friction=float(fri[0]), solref=np.array(solref, dtype=np.float64), solimp=solimp,
+                         f"{condim} is not supported by MuJoCo's contact model here; supported: 1 (frictionless), "
+                         "3 (sliding friction), 4 (and torsional) and 6 (and rolling), with pyramidal cones")
+    if condim > 1 and model.cone != "pyramidal":
+        raise ValueError(f"{model.path}: geoms {model.geom_names[g1]!r} and {model.geom_names[g2]!r}: condim "
+                         f"{condim} with {model.cone} friction cones is not supported by MuJoCo's contact model "
+                         "here; supported: pyramidal cones (MuJoCo's default)")
+    return dict(condim=condim, friction=float(fri[0]), torsional=float(fri[1]), rolling=float(fri[2]),
+                solref=np.array(solref, dtype=np.float64), solimp=solimp,
                 margin=float(model.geom_margin[g1] + model.geom_margin[g2]))
 
 
@@ -122,8 +130,13 @@ class ContactSlots:
     solref: torch.Tensor  # [C, 2]
     solimp: torch.Tensor  # [C, 5]
     margin: torch.Tensor  # [C] MuJoCo's includemargin (margin - gap; gap is 0 here)
-    pyramid_index: torch.Tensor  # [C3] long: the frictional slots (condim 3: four pyramid edges each)
+    pyramid_index: torch.Tensor  # [C3] long: the slots with sliding friction (condim 3: four pyramid edges each)
     normal_index: torch.Tensor  # [C1] long: the frictionless slots (condim 1: one row each)
+    torsional_index: torch.Tensor  # [C4] long: the slots with torsional friction too (condim 4: six edges each)
+    rolling_index: torch.Tensor  # [C6] long: the slots with torsional and rolling friction (condim 6: ten edges)
+    # [C, 3] the pair's mixed torsional, rolling, rolling friction (MuJoCo's contact friction[2:5]; the
+    # sliding friction[0:2] is the per-env params["contact_friction"])
+    spin_friction: torch.Tensor
     # [npair, 2] each geom pair's mixed solref (the entries of params["contact_friction"]): the
     # default of the params' contact_solref; MuJoCo's default (0.02, 1) for a pair with no slot
     pair_solref: torch.Tensor
@@ -131,6 +144,11 @@ class ContactSlots:
     @property
     def count(self) -> int:
         return len(self.condim)
+
+    def pyramids(self) -> tuple[tuple[int, torch.Tensor], ...]:
+        """The frictional slots by condim, in the order of their constraint rows: ``(condim,
+        slots)`` for condim 3, 4 and 6 (each slot ``2 (condim - 1)`` pyramid edges)."""
+        return (3, self.pyramid_index), (4, self.torsional_index), (6, self.rolling_index)
 
 
 def unsupported_pairs(model: ArticulatedModel) -> list[tuple[str, str]]:
@@ -175,6 +193,9 @@ def contact_slots(model: ArticulatedModel, friction_slots: list[tuple[str, str]]
         margin=t([r[3]["margin"] for r in rows], (-1,)),
         pyramid_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 3], (-1,)),
         normal_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 1], (-1,)),
+        torsional_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 4], (-1,)),
+        rolling_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 6], (-1,)),
+        spin_friction=t([[r[3]["torsional"], r[3]["rolling"], r[3]["rolling"]] for r in rows], (-1, 3)),
         pair_solref=t(_pair_solref(rows, len(friction_slots)), (-1, 2)))
 
 

@@ -2,8 +2,12 @@
 (``mj_makeConstraint``), their impedance, reference acceleration and regulariser
 (``mj_makeImpedance``, ``mj_referenceConstraint``), and the solve (``mj_fwdConstraint``).
 
-Rows are laid out at fixed positions: every limit side, then four pyramid edges per frictional
-contact slot, then one row per frictionless slot. A row MuJoCo would not create (a limit not
+Rows are laid out at fixed positions: every limit side, then the pyramid edges of the frictional
+contact slots (MuJoCo's default pyramidal cone, ``2 (condim - 1)`` edges ``J_n +- mu_d J_d`` per
+contact): four per condim-3 slot (sliding friction along the two tangents), then six per condim-4
+slot (and torsional friction: ``J_d`` the relative angular velocity about the normal), then ten
+per condim-6 slot (and rolling friction: about the two tangents), then one row per frictionless
+(condim 1) slot ([`contact_row_blocks`][torchrl_diffenvs.articulated.constraint.contact_row_blocks]). A row MuJoCo would not create (a limit not
 within its margin, a contact slot without a contact) is kept with ``exists = False`` and no force:
 the shapes never depend on the state (on the CPU the solve drops the rows that exist in no env of
 the batch, a host read that costs nothing there).
@@ -36,7 +40,8 @@ from .limits import _reference
 from .spatial import _MINVAL, Params, _cross
 from .tree import RigidBodyTree
 
-__all__ = ["ConstraintRows", "constraint_rows", "contact_frame_forces", "solve", "SolverResult"]
+__all__ = ["ConstraintRows", "constraint_rows", "contact_frame_forces", "contact_normal_forces", "contact_row_blocks",
+           "solve", "SolverResult"]
 
 
 class ConstraintRows(NamedTuple):
@@ -49,7 +54,8 @@ class ConstraintRows(NamedTuple):
     regulariser: torch.Tensor  # [N, R] efc_R
     exists: torch.Tensor  # [N, R] bool: MuJoCo has this row
     found: torch.Tensor  # [N, R] bool: a contact row whose contact is there at any distance (limits: False)
-    rows_per_slot: tuple[int, int]  # (limit rows, pyramid rows): where the contact rows start, and the frictionless
+    # (limit rows, pyramid rows of every condim): where the contact rows start, and the frictionless
+    rows_per_slot: tuple[int, int]
 
     @property
     def weight(self) -> torch.Tensor:
@@ -65,9 +71,16 @@ def _point_jacobian(tree: RigidBodyTree, kin: Kinematics, body: torch.Tensor, po
     return velocity * tree.body_dof_mask[body].unsqueeze(-1)
 
 
+def _angular_jacobian(tree: RigidBodyTree, kin: Kinematics, body1: torch.Tensor, body2: torch.Tensor) -> torch.Tensor:
+    """``[N, S, nv, 3]`` each dof's angular velocity of ``body2 [S]`` relative to ``body1 [S]`` (world)."""
+    angular = kin.motion[..., :3].unsqueeze(1)  # [N, 1, nv, 3]
+    return angular * (tree.body_dof_mask[body2] - tree.body_dof_mask[body1]).unsqueeze(-1)
+
+
 def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, contacts: Contacts, qpos, qvel,
                     params: Params, dof_weight: torch.Tensor, body_weight: torch.Tensor) -> ConstraintRows:
-    """The constraint rows at a state: joint limits, then contacts (pyramidal cones).
+    """The constraint rows at a state: joint limits, then contacts (pyramidal cones; the layout is
+    the module docstring's).
 
     ``dof_weight [N, nv]`` and ``body_weight [N, nbody, 2]``: MuJoCo's ``dof_invweight0`` and
     ``body_invweight0`` for these params (`dof_invweight0`,
@@ -100,16 +113,23 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
         mu = params["contact_friction"][:, slots.friction_slot]  # [N, C]
         # [N or 1, C, 2]: each env's time constant and damping ratio of its pair, or the model's
         solref = params["contact_solref"][:, slots.friction_slot] if "contact_solref" in params else slots.solref[None]
-        for frictional, index in ((True, slots.pyramid_index), (False, slots.normal_index)):
+        for condim, index in (*slots.pyramids(), (1, slots.normal_index)):
             if not index.numel():
                 continue
             c = in_frame[:, index]
             dist, cmargin = contacts.dist[:, index], slots.margin[index]
-            if frictional:
-                m = mu[:, index, None, None]
-                normal, tangents = c[:, :, :1], c[:, :, 1:]
-                edges = torch.stack([normal + m * tangents, normal - m * tangents], dim=3).flatten(2, 3)  # +t1 -t1 +t2 -t2
-                rows = 4
+            if condim > 1:
+                m = mu[:, index, None, None]  # the sliding friction, on both tangents
+                normal, directions = c[:, :, :1], c[:, :, 1:]
+                if condim > 3:  # torsional (and rolling): the relative angular velocity about the normal (and tangents)
+                    spin = contacts.frame[:, index, :condim - 3] @ _angular_jacobian(tree, kin, body1[index],
+                                                                                     body2[index]).transpose(-1, -2)
+                    directions = torch.cat([directions, spin], dim=2)
+                    m = torch.cat([m.expand(-1, -1, 2, -1),
+                                   slots.spin_friction[None, index, :condim - 3, None].expand(n, -1, -1, -1)], dim=2)
+                # MuJoCo's edge pairs J_n +- mu_d J_d, d = t1 t2 (then the normal's spin, the tangents' roll)
+                edges = torch.stack([normal + m * directions, normal - m * directions], dim=3).flatten(2, 3)
+                rows = 2 * (condim - 1)
                 # diagApprox of the first edge, R from it, and MuJoCo's common pyramid R = 2 mu^2 R / impratio
                 diag = translation[:, index] * (1 + mu[:, index] ** 2)
             else:
@@ -119,7 +139,7 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
             row_aref, imp = _reference(dist.unsqueeze(-1), cmargin[:, None], velocity, solref[:, index, None],
                                        slots.solimp[index, None], timestep)
             r = ((1 - imp[..., 0]) * diag / imp[..., 0]).clamp_min(_MINVAL)
-            if frictional:
+            if condim > 1:
                 r = 2 * mu[:, index] ** 2 * r / tree.model.impratio
             jac.append(edges.flatten(1, 2))
             pos.append(dist.repeat_interleave(rows, dim=1))
@@ -128,8 +148,8 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
             reg.append(r.repeat_interleave(rows, dim=1))
             exists.append(contacts.active[:, index].repeat_interleave(rows, dim=1))
             found.append(contacts.found[:, index].repeat_interleave(rows, dim=1))
-            if frictional:
-                pyramid_rows = 4 * index.numel()
+            if condim > 1:
+                pyramid_rows += rows * index.numel()
     if not jac:
         empty = qvel.new_zeros(n, 0)
         return ConstraintRows(qvel.new_zeros(n, 0, nv), empty, qvel.new_zeros(0), empty, empty,
@@ -374,19 +394,44 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
     return SolverResult(qacc, force, active, used, converged)
 
 
+def contact_row_blocks(slots: ContactSlots, rows: ConstraintRows) -> list[tuple[int, torch.Tensor, int]]:
+    """Where each condim's contact rows lie: ``(condim, slots [S] long, first row)``, each slot
+    taking ``2 (condim - 1)`` consecutive rows (its pyramid's edges), or 1 for condim 1 (see the
+    module docstring); condims without slots are left out."""
+    out, start = [], rows.rows_per_slot[0]
+    for condim, index in (*slots.pyramids(), (1, slots.normal_index)):
+        if index.numel():
+            out.append((condim, index, start))
+            start += (2 * (condim - 1) if condim > 1 else 1) * index.numel()
+    return out
+
+
+def contact_normal_forces(slots: ContactSlots, rows: ConstraintRows, force: torch.Tensor) -> torch.Tensor:
+    """``[N, C]`` each contact slot's normal force (the sum of its pyramid's edge forces)."""
+    out = force.new_zeros(force.shape[0], slots.count)
+    for condim, index, start in contact_row_blocks(slots, rows):
+        edges = 2 * (condim - 1) if condim > 1 else 1
+        out = out.index_copy(1, index, force[:, start:start + edges * index.numel()].unflatten(1, (-1, edges)).sum(-1))
+    return out
+
+
 def contact_frame_forces(slots: ContactSlots, rows: ConstraintRows, force: torch.Tensor, friction: torch.Tensor) -> torch.Tensor:
-    """``[N, C, 3]`` each contact slot's force in its frame (normal, two tangents), MuJoCo's
-    ``mj_contactForce``: a pyramid's normal force is the sum of its edges', its friction along
-    tangent ``k`` is ``mu (f_{+k} - f_{-k})``. ``friction [N, C]``: each slot's ``mu``."""
-    limits, pyramid = rows.rows_per_slot
-    out = force.new_zeros(force.shape[0], slots.count, 3)
-    if slots.pyramid_index.numel():
-        edges = force[:, limits:limits + pyramid].unflatten(1, (-1, 2, 2))  # [N, S, tangent, +-]
-        mu = friction[:, slots.pyramid_index, None]
+    """``[N, C, 6]`` each contact slot's force and torque in its frame, MuJoCo's
+    ``mj_contactForce``: the force along the normal and the two tangents, then the torque about
+    the normal (torsional friction, condim 4 and 6) and the two tangents (rolling friction, condim
+    6). A pyramid's normal force is the sum of its edges', its friction in direction ``d`` is
+    ``mu_d (f_{+d} - f_{-d})``. ``friction [N, C]``: each slot's sliding ``mu`` (the torsional and
+    rolling ones are the model's, ``slots.spin_friction``)."""
+    out = force.new_zeros(force.shape[0], slots.count, 6)
+    for condim, index, start in contact_row_blocks(slots, rows):
+        if condim == 1:
+            normal = force[:, start:start + index.numel()]
+            out = out.index_copy(1, index, torch.cat([normal.unsqueeze(-1), normal.new_zeros(*normal.shape, 5)], -1))
+            continue
+        edges = force[:, start:start + 2 * (condim - 1) * index.numel()].unflatten(1, (-1, condim - 1, 2))  # [N, S, d, +-]
+        mu = friction[:, index, None].expand(-1, -1, 2)
+        if condim > 3:
+            mu = torch.cat([mu, slots.spin_friction[None, index, :condim - 3].expand(mu.shape[0], -1, -1)], -1)
         local = torch.cat([edges.sum((-1, -2)).unsqueeze(-1), mu * (edges[..., 0] - edges[..., 1])], dim=-1)
-        out = out.index_copy(1, slots.pyramid_index, local)
-    if slots.normal_index.numel():
-        normal = force[:, limits + pyramid:]
-        out = out.index_copy(1, slots.normal_index, torch.stack([normal, torch.zeros_like(normal),
-                                                                   torch.zeros_like(normal)], dim=-1))
+        out = out.index_copy(1, index, torch.cat([local, local.new_zeros(*local.shape[:-1], 6 - condim)], -1))
     return out

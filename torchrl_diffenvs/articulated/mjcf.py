@@ -436,6 +436,8 @@ class _Reader:
         if kind not in ("plane", "sphere", "capsule", "cylinder", "ellipsoid", "box"):
             raise self.fail(element, f"geom type {kind!r} is not supported; supported: plane, sphere, capsule, "
                                      "cylinder, ellipsoid, box")
+        if a.get("condim", "3").strip() not in ("1", "3", "4", "6"):  # MuJoCo's compiler: "invalid condim in geom"
+            raise self.fail(element, f"condim {a['condim']!r} is invalid; valid: 1, 3, 4, 6 (as MuJoCo's)")
         size = np.zeros(3)
         given = _floats(a.get("size", "0"), None, where)
         size[: given.size] = given

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import torch
 
 from .collision import collide
-from .constraint import constraint_rows, contact_frame_forces, solve
+from .constraint import constraint_rows, contact_frame_forces, contact_normal_forces, solve
 from .contact_gradient import ContactGradient
 from .contact import _contact_points_and_forces, _pair_forces, body_contact_forces, contact_force, pair_contact_force
 from .forces import actuator_force, passive_force
@@ -212,8 +212,10 @@ def _mujoco_body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params:
         return out
     f = _mujoco_forward(tree, qpos, qvel, ctrl, params, weights)
     local = contact_frame_forces(slots, f.rows, f.solution.force, params["contact_friction"][:, slots.friction_slot])
-    force = (local.unsqueeze(-2) @ f.contacts.frame).squeeze(-2)  # world frame: sum_k f_k frame_k
-    wrench = torch.cat([_cross(f.contacts.pos - about.unsqueeze(1), force), force], dim=-1)  # on geom 2's body
+    # world frame: sum_k f_k frame_k, and the torsional and rolling friction's torque likewise
+    force = (local[..., :3].unsqueeze(-2) @ f.contacts.frame).squeeze(-2)
+    torque = (local[..., 3:].unsqueeze(-2) @ f.contacts.frame).squeeze(-2)
+    wrench = torch.cat([_cross(f.contacts.pos - about.unsqueeze(1), force) + torque, force], dim=-1)  # on geom 2's body
     out = out.index_add(1, slots.body[:, 1], wrench).index_add(1, slots.body[:, 0], -wrench)
     return torch.cat([torch.zeros_like(out[:, :1]), out[:, 1:]], dim=1)  # MuJoCo keeps none on the world
 
@@ -245,10 +247,7 @@ def _constrained_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Pa
         return qacc
     largest = None
     if slots.count:
-        limits, pyramid = rows.rows_per_slot
-        normal = torch.cat([solution.force[:, limits:limits + pyramid].unflatten(1, (-1, 4)).sum(-1),
-                            solution.force[:, limits + pyramid:]], dim=1)  # each contact's normal force
-        largest = normal.detach().amax(-1)
+        largest = contact_normal_forces(slots, rows, solution.force).detach().amax(-1)
     return qacc, ForwardReport(largest, solution.converged)
 
 
