@@ -5,7 +5,8 @@ For each task and N in {1, 64, 1024, 4096}, timed interleaved (see benchmarks/_c
 * ``ours``: ``env.rollout(T, break_when_any_done=False)`` under ``torch.no_grad`` (random
   actions, auto-resets included);
 * ``ours fwd+bwd``: a BPTT window, ``env.rollout(H, policy)`` with a 64-64 tanh MLP policy and
-  the backward of its summed reward (H = 8): what a gradient-based learner pays per env-step;
+  the backward of its summed reward (H = 8): what a gradient-based learner pays per env-step, at
+  N <= ``window_max_n`` (default 1024: the activations saved for backward grow with N);
 * ``gymnasium``: one ``gym.make(task)`` env stepped with sampled actions (reset when done);
 * ``gymnasium SyncVectorEnv``: ``SyncVectorEnv`` of N envs (N <= 64: beyond that it is N times
   the single env plus bookkeeping, and a batch step takes seconds);
@@ -39,12 +40,16 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
-from torchrl_diffenvs.checks import checked, is_int, parse_cli  # noqa: E402
+from torchrl_diffenvs.checks import checked, is_int, nonnegative_int, parse_cli  # noqa: E402
 
 TASKS = ("HalfCheetah-v5", "Hopper-v5", "InvertedDoublePendulum-v5", "Ant-v5")
 WINDOW = 8  # H of the forward+backward window
 MJX_ENV_STEPS = 2048  # env steps per timed MJX call, at most (T shrinks with N; at least one step)
 MJX_MAX_N = 64  # above it MJX is not timed: its batched LAPACK calls deadlocked on the CPU at N = 1024
+# above it the BPTT window is not timed by default: the activations it saves for backward grow with N
+# (on MuJoCo's contact the Ant's 8-step window at N = 4096 and the Humanoid's at N = 1024 each
+# outgrew 20 GiB of memory)
+WINDOW_MAX_N = 1024
 
 
 def make_policy(env):
@@ -60,9 +65,9 @@ def make_policy(env):
 
 
 def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int,
-               mjx_max_n: int = MJX_MAX_N) -> tuple[dict, dict, dict]:
+               mjx_max_n: int = MJX_MAX_N, window_max_n: int = WINDOW_MAX_N) -> tuple[dict, dict, dict]:
     """``(name -> fn, name -> env-steps per call, notes)`` for one row (notes: MJX's compile time,
-    or why it did not run)."""
+    or why it did not run, and why the window was not timed)."""
     import gymnasium as gym
     import mujoco
     import torch
@@ -101,6 +106,10 @@ def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int,
 
     fns = {"ours": ours, "ours fwd+bwd": ours_fwd_bwd, "gymnasium": gymnasium_single, "mj_step (C)": mj_step_c}
     counts = {"ours": n * steps, "ours fwd+bwd": n * WINDOW, "gymnasium": gym_steps, "mj_step (C)": gym_steps}
+    notes = {}
+    if n > window_max_n:
+        del fns["ours fwd+bwd"], counts["ours fwd+bwd"]
+        notes["window"] = f"not timed: N > window_max_n={window_max_n}"
     mjx_steps = max(1, min(steps, MJX_ENV_STEPS // n))  # MJX on the CPU runs a few hundred env-steps/s
     if n <= min(mjx_max_n, MJX_MAX_N):
         mjx = mjx_rollout(model, frame_skip, n, mjx_steps)
@@ -121,7 +130,8 @@ def candidates(task: str, n: int, steps: int, gym_steps: int, sync_max: int,
 
         fns["gymnasium SyncVectorEnv"] = gymnasium_sync
         counts["gymnasium SyncVectorEnv"] = n * vec_steps
-    return fns, counts, {"mjx_compile_s": mjx[1]} if isinstance(mjx, tuple) else {"mjx": mjx}
+    notes.update({"mjx_compile_s": mjx[1]} if isinstance(mjx, tuple) else {"mjx": mjx})
+    return fns, counts, notes
 
 
 def mjx_rollout(model, frame_skip: int, n: int, steps: int):
@@ -171,6 +181,8 @@ class MuJoCoThroughputSettings(C.BenchmarkSettings):
     # MJX is timed up to this N, at most MJX_MAX_N (each N compiles for a minute or more; 0: never)
     mjx_max_n: int = checked(MJX_MAX_N, lambda v: None if is_int(v) and 0 <= v <= MJX_MAX_N
                              else f"expected an integer in [0, {MJX_MAX_N}]")
+    # the BPTT window (``ours fwd+bwd``) is timed up to this N (its memory grows with N; 0: never)
+    window_max_n: int = checked(WINDOW_MAX_N, nonnegative_int)
 
 
 def main(argv=None) -> dict:
@@ -190,7 +202,7 @@ def main(argv=None) -> dict:
         for n in sizes:
             steps = 2 if args.quick else max(2, min(50, 20000 // n))
             fns, counts, notes = candidates(task, n, steps, gym_steps, sync_max=4 if args.quick else 64,
-                                            mjx_max_n=args.mjx_max_n)
+                                            mjx_max_n=args.mjx_max_n, window_max_n=args.window_max_n)
             times = C.interleaved(fns, rounds)
             cands = {}
             for name, t in times.items():

@@ -364,16 +364,24 @@ def test_benchmark_arguments_are_checked_like_the_training_scripts():
 
 
 def test_mujoco_throughput_quick(tmp_path):
-    """Every column but MJX's (each N compiles MJX for a minute or more: `test_mjx_rollout_runs`)."""
+    """Every column but MJX's (each N compiles MJX for a minute or more: `test_mjx_rollout_runs`);
+    the BPTT window up to ``window_max_n`` only."""
     pytest.importorskip("mujoco")
-    payload = load("mujoco_throughput").main(["quick=true", "tasks=[Hopper-v5]", "mjx_max_n=0",
-                                              f"out={tmp_path / 'mj.json'}"])
+    bench = load("mujoco_throughput")
+    payload = bench.main(["quick=true", "tasks=[Hopper-v5]", "mjx_max_n=0", "window_max_n=1",
+                          f"out={tmp_path / 'mj.json'}"])
     assert [(r["task"], r["N"]) for r in payload["results"]] == [("Hopper-v5", 1), ("Hopper-v5", 4)]
     for row in payload["results"]:
         positive_rates(row["candidates"])
         assert row["mjx"] == "not timed: N > mjx_max_n=0"
-        assert {"ours", "ours fwd+bwd", "gymnasium", "mj_step (C)", "gymnasium SyncVectorEnv"} == set(row["candidates"])
+        window = {"ours fwd+bwd"} if row["N"] == 1 else set()
+        assert {"ours", "gymnasium", "mj_step (C)", "gymnasium SyncVectorEnv"} | window == set(row["candidates"])
+        assert ("window" in row) == (row["N"] == 4)
         assert set(row["ratios_cpu"]) == {f"ours / {name}" for name in row["candidates"] if name != "ours"}
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in payload["table"].splitlines()[2:]]
+    assert [row[3] != "-" for row in rows] == [True, False]  # the window's column: timed at N = 1 only
+    with pytest.raises(SystemExit, match="window_max_n=-1: expected an integer >= 0"):
+        bench.main(["window_max_n=-1"])
 
 
 def test_mjx_rollout_runs():
