@@ -16,7 +16,7 @@ mujoco = pytest.importorskip("mujoco")
 from torchrl_diffenvs.articulated import RigidBodyTree, forward_kinematics, load_mjcf  # noqa: E402
 from torchrl_diffenvs.articulated.box_box import box_box  # noqa: E402
 from torchrl_diffenvs.articulated.collision import collide  # noqa: E402
-from torchrl_diffenvs.articulated.primitives import PosedGeoms  # noqa: E402
+from torchrl_diffenvs.articulated.primitive_types import PosedGeoms  # noqa: E402
 from torchrl_diffenvs.articulated.spatial import quaternion_to_matrix  # noqa: E402
 
 from _mujoco_steps import gaps_to_mj_step  # noqa: E402

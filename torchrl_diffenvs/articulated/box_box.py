@@ -23,14 +23,10 @@ single-precision build's (``mjUSESINGLE``).
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 
+from .primitive_types import PairContacts, PosedGeoms
 from .spatial import _MINVAL
-
-if TYPE_CHECKING:  # primitives imports this module: PairContacts is imported where used
-    from .primitives import PairContacts, PosedGeoms
 
 __all__ = ["box_box", "K"]
 
@@ -229,8 +225,6 @@ def _face_contacts(size1, size2, pos1, pos2, mat1, mat2, pos21, pos12, rot, code
 def box_box(box1: PosedGeoms, box2: PosedGeoms, margin: torch.Tensor) -> PairContacts:
     """MuJoCo's ``mjc_BoxBox``: ``K = 8`` slots per pair, the contacts in MuJoCo's order first
     (one from an edge axis, up to eight from a face axis), ``found`` where MuJoCo has them."""
-    from .primitives import PairContacts  # noqa: F811 (see the imports above)
-
     pos1, mat1, pos2, mat2 = box1.pos, box1.rot, box2.pos, box2.rot
     size1, size2 = box1.size.expand_as(pos1), box2.size.expand_as(pos2)
     sepeps, pareps, sgneps, dupeps = _TOLERANCES.get(pos1.dtype, _SINGLE)

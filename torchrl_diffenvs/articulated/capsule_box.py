@@ -1,6 +1,6 @@
 """Capsule against box, as MuJoCo's ``mjc_CapsuleBox`` (``mjraw_CapsuleBox``,
 ``engine_collision_box.c``): up to two contacts, each a sphere of the capsule's radius on its axis
-against the box (``mjraw_SphereBox``, here [`sphere_box`][torchrl_diffenvs.articulated.primitives]).
+against the box (``mjraw_SphereBox``, here [`sphere_box`][torchrl_diffenvs.articulated.sphere_box]).
 
 In the box's frame MuJoCo scans, in its order and with its comparisons, the segment's features
 nearest the box: each end over a face (or inside the box), then the segment against each of the
@@ -23,14 +23,11 @@ gradients stay finite in the branches not taken.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 
+from .primitive_types import PairContacts, PosedGeoms
 from .spatial import _MINVAL
-
-if TYPE_CHECKING:  # primitives imports this module: its names are imported where used
-    from .primitives import PairContacts, PosedGeoms
+from .sphere_box import sphere_box
 
 __all__ = ["capsule_box"]
 
@@ -202,8 +199,6 @@ def _second(axis, halfaxis, pos, half, bestsegmentpos, bestboxpos, cltype, clfac
 def capsule_box(capsule: PosedGeoms, box: PosedGeoms, margin: torch.Tensor) -> PairContacts:
     """A capsule (geom 1) against a box (geom 2): ``PairContacts`` with two slots, MuJoCo's first and
     second contact (``found``: MuJoCo makes it, active where within the margin)."""
-    from .primitives import PairContacts, PosedGeoms, sphere_box  # noqa: F811 (primitives imports this module)
-
     radius, halflength, half = capsule.size[:, 0], capsule.size[:, 1], box.size
     pos = _mul_mat_t_vec3(box.rot, capsule.pos - box.pos)
     axis = _mul_mat_t_vec3(box.rot, capsule.rot[..., :, 2])

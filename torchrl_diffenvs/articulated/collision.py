@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 from .model import ArticulatedModel
-from .primitives import PRIMITIVES, PosedGeoms
+from .primitive_types import PosedGeoms
+from .primitives import PRIMITIVES
 from .spatial import _MINVAL, _cross, _dot
 
 __all__ = ["Contacts", "ContactSlots", "colliding_pairs", "contact_slots", "collide", "unsupported_pairs"]

@@ -1,8 +1,8 @@
 """Collision primitives: the contacts of one geom-type pair, as ``engine_collision_primitive.c``.
 
-Each primitive takes the two geoms posed in the world ([`PosedGeoms`][torchrl_diffenvs.articulated.primitives.PosedGeoms],
+Each primitive takes the two geoms posed in the world ([`PosedGeoms`][torchrl_diffenvs.articulated.primitive_types.PosedGeoms],
 ``P`` pairs of one type in a batch of ``N`` configurations) and the pairs' margins, and returns a
-fixed number ``K`` of contacts per pair ([`PairContacts`][torchrl_diffenvs.articulated.primitives.PairContacts]):
+fixed number ``K`` of contacts per pair ([`PairContacts`][torchrl_diffenvs.articulated.primitive_types.PairContacts]):
 plane-sphere and sphere-sphere one, plane-capsule two (one per end), plane-cylinder up to four
 (``mjc_PlaneCylinder``: the lowest rim point, the opposite end's and two more on the lowest disk),
 plane-box up to four (``mjc_PlaneBox``: the lower corners within the margin),
@@ -18,55 +18,21 @@ filter and the constraint rows pick it up from there.
 """
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
-
 import torch
 
 from .box_box import box_box
 from .capsule_box import capsule_box
 from .capsule_cylinder import capsule_cylinder as _capsule_cylinder
+from .primitive_types import PairContacts, PosedGeoms, Primitive, one_contact
 from .spatial import _MINVAL, _cross, _dot
+from .sphere_box import sphere_box
 
-__all__ = ["PRIMITIVES", "PairContacts", "PosedGeoms", "Primitive"]
-
-
-class PosedGeoms(NamedTuple):
-    """``P`` geoms of one type in ``N`` configurations: world ``pos [N, P, 3]`` and ``rot [N, P, 3, 3]``
-    (MuJoCo's geom_xpos, geom_xmat), and ``size [P, 3]`` (MuJoCo's geom_size)."""
-
-    pos: torch.Tensor
-    rot: torch.Tensor
-    size: torch.Tensor
-
-
-class PairContacts(NamedTuple):
-    """The ``K`` candidate contacts of each of ``P`` pairs: ``dist [N, P, K]`` (negative:
-    penetrating), ``pos [N, P, K, 3]`` (midway between the surfaces), ``normal [N, P, K, 3]`` (from
-    geom 1 to geom 2), ``tangent [N, P, K, 3]`` (the frame's first tangent before it is made
-    orthogonal; zero: MuJoCo's default), ``found [N, P, K]`` (the contact's points exist at any
-    distance: capsule-capsule's second exists only where the axes are parallel)."""
-
-    dist: torch.Tensor
-    pos: torch.Tensor
-    normal: torch.Tensor
-    tangent: torch.Tensor
-    found: torch.Tensor
-
-
-class Primitive(NamedTuple):
-    contacts: int  # K, the contacts each pair gives at most
-    collide: Callable[[PosedGeoms, PosedGeoms, torch.Tensor], PairContacts]  # (geom1, geom2, margin [P])
+__all__ = ["PRIMITIVES"]
 
 
 def _where(mask, a, b):
     """``torch.where`` of a per-contact ``mask [N, P]`` over values with or without a last axis of 3."""
     return torch.where(mask.reshape(*mask.shape, *[1] * (a.dim() - mask.dim())), a, b)
-
-
-def _one(dist, pos, normal) -> PairContacts:
-    """A primitive's single contact per pair, with MuJoCo's default tangent."""
-    return PairContacts(dist[..., None], pos[..., None, :], normal[..., None, :], torch.zeros_like(pos)[..., None, :],
-                        torch.ones_like(dist, dtype=torch.bool)[..., None])
 
 
 def _plane_sphere(plane_pos, plane_rot, centre, radius):
@@ -170,7 +136,7 @@ def _plane_cylinder(plane_pos, plane_rot, pos, rot, size):
 
 
 def plane_sphere(plane: PosedGeoms, sphere: PosedGeoms, margin: torch.Tensor) -> PairContacts:
-    return _one(*_plane_sphere(plane.pos, plane.rot, sphere.pos, sphere.size[:, 0]))
+    return one_contact(*_plane_sphere(plane.pos, plane.rot, sphere.pos, sphere.size[:, 0]))
 
 
 def plane_capsule(plane: PosedGeoms, capsule: PosedGeoms, margin: torch.Tensor) -> PairContacts:
@@ -216,7 +182,7 @@ def plane_box(plane: PosedGeoms, box: PosedGeoms, margin: torch.Tensor) -> PairC
 
 
 def sphere_sphere(sphere1: PosedGeoms, sphere2: PosedGeoms, margin: torch.Tensor) -> PairContacts:
-    return _one(*_sphere_sphere(sphere1.pos, sphere1.size[:, 0], sphere2.pos, sphere2.size[:, 0],
+    return one_contact(*_sphere_sphere(sphere1.pos, sphere1.size[:, 0], sphere2.pos, sphere2.size[:, 0],
                                 sphere1.rot[..., :, 2], sphere2.rot[..., :, 2]))
 
 
@@ -225,7 +191,7 @@ def sphere_capsule(sphere: PosedGeoms, capsule: PosedGeoms, margin: torch.Tensor
     axis = capsule.rot[..., :, 2]
     along = _dot(axis, sphere.pos - capsule.pos).clamp(-capsule.size[:, 1], capsule.size[:, 1])
     nearest = capsule.pos + along.unsqueeze(-1) * axis
-    return _one(*_sphere_sphere(sphere.pos, sphere.size[:, 0], nearest, capsule.size[:, 0], sphere.rot[..., :, 2], axis))
+    return one_contact(*_sphere_sphere(sphere.pos, sphere.size[:, 0], nearest, capsule.size[:, 0], sphere.rot[..., :, 2], axis))
 
 
 def sphere_cylinder(sphere: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tensor) -> PairContacts:
@@ -252,34 +218,7 @@ def sphere_cylinder(sphere: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tens
     cap = (cap_dist, sphere.pos - cap_normal * (sphere.size[:, 0] + cap_dist / 2).unsqueeze(-1), -cap_normal)
     rim = cylinder.pos + cap_normal * half.unsqueeze(-1) + across * (radius / spread).unsqueeze(-1)
     corner = _sphere_sphere(sphere.pos, sphere.size[:, 0], rim, torch.zeros_like(radius), z1, z2)
-    return _one(*(_where(beside, a, _where(over, b, c)) for a, b, c in zip(side, cap, corner)))
-
-
-def sphere_box(sphere: PosedGeoms, box: PosedGeoms, margin: torch.Tensor) -> PairContacts:
-    """MuJoCo's ``mjraw_SphereBox``: the sphere against the box's nearest point (its centre clamped
-    to the box, in the box's frame); a centre inside the box leaves through the nearest face (the
-    first in MuJoCo's order -x, +x, -y, +y, -z, +z where two are as near)."""
-    radius, half = sphere.size[:, 0], box.size  # [P], [P, 3]
-    centre = (box.rot.transpose(-1, -2) @ (sphere.pos - box.pos).unsqueeze(-1)).squeeze(-1)  # the box's frame
-    clamped = torch.maximum(torch.minimum(centre, half), -half)
-    towards = clamped - centre  # from the centre to the box
-    squared = _dot(towards, towards)
-    # clamped inside the root (a centre inside the box takes the face branch): see _sphere_sphere
-    length = torch.sqrt(squared.clamp_min(_MINVAL * _MINVAL))
-    inside = length <= _MINVAL
-    outward = towards / length.unsqueeze(-1)
-    outside_pos = (clamped + centre + outward * radius.unsqueeze(-1)) / 2
-    # inside: the nearest face; face 2k is at -half_k and 2k+1 at +half_k, the normal points inwards
-    faces = torch.stack([half + centre, half - centre], dim=-1).flatten(-2)  # [N, P, 6]: -x, +x, -y, ...
-    closest, face = faces.min(-1)
-    nearest = torch.zeros_like(faces).scatter(-1, face.unsqueeze(-1), 1.0).unflatten(-1, (3, 2))
-    nearest = nearest[..., 0] - nearest[..., 1]  # +1 towards a -face's axis, -1 for a +face
-    inside_pos = centre + nearest * ((radius - closest) / 2).unsqueeze(-1)
-    dist = torch.where(inside, -closest, length) - radius
-    local_pos = torch.where(inside.unsqueeze(-1), inside_pos, outside_pos)
-    local_normal = torch.where(inside.unsqueeze(-1), nearest, outward)
-    pos = box.pos + (box.rot @ local_pos.unsqueeze(-1)).squeeze(-1)
-    return _one(dist, pos, (box.rot @ local_normal.unsqueeze(-1)).squeeze(-1))
+    return one_contact(*(_where(beside, a, _where(over, b, c)) for a, b, c in zip(side, cap, corner)))
 
 
 def capsule_capsule(capsule1: PosedGeoms, capsule2: PosedGeoms, margin: torch.Tensor) -> PairContacts:
@@ -295,7 +234,7 @@ def capsule_capsule(capsule1: PosedGeoms, capsule2: PosedGeoms, margin: torch.Te
 
 
 def capsule_cylinder(capsule: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tensor) -> PairContacts:
-    return _one(*_capsule_cylinder(capsule.pos, capsule.size[:, 1, None] * capsule.rot[..., :, 2], capsule.size[:, 0],
+    return one_contact(*_capsule_cylinder(capsule.pos, capsule.size[:, 1, None] * capsule.rot[..., :, 2], capsule.size[:, 0],
                                    cylinder.pos, cylinder.rot, cylinder.size))
 
 

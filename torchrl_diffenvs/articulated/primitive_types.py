@@ -1,0 +1,44 @@
+"""The types every collision primitive takes and returns (see
+[`primitives`][torchrl_diffenvs.articulated.primitives]): the geoms of one type posed in the
+world, a pair's candidate contacts, and a table entry."""
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import torch
+
+__all__ = ["PairContacts", "PosedGeoms", "Primitive", "one_contact"]
+
+
+class PosedGeoms(NamedTuple):
+    """``P`` geoms of one type in ``N`` configurations: world ``pos [N, P, 3]`` and ``rot [N, P, 3, 3]``
+    (MuJoCo's geom_xpos, geom_xmat), and ``size [P, 3]`` (MuJoCo's geom_size)."""
+
+    pos: torch.Tensor
+    rot: torch.Tensor
+    size: torch.Tensor
+
+
+class PairContacts(NamedTuple):
+    """The ``K`` candidate contacts of each of ``P`` pairs: ``dist [N, P, K]`` (negative:
+    penetrating), ``pos [N, P, K, 3]`` (midway between the surfaces), ``normal [N, P, K, 3]`` (from
+    geom 1 to geom 2), ``tangent [N, P, K, 3]`` (the frame's first tangent before it is made
+    orthogonal; zero: MuJoCo's default), ``found [N, P, K]`` (the contact's points exist at any
+    distance: capsule-capsule's second exists only where the axes are parallel)."""
+
+    dist: torch.Tensor
+    pos: torch.Tensor
+    normal: torch.Tensor
+    tangent: torch.Tensor
+    found: torch.Tensor
+
+
+class Primitive(NamedTuple):
+    contacts: int  # K, the contacts each pair gives at most
+    collide: Callable[[PosedGeoms, PosedGeoms, torch.Tensor], PairContacts]  # (geom1, geom2, margin [P])
+
+
+def one_contact(dist, pos, normal) -> PairContacts:
+    """A primitive's single contact per pair, with MuJoCo's default tangent."""
+    return PairContacts(dist[..., None], pos[..., None, :], normal[..., None, :], torch.zeros_like(pos)[..., None, :],
+                        torch.ones_like(dist, dtype=torch.bool)[..., None])
