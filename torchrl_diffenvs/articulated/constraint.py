@@ -71,6 +71,11 @@ def _point_jacobian(tree: RigidBodyTree, kin: Kinematics, body: torch.Tensor, po
     return velocity * tree.body_dof_mask[body].unsqueeze(-1)
 
 
+def _rows_per_contact(condim: int) -> int:
+    """A contact's constraint rows: its pyramid's ``2 (condim - 1)`` edges, or the normal alone (condim 1)."""
+    return 2 * (condim - 1) if condim > 1 else 1
+
+
 def _angular_jacobian(tree: RigidBodyTree, kin: Kinematics, body1: torch.Tensor, body2: torch.Tensor) -> torch.Tensor:
     """``[N, S, nv, 3]`` each dof's angular velocity of ``body2 [S]`` relative to ``body1 [S]`` (world)."""
     angular = kin.motion[..., :3].unsqueeze(1)  # [N, 1, nv, 3]
@@ -129,7 +134,7 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
                                    slots.spin_friction[None, index, :condim - 3, None].expand(n, -1, -1, -1)], dim=2)
                 # MuJoCo's edge pairs J_n +- mu_d J_d, d = t1 t2 (then the normal's spin, the tangents' roll)
                 edges = torch.stack([normal + m * directions, normal - m * directions], dim=3).flatten(2, 3)
-                rows = 2 * (condim - 1)
+                rows = _rows_per_contact(condim)
                 # diagApprox of the first edge, R from it, and MuJoCo's common pyramid R = 2 mu^2 R / impratio
                 diag = translation[:, index] * (1 + mu[:, index] ** 2)
             else:
@@ -402,7 +407,7 @@ def contact_row_blocks(slots: ContactSlots, rows: ConstraintRows) -> list[tuple[
     for condim, index in (*slots.pyramids(), (1, slots.normal_index)):
         if index.numel():
             out.append((condim, index, start))
-            start += (2 * (condim - 1) if condim > 1 else 1) * index.numel()
+            start += _rows_per_contact(condim) * index.numel()
     return out
 
 
@@ -410,7 +415,7 @@ def contact_normal_forces(slots: ContactSlots, rows: ConstraintRows, force: torc
     """``[N, C]`` each contact slot's normal force (the sum of its pyramid's edge forces)."""
     out = force.new_zeros(force.shape[0], slots.count)
     for condim, index, start in contact_row_blocks(slots, rows):
-        edges = 2 * (condim - 1) if condim > 1 else 1
+        edges = _rows_per_contact(condim)
         out = out.index_copy(1, index, force[:, start:start + edges * index.numel()].unflatten(1, (-1, edges)).sum(-1))
     return out
 
