@@ -224,9 +224,12 @@ def main(argv=None) -> dict:
                          C.fmt_ratio(ratios["ours / gymnasium"]),
                          C.fmt_ratio(ratios["ours / MJX (CPU)"]) if "MJX (CPU)" in cands else "-"])
             print(f"# {task} N={n}: " + ", ".join(f"{k} {C.fmt_rate(rate(k))}" for k in cands), flush=True)
+            # the raw results so far, so that a run stopped part-way (memory, time) keeps its rows
+            C.write_json("mujoco_throughput", {"benchmark": "mujoco_throughput", "info": info, "results": results,
+                                               "complete": False}, args.out)
     table = C.print_table(["task", "N", "ours", "ours fwd+bwd", "gymnasium", "gym SyncVectorEnv", "mj_step (C)",
                            "MJX (CPU)", "ours / gymnasium", "ours / MJX"], rows)
-    payload = {"benchmark": "mujoco_throughput", "info": info, "results": results, "table": table}
+    payload = {"benchmark": "mujoco_throughput", "info": info, "results": results, "table": table, "complete": True}
     C.write_json("mujoco_throughput", payload, args.out)
     C.write_data(args, "mujoco_throughput", {"rates": C.data_table(
         "MuJoCo tasks: env-steps/s, one thread, from CPU time",
