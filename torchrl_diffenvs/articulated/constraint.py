@@ -63,12 +63,18 @@ class ConstraintRows(NamedTuple):
         return torch.where(self.exists, 1.0 / self.regulariser, torch.zeros_like(self.regulariser))
 
 
-def _point_jacobian(tree: RigidBodyTree, kin: Kinematics, body: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
-    """``[N, C, nv, 3]`` each dof's velocity of the material point ``point [N, C, 3]`` (world) of ``body [C]``."""
-    motion = kin.motion.unsqueeze(1)  # [N, 1, nv, 6]
-    lever = (point - kin.origin.unsqueeze(1)).unsqueeze(2)  # [N, C, 1, 3]
-    velocity = motion[..., 3:] + _cross(motion[..., :3].expand(*lever.shape[:2], -1, -1), lever.expand(-1, -1, tree.nv, -1))
-    return velocity * tree.body_dof_mask[body].unsqueeze(-1)
+def _contact_frame_jacobian(tree: RigidBodyTree, kin: Kinematics, body1: torch.Tensor, body2: torch.Tensor,
+                            point: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+    """``[N, C, 3, nv]`` each dof's velocity of the material point ``point [N, C, 3]`` (world) of
+    ``body2 [C]`` relative to that of ``body1 [C]``, along the rows of ``frame [N, C, 3, 3]``
+    (normal, tangents): MuJoCo's ``mj_jacDifPair`` rotated into the contact frame."""
+    lever = point - kin.origin.unsqueeze(1)  # [N, C, 3]
+    # a frame row n sees a dof (angular w, linear v at the origin) move the point at n . (v + w x lever)
+    # = (lever x n) . w + n . v: one [3, 6] row block per contact instead of the point's [nv, 3] velocities
+    rows = torch.cat([_cross(lever.unsqueeze(2).expand_as(frame), frame), frame], dim=-1)  # [N, C, 3, 6]
+    mask = tree.body_dof_mask[body2] - tree.body_dof_mask[body1]  # [C, nv]: +1 body2's dofs, -1 body1's
+    jacobian = (rows.flatten(1, 2) @ kin.motion.transpose(-1, -2)).unflatten(1, rows.shape[1:3])  # one bmm
+    return jacobian * mask.unsqueeze(-2)
 
 
 def _rows_per_contact(condim: int) -> int:
@@ -112,8 +118,7 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
     pyramid_rows = 0
     if slots.count:
         body1, body2 = slots.body[:, 0], slots.body[:, 1]
-        diff = _point_jacobian(tree, kin, body2, contacts.pos) - _point_jacobian(tree, kin, body1, contacts.pos)
-        in_frame = contacts.frame @ diff.transpose(-1, -2)  # [N, C, 3, nv]: normal, tangents
+        in_frame = _contact_frame_jacobian(tree, kin, body1, body2, contacts.pos, contacts.frame)  # [N, C, 3, nv]
         translation = body_weight[:, body1, 0] + body_weight[:, body2, 0]  # [N, C]
         mu = params["contact_friction"][:, slots.friction_slot]  # [N, C]
         # [N or 1, C, 2]: each env's time constant and damping ratio of its pair, or the model's

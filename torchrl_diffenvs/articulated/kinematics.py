@@ -67,62 +67,84 @@ def integrate_position(tree: RigidBodyTree, qpos: torch.Tensor, qvel: torch.Tens
     return torch.cat(parts, dim=-1)
 
 
+def _apply(rot: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``rot [N, g, 3, 3] @ v [g, 3]`` (or ``[N, g, 3]``) -> ``[N, g, 3]``."""
+    return (rot @ v.unsqueeze(-1)).squeeze(-1)
+
+
+def _coordinates(q: torch.Tensor, first: torch.Tensor, count: int) -> torch.Tensor:
+    """``[N, g, count]``: ``count`` coordinates of ``q [N, nq]`` from each of ``first [g]``."""
+    return q[:, first.unsqueeze(-1) + torch.arange(count, device=q.device)]
+
+
 def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
     """Body poses and dof motion subspaces for ``qpos [N, nq]`` (MuJoCo's mj_kinematics and cdof).
 
     A free joint sets its body's world pose from ``qpos`` (position, quaternion); its dofs move the
     body along the world axes and turn it about its own axes. A ball joint turns its body about its
-    anchor by the quaternion; its dofs turn it about the body's axes.
+    anchor by the quaternion; its dofs turn it about the body's axes. The bodies are posed a group
+    at a time (`RigidBodyTree.body_groups`: the same depth and joint kinds), parents first.
     """
     n = qpos.shape[0]
-    eye = torch.eye(3, dtype=qpos.dtype, device=qpos.device).expand(n, 3, 3)
-    rots, poss = [eye], [torch.zeros(n, 3, dtype=qpos.dtype, device=qpos.device)]
-    motion = [None] * tree.nv
-    turning = []  # (dof, world axis, world anchor) of the rotational dofs, placed once the origin is known
+    eye = torch.eye(3, dtype=qpos.dtype, device=qpos.device)
+    rots = eye.expand(n, tree.nbody, 3, 3)
+    poss = qpos.new_zeros(n, tree.nbody, 3)
+    linear_dofs, linear_axes = [], []  # slide dofs and a free joint's translation: (dofs [k], world axes [N, k, 3])
+    turning = []  # (dofs [k], world axes [N, k, 3], world anchors [N, k, 3]) of the rotational dofs
     q = qpos - tree.qpos0
     sin, cos = torch.sin(q), torch.cos(q)
-    for b in range(1, tree.nbody):
-        parent_rot, parent_pos = rots[tree.body_parent[b]], poss[tree.body_parent[b]]
-        rot = parent_rot @ tree.body_rot[b]
-        pos = parent_pos + parent_rot @ tree.body_pos[b]
-        for j in tree.body_joints[b]:
-            kind, qa, da = tree.joint_type[j], tree.joint_qposadr[j], tree.joint_dofadr[j]
+    for group in tree.body_groups:
+        parent_rot, parent_pos = rots[:, group.parents], poss[:, group.parents]
+        rot = parent_rot @ tree.body_rot[group.bodies]
+        pos = parent_pos + _apply(parent_rot, tree.body_pos[group.bodies])
+        for kind, joint, qa, da in zip(group.kinds, group.joints, group.qposadr, group.dofadr):
             if kind == "hinge":
-                axis = rot @ tree.joint_axis[j]
-                anchor = pos + rot @ tree.joint_pos[j]
-                k = tree.joint_skew[j]
-                local = eye + sin[:, qa, None, None] * k + (1 - cos[:, qa, None, None]) * (k @ k)  # Rodrigues
+                axis = _apply(rot, tree.joint_axis[joint])
+                anchor = pos + _apply(rot, tree.joint_pos[joint])
+                local = (eye + sin[:, qa, None, None] * tree.joint_skew[joint]
+                         + (1 - cos[:, qa, None, None]) * tree.joint_skew_squared[joint])  # Rodrigues
                 rot = rot @ local
-                pos = anchor - rot @ tree.joint_pos[j]
+                pos = anchor - _apply(rot, tree.joint_pos[joint])
                 turning.append((da, axis, anchor))
             elif kind == "slide":
-                axis = rot @ tree.joint_axis[j]
+                axis = _apply(rot, tree.joint_axis[joint])
                 pos = pos + axis * q[:, qa, None]
-                motion[da] = torch.cat([torch.zeros_like(axis), axis], dim=-1)
+                linear_dofs.append(da)
+                linear_axes.append(axis)
             else:
                 if kind == "free":  # the body's world pose is the joint's coordinates
-                    pos, rot = qpos[:, qa:qa + 3], quaternion_to_matrix(qpos[:, qa + 3:qa + 7])
+                    pos, rot = _coordinates(qpos, qa, 3), quaternion_to_matrix(_coordinates(qpos, qa + 3, 4))
                     anchor, turn = pos, da + 3
                     for i in range(3):
-                        linear = eye[:, :, i]
-                        motion[da + i] = torch.cat([torch.zeros_like(linear), linear], dim=-1)
+                        linear_dofs.append(da + i)
+                        linear_axes.append(eye[:, i].expand_as(pos))
                 else:
-                    anchor, turn = pos + rot @ tree.joint_pos[j], da
-                    rot = rot @ quaternion_to_matrix(qpos[:, qa:qa + 4])
-                    pos = anchor - rot @ tree.joint_pos[j]
+                    anchor, turn = pos + _apply(rot, tree.joint_pos[joint]), da
+                    rot = rot @ quaternion_to_matrix(_coordinates(qpos, qa, 4))
+                    pos = anchor - _apply(rot, tree.joint_pos[joint])
                 for i in range(3):
-                    turning.append((turn + i, rot[:, :, i], anchor))
-        rots.append(rot)
-        poss.append(pos)
+                    turning.append((turn + i, rot[..., :, i], anchor))
+        rots = rots.index_copy(1, group.bodies, rot)
+        poss = poss.index_copy(1, group.bodies, pos)
     # The spatial quantities are taken about the first body's position, not the world origin: a
     # runner 100 m down the track would otherwise carry lever arms of 100 m into every inertia
     # (m |c|^2 ~ 1e5) and contact moment, and float32 cancellation would leave the mass matrix
     # indefinite. Detached: the dynamics do not depend on the choice of reference point.
-    origin = (poss[1] if tree.nbody > 1 else poss[0]).detach()
-    for da, axis, anchor in turning:
-        motion[da] = torch.cat([axis, _cross(anchor - origin, axis)], dim=-1)
-    motion_t = torch.stack(motion, dim=1) if tree.nv else qpos.new_zeros(n, 0, 6)
-    return Kinematics(torch.stack(rots, dim=1), torch.stack(poss, dim=1), motion_t, origin)
+    origin = (poss[:, 1] if tree.nbody > 1 else poss[:, 0]).detach()
+    dofs, rows = [], []
+    if turning:
+        axis = torch.cat([a for _, a, _ in turning], dim=1)
+        anchor = torch.cat([p for _, _, p in turning], dim=1)
+        dofs += [d for d, _, _ in turning]
+        rows.append(torch.cat([axis, _cross(anchor - origin.unsqueeze(1), axis)], dim=-1))
+    if linear_axes:
+        axis = torch.cat(linear_axes, dim=1)
+        dofs += linear_dofs
+        rows.append(torch.cat([torch.zeros_like(axis), axis], dim=-1))
+    motion = qpos.new_zeros(n, tree.nv, 6)
+    if dofs:
+        motion = motion.index_copy(1, torch.cat(dofs), torch.cat(rows, dim=1))
+    return Kinematics(rots, poss, motion, origin)
 
 
 def site_positions(tree: RigidBodyTree, kin: Kinematics, sites) -> torch.Tensor:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -13,9 +14,40 @@ from .collision import ContactSlots, _weld, colliding_pairs, contact_slots, unsu
 from .contact_gradient import ContactGradient
 from .model import ArticulatedModel
 
-__all__ = ['RigidBodyTree', 'default_params', 'CONTACT_MODELS']
+__all__ = ['BodyGroup', 'RigidBodyTree', 'default_params', 'CONTACT_MODELS']
 
 CONTACT_MODELS = ("mujoco", "smooth")
+
+
+class BodyGroup(NamedTuple):
+    """Bodies at the same depth of the tree whose joints are of the same kinds in the same order:
+    forward kinematics poses a group with one batched op per stage instead of one per body."""
+
+    bodies: torch.Tensor  # [g] long
+    parents: torch.Tensor  # [g] long
+    kinds: tuple[str, ...]  # the kind of each body's k-th joint ("hinge" | "slide" | "ball" | "free")
+    joints: tuple[torch.Tensor, ...]  # per kind, [g] long: each body's k-th joint
+    qposadr: tuple[torch.Tensor, ...]  # per kind, [g] long: its first coordinate
+    dofadr: tuple[torch.Tensor, ...]  # per kind, [g] long: its first dof
+
+
+def _body_groups(model: ArticulatedModel, body_joints: list[list[int]], device) -> list[BodyGroup]:
+    """The bodies (world excluded) grouped by depth and joint kinds, parents' groups first."""
+    depth = [0] * model.nbody
+    for b in range(1, model.nbody):  # MuJoCo orders parents before children
+        depth[b] = depth[model.body_parent[b]] + 1
+    keys: dict[tuple, list[int]] = {}
+    for b in range(1, model.nbody):
+        keys.setdefault((depth[b], tuple(model.joint_type[j] for j in body_joints[b])), []).append(b)
+    idx = lambda a: torch.as_tensor(np.asarray(a, dtype=np.int64), device=device)  # noqa: E731
+    groups = []
+    for (_, kinds), bodies in sorted(keys.items(), key=lambda item: (item[0][0], min(item[1]))):
+        joints = [[body_joints[b][k] for b in bodies] for k in range(len(kinds))]
+        groups.append(BodyGroup(idx(bodies), idx([model.body_parent[b] for b in bodies]), kinds,
+                                tuple(idx(js) for js in joints),
+                                tuple(idx([model.joint_qposadr[j] for j in js]) for js in joints),
+                                tuple(idx([model.joint_dofadr[j] for j in js]) for js in joints)))
+    return groups
 
 
 @dataclass
@@ -37,6 +69,8 @@ class RigidBodyTree:
     joint_axis: torch.Tensor  # [njnt, 3] body frame
     joint_pos: torch.Tensor  # [njnt, 3]
     joint_skew: torch.Tensor  # [njnt, 3, 3] skew(axis), for Rodrigues
+    joint_skew_squared: torch.Tensor  # [njnt, 3, 3] skew(axis)^2
+    body_groups: list[BodyGroup]  # the bodies in the groups forward kinematics poses together
     qpos0: torch.Tensor  # [nq]
     qpos_spring: torch.Tensor  # [nq]
     dof_qpos: torch.Tensor  # [nv] long: the coordinate of each hinge/slide dof (springs, limits); 0 elsewhere
@@ -261,7 +295,8 @@ class RigidBodyTree:
             body_rot=t(model.body_rot), body_com=t(model.body_com), body_joints=body_joints,
             joint_type=list(model.joint_type), joint_qposadr=[int(a) for a in model.joint_qposadr],
             joint_dofadr=[int(a) for a in model.joint_dofadr], joint_axis=t(axis).reshape(njnt, 3),
-            joint_pos=t(model.joint_pos).reshape(njnt, 3), joint_skew=t(skew), qpos0=t(model.qpos0),
+            joint_pos=t(model.joint_pos).reshape(njnt, 3), joint_skew=t(skew),
+            joint_skew_squared=t(skew @ skew), body_groups=_body_groups(model, body_joints, device), qpos0=t(model.qpos0),
             qpos_spring=t(model.qpos_spring), dof_qpos=idx(dof_qpos), dof_has_spring=t(dof_has_spring),
             position_segments=segments, body_dof_mask=t(moves), dof_pre_mask=t(pre),
             dof_support=t(moves[dof_body].T.reshape(nv, nv)),
