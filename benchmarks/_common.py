@@ -102,15 +102,15 @@ def versions() -> dict:
 def portable_args(args: Sequence[str]) -> list[str]:
     """The arguments of a command as anyone can rerun them from the repository root: paths inside
     the repository relative to it, ``data=`` the data file's name (``docs/data/<name>.json``),
-    ``out=`` dropped when it names a scratch file outside the repository (the data file holds the
-    tables the docs show)."""
+    ``out=`` and ``resume=`` dropped when they name a scratch file outside the repository (the data
+    file holds the tables the docs show)."""
     root = str(REPO_ROOT) + os.sep
     words = []
     for word in args:
         key, eq, value = word.partition("=")
         if eq and key == "data" and (value.endswith(".json") or "/" in value):
             word = f"data={Path(value).stem}"
-        elif eq and key == "out" and os.path.isabs(value) and not value.startswith(root):
+        elif eq and key in ("out", "resume") and os.path.isabs(value) and not value.startswith(root):
             continue
         words.append(word.replace(root, ""))
     return words

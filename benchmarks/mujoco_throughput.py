@@ -26,11 +26,13 @@ The target of issue 9: ``ours`` at N = 1024 above one gymnasium env.
 
     OMP_NUM_THREADS=1 python benchmarks/mujoco_throughput.py            # several minutes
     python benchmarks/mujoco_throughput.py quick=true                     # smoke run, seconds
+    python benchmarks/mujoco_throughput.py out=raw.json resume=raw.json   # go on where a run stopped
 
 Needs ``pip install "torchrl_diffenvs[mujoco]"`` (gymnasium's MuJoCo envs).
 """
 from __future__ import annotations
 
+import json
 import os
 import sys
 import warnings
@@ -183,6 +185,22 @@ class MuJoCoThroughputSettings(C.BenchmarkSettings):
                              else f"expected an integer in [0, {MJX_MAX_N}]")
     # the BPTT window (``ours fwd+bwd``) is timed up to this N (its memory grows with N; 0: never)
     window_max_n: int = checked(WINDOW_MAX_N, nonnegative_int)
+    # the raw JSON (``out=``) of an earlier run with the same settings that stopped part-way: its
+    # (task, N) rows are kept and not measured again
+    resume: str | None = None
+
+
+def _rate(cands: dict, name: str):
+    return cands[name]["env_steps_per_s_cpu"]["median"] if name in cands else None
+
+
+def _row(result: dict) -> list:
+    """The table's row of one (task, N) result."""
+    cands, ratios = result["candidates"], result["ratios_cpu"]
+    return [result["task"], result["N"], *(C.fmt_rate(_rate(cands, name)) for name in (
+                "ours", "ours fwd+bwd", "gymnasium", "gymnasium SyncVectorEnv", "mj_step (C)", "MJX (CPU)")),
+            C.fmt_ratio(ratios["ours / gymnasium"]),
+            C.fmt_ratio(ratios["ours / MJX (CPU)"]) if "MJX (CPU)" in cands else "-"]
 
 
 def main(argv=None) -> dict:
@@ -198,8 +216,19 @@ def main(argv=None) -> dict:
     info = C.versions()
     C.print_header("MuJoCo-model tasks: env-steps/s (CPU time)", info)
     results, rows = [], []
+    earlier = {}
+    if args.resume:
+        if not Path(args.resume).is_file():
+            raise SystemExit(f"resume={args.resume!r}: no such file; expected the raw JSON an earlier run wrote "
+                             "with out=")
+        earlier = {(r["task"], r["N"]): r for r in json.loads(Path(args.resume).read_text())["results"]}
     for task in args.tasks:
         for n in sizes:
+            if (task, n) in earlier:
+                results.append(earlier[(task, n)])
+                rows.append(_row(earlier[(task, n)]))
+                print(f"# {task} N={n}: kept from {args.resume}", flush=True)
+                continue
             steps = 2 if args.quick else max(2, min(50, 20000 // n))
             fns, counts, notes = candidates(task, n, steps, gym_steps, sync_max=4 if args.quick else 64,
                                             mjx_max_n=args.mjx_max_n, window_max_n=args.window_max_n)
@@ -217,13 +246,8 @@ def main(argv=None) -> dict:
                       for name in fns if name != "ours"}
             results.append({"task": task, "N": n, "T": steps, "H": WINDOW, "candidates": cands, "ratios_cpu": ratios,
                             **notes})
-            rate = lambda name: cands[name]["env_steps_per_s_cpu"]["median"] if name in cands else None  # noqa: E731
-            rows.append([task, n, C.fmt_rate(rate("ours")), C.fmt_rate(rate("ours fwd+bwd")),
-                         C.fmt_rate(rate("gymnasium")), C.fmt_rate(rate("gymnasium SyncVectorEnv")),
-                         C.fmt_rate(rate("mj_step (C)")), C.fmt_rate(rate("MJX (CPU)")),
-                         C.fmt_ratio(ratios["ours / gymnasium"]),
-                         C.fmt_ratio(ratios["ours / MJX (CPU)"]) if "MJX (CPU)" in cands else "-"])
-            print(f"# {task} N={n}: " + ", ".join(f"{k} {C.fmt_rate(rate(k))}" for k in cands), flush=True)
+            rows.append(_row(results[-1]))
+            print(f"# {task} N={n}: " + ", ".join(f"{k} {C.fmt_rate(_rate(cands, k))}" for k in cands), flush=True)
             # the raw results so far, so that a run stopped part-way (memory, time) keeps its rows
             C.write_json("mujoco_throughput", {"benchmark": "mujoco_throughput", "info": info, "results": results,
                                                "complete": False}, args.out)

@@ -382,6 +382,16 @@ def test_mujoco_throughput_quick(tmp_path):
     assert [row[3] != "-" for row in rows] == [True, False]  # the window's column: timed at N = 1 only
     with pytest.raises(SystemExit, match="window_max_n=-1: expected an integer >= 0"):
         bench.main(["window_max_n=-1"])
+    # a run stopped after its first row goes on from its raw file: that row kept as it was, the rest measured
+    stopped = tmp_path / "stopped.json"
+    stopped.write_text(json.dumps({"results": payload["results"][:1]}))
+    resumed = bench.main(["quick=true", "tasks=[Hopper-v5]", "mjx_max_n=0", "window_max_n=1", f"resume={stopped}",
+                          f"out={tmp_path / 'resumed.json'}"])
+    assert resumed["results"][0] == payload["results"][0]
+    assert resumed["results"][1]["N"] == 4 and resumed["results"][1] != payload["results"][1]  # timed again
+    assert resumed["table"].splitlines()[2] == payload["table"].splitlines()[2]
+    with pytest.raises(SystemExit, match="no such file; expected the raw JSON an earlier run wrote"):
+        bench.main(["quick=true", f"resume={tmp_path / 'missing.json'}"])
 
 
 def test_mjx_rollout_runs():
