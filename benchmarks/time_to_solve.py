@@ -129,6 +129,10 @@ def reached(times: list[float]) -> str:
     return f"{sum(math.isfinite(t) for t in times)}/{len(times)}"
 
 
+# the runs whose final return sets an env's levels: PPO on this library's env, else on Gymnasium's
+REFERENCES = ("ppo", "ppo:gymnasium")
+
+
 def run_label(run: dict) -> str:
     """``loss`` or ``loss:variant``: the rows of the summary."""
     return f"{run['loss']}:{run['variant']}" if run.get("variant") else run["loss"]
@@ -154,7 +158,9 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
     Levels: PPO's final return itself (the median over seeds of its last evaluation), and 95 % /
     90 % of PPO's final improvement over the random policy (``random + f (ppo_final - random)``):
     near a task's ceiling, learners that all "solve" it end a fraction of a point apart, and the
-    exact final level alone would call that "never".
+    exact final level alone would call that "never". PPO is the ``ppo`` runs of the env, or where
+    it has none its ``ppo:gymnasium`` runs (PPO on Gymnasium's own env); each row names it under
+    ``reference``.
     """
     summary = []
     labels = list(dict.fromkeys(run_label(r) for r in runs if r["loss"] in losses))
@@ -162,15 +168,16 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
         by_loss = {label: [r for r in runs if r["env"] == env and run_label(r) == label] for label in labels}
         by_loss = {label: group for label, group in by_loss.items() if group}
         levels = {}
-        if by_loss.get("ppo"):
-            ppo_final = statistics.median(r["eval/return"] for r in by_loss["ppo"])
-            random_return = statistics.median(r["eval/random_return"] for r in by_loss["ppo"])
+        reference = next((label for label in REFERENCES if by_loss.get(label)), None)
+        if reference is not None:
+            ppo_final = statistics.median(r["eval/return"] for r in by_loss[reference])
+            random_return = statistics.median(r["eval/random_return"] for r in by_loss[reference])
             for fraction in LEVELS:
                 level = random_return + fraction * (ppo_final - random_return)
-                ppo_time = statistics.median(first_time_at(r["curve"], level) for r in by_loss["ppo"])
+                ppo_time = statistics.median(first_time_at(r["curve"], level) for r in by_loss[reference])
                 levels[fraction] = (level, ppo_time)
         for loss, group in by_loss.items():
-            row = {"env": env, "loss": loss, "seeds": [r["seed"] for r in group],
+            row = {"env": env, "loss": loss, "seeds": [r["seed"] for r in group], "reference": reference,
                    "final_return": C.spread([r["eval/return"] for r in group]),
                    "wall_s": C.spread([r["wall_time_s"] for r in group]),
                    "env_steps": C.spread([r["env_steps"] for r in group]),
@@ -222,8 +229,11 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
     first = next((r for r in summary if r["levels"]), None)
     ppo_levels = LEVELS if first else ()  # PPO-relative levels need a PPO run
     # one env: the levels' values in the header; several: each env has its own (see each row's env's table)
-    level_names = [f"{'PPO final' if f == 1.0 else f'{f:.0%} of PPO'}"
-                   + (f" = {C.fmt_return(first['levels'][f]['return'])}" if len(envs) == 1 else " (the env's own)")
+    ppo = "PPO" if first is None or first["reference"] == "ppo" else "PPO on Gymnasium's env"
+    own = " (the env's own" + ("; on Gymnasium's env where it has no PPO run here)"
+                               if any(r["reference"] == "ppo:gymnasium" for r in summary) else ")")
+    level_names = [f"{f'{ppo} final' if f == 1.0 else f'{f:.0%} of {ppo}'}"
+                   + (f" = {C.fmt_return(first['levels'][f]['return'])}" if len(envs) == 1 else own)
                    for f in ppo_levels]
     in_mujoco = any("mujoco_return" in r for r in summary)
 

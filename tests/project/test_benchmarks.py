@@ -331,6 +331,31 @@ def test_time_to_solve_merges_result_files(tmp_path):
         tts.main([f"summarise=[{tmp_path / 'missing.json'}]"])
 
 
+def test_time_to_solve_takes_ppo_on_gymnasiums_env_where_an_env_has_no_ppo_run_here():
+    """An env raced against PPO on Gymnasium's own env only (``ppo:gymnasium``): its levels are
+    that PPO's (final median 100, reached never, at 110 s and at 120 s: 120 s, by hand); an env
+    with a PPO run here keeps it; the headers say which PPO."""
+    tts = load("time_to_solve")
+
+    def run(env, loss, seed, curve, variant=""):
+        return {**_run(env, loss, seed, curve), "variant": variant}
+
+    gym_ppo = [[(0, 0, 0), (100_000, 60, 90)], [(0, 0, 0), (100_000, 110, 100)], [(0, 0, 0), (100_000, 120, 110)]]
+    runs = [run("w", "ppo", s, c, "gymnasium") for s, c in enumerate(gym_ppo)]
+    runs.append(run("w", "ahac", 0, [(0, 0, 0), (20_000, 11, 105), (40_000, 22, 50)]))
+    summary, table = tts.summarise(runs, ["w"], ["ppo", "ahac"])
+    rows = {r["loss"]: r for r in summary}
+    assert rows["ahac"]["reference"] == "ppo:gymnasium"
+    level = rows["ahac"]["levels"][1.0]
+    assert level["return"] == 100 and level["time_s"] == 11 and level["env_steps"] == 20_000
+    assert level["speedup_vs_ppo"] == pytest.approx(120 / 11)
+    assert "PPO on Gymnasium's env final = 100" in table
+    here = [run("h", "ppo", 0, [(0, 0, 0), (100_000, 50, 40)])]
+    summary, table = tts.summarise(runs + here, ["h", "w"], ["ppo", "ahac"])
+    assert {r["env"]: r["reference"] for r in summary} == {"h": "ppo", "w": "ppo:gymnasium"}
+    assert "(the env's own; on Gymnasium's env where it has no PPO run here)" in table
+
+
 def test_time_to_solve_env_levels_apply_to_their_env_only(tmp_path):
     """``env_levels=[ENV=RETURN]``: a fixed level in that env's table only (another race's PPO
     final when PPO's runs are not among the files); wall time and env steps to it by hand."""
