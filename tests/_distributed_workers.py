@@ -65,28 +65,37 @@ def without_action_noise() -> None:
 
 
 # ---------------------------------------------------------------------- workers
-def train_rank(rank, size, store, out, loss, num_envs, iterations, settings):
-    """``iterations`` training iterations on this rank's envs; saves the learner's state."""
+def train_rank(rank, size, store, out, cases, num_envs, iterations):
+    """For each ``{loss: settings}`` of ``cases`` in turn (one process group: starting the
+    processes costs more than the training), ``iterations`` training iterations on this rank's
+    envs; saves ``{loss: the learner's state}``."""
     world = join(rank, size, store)
-    learner = build(loss, num_envs, ENV_SEEDS[rank], world, **settings)
-    torch.manual_seed(100 + rank)  # each rank's own streams (minibatch order)
-    for _ in range(iterations):
-        learner.train_iteration()
-    torch.save(learner.state_dict(), Path(out) / f"rank{rank}.pt")
+    states = {}
+    for loss, settings in cases.items():
+        learner = build(loss, num_envs, ENV_SEEDS[rank], world, **settings)
+        torch.manual_seed(100 + rank)  # each rank's own streams (minibatch order)
+        for _ in range(iterations):
+            learner.train_iteration()
+        states[loss] = learner.state_dict()
+    torch.save(states, Path(out) / f"rank{rank}.pt")
     dist.destroy_process_group()
 
 
-def gradient_rank(rank, size, store, out, loss, batch_size, settings):
-    """One ``gradient_step`` on this rank's share of a fixed batch; saves the gradients it stepped
-    with and the parameters after the step."""
+def gradient_rank(rank, size, store, out, cases, batch_size):
+    """For each ``{loss: settings}`` of ``cases`` in turn, one ``gradient_step`` on this rank's
+    share of a fixed batch; saves ``{loss: the gradients it stepped with, the parameters after
+    the step}``."""
     without_action_noise()
     world = join(rank, size, store)
-    learner = build(loss, 4, ENV_SEEDS[rank], world, **settings)
-    batch = fixed_batch(learner, loss, size * batch_size)
-    params = step_parameters(learner, loss)
-    stats = learner.gradient_step(batch[rank * batch_size:(rank + 1) * batch_size])
-    torch.save({"grads": [p.grad.clone() for p in params], "params": [p.detach().clone() for p in params],
-                "stats": stats, "lr": lr_of(learner, loss)}, Path(out) / f"rank{rank}.pt")
+    results = {}
+    for loss, settings in cases.items():
+        learner = build(loss, 4, ENV_SEEDS[rank], world, **settings)
+        batch = fixed_batch(learner, loss, size * batch_size)
+        params = step_parameters(learner, loss)
+        stats = learner.gradient_step(batch[rank * batch_size:(rank + 1) * batch_size])
+        results[loss] = {"grads": [p.grad.clone() for p in params], "params": [p.detach().clone() for p in params],
+                         "stats": stats, "lr": lr_of(learner, loss)}
+    torch.save(results, Path(out) / f"rank{rank}.pt")
     dist.destroy_process_group()
 
 

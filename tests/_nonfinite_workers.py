@@ -19,19 +19,22 @@ SETTINGS = {
 }
 
 
-def train_with_a_nan_env_on_rank_1(rank, size, store, out, loss, iterations):
-    """Rank 1's env 2 has a NaN mass; every rank trains ``iterations`` iterations and saves its
-    metrics and actor weights (which data parallelism keeps identical on every rank)."""
+def train_with_a_nan_env_on_rank_1(rank, size, store, out, losses, iterations):
+    """Rank 1's env 2 has a NaN mass; every rank trains each loss of ``losses`` in turn (one
+    process group: starting the processes costs more than the training) for ``iterations``
+    iterations and saves its metrics and actor weights (which data parallelism keeps identical
+    on every rank) to ``rank<r>_<loss>.pt``."""
     world = join(rank, size, store)
-    torch.manual_seed(0)  # the same networks on every rank
-    env = make_env("pendulum", num_envs=4, seed=ENV_SEEDS[rank])
-    if rank == 1:
-        env.params["mass"][2] = float("nan")
-    learner = make_learner(loss_config(loss, **SETTINGS[loss]), env, 10**6, world)
-    torch.manual_seed(100 + rank)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        metrics = [learner.train_iteration() for _ in range(iterations)]
-    torch.save({"metrics": metrics, "actor": [p.detach().clone() for p in learner.actor.parameters()]},
-               Path(out) / f"rank{rank}.pt")
+    for loss in losses:
+        torch.manual_seed(0)  # the same networks on every rank
+        env = make_env("pendulum", num_envs=4, seed=ENV_SEEDS[rank])
+        if rank == 1:
+            env.params["mass"][2] = float("nan")
+        learner = make_learner(loss_config(loss, **SETTINGS[loss]), env, 10**6, world)
+        torch.manual_seed(100 + rank)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            metrics = [learner.train_iteration() for _ in range(iterations)]
+        torch.save({"metrics": metrics, "actor": [p.detach().clone() for p in learner.actor.parameters()]},
+                   Path(out) / f"rank{rank}_{loss}.pt")
     dist.destroy_process_group()

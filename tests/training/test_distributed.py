@@ -83,33 +83,33 @@ EXACT = {
 }
 
 
-@pytest.mark.parametrize("loss", sorted(EXACT))
-def test_two_ranks_take_the_steps_of_one_process_with_all_their_envs(loss, tmp_path):
-    """Deterministic policies (no action noise to split between processes) and windows shorter
-    than an episode (no resets drawn from the envs' generators): the only randomness is each
-    rank's start states, which the reference is given."""
-    n, iterations, settings = 4, 3, EXACT[loss]
-    ranks = spawn(workers.train_rank, tmp_path, loss, n, iterations, settings)
+def test_two_ranks_take_the_steps_of_one_process_with_all_their_envs(tmp_path):
+    """BPTT and SHAC (in one pair of processes), deterministic policies (no action noise to split
+    between processes) and windows shorter than an episode (no resets drawn from the envs'
+    generators): the only randomness is each rank's start states, which the reference is given."""
+    n, iterations = 4, 3
+    ranks = spawn(workers.train_rank, tmp_path, EXACT, n, iterations)
+    for loss, settings in EXACT.items():
+        reference = workers.build(loss, 2 * n, 0, **settings)
+        starts = [workers.make_env("pendulum", num_envs=n, seed=seed, dtype=torch.float64).reset()
+                  for seed in workers.ENV_SEEDS]
+        reference.collector.reset(torch.cat(starts, 0), set_state=True)
+        for _ in range(iterations):
+            reference.train_iteration()
+        expected = reference.state_dict()
+        states = [rank[loss] for rank in ranks]
 
-    reference = workers.build(loss, 2 * n, 0, **settings)
-    starts = [workers.make_env("pendulum", num_envs=n, seed=seed, dtype=torch.float64).reset()
-              for seed in workers.ENV_SEEDS]
-    reference.collector.reset(torch.cat(starts, 0), set_state=True)
-    for _ in range(iterations):
-        reference.train_iteration()
-    expected = reference.state_dict()
-
-    networks = ("actor", "actor_optimizer") if loss == "bptt" else ("loss", "optimizers")
-    for key in networks:
-        assert_same_tree(ranks[0][key], ranks[1][key])  # identical on every rank, bit for bit
-        assert_same_tree(ranks[0][key], expected[key], rtol=1e-9, atol=1e-12)
-    # the observation normaliser saw every rank's observations
-    counts = {k: v.item() for k, v in ranks[0][networks[0]].items() if k.endswith("count")}
-    assert counts and 2 * n * settings["horizon"] * iterations in counts.values(), counts
-    # each rank carries its own envs on: the reference's are theirs, side by side
-    carried = torch.cat([torch.as_tensor(r["collector"]["carried"]["state"]["th"]) for r in ranks])
-    torch.testing.assert_close(carried, torch.as_tensor(expected["collector"]["carried"]["state"]["th"]),
-                               rtol=1e-9, atol=1e-12)
+        networks = ("actor", "actor_optimizer") if loss == "bptt" else ("loss", "optimizers")
+        for key in networks:
+            assert_same_tree(states[0][key], states[1][key])  # identical on every rank, bit for bit
+            assert_same_tree(states[0][key], expected[key], rtol=1e-9, atol=1e-12)
+        # the observation normaliser saw every rank's observations
+        counts = {k: v.item() for k, v in states[0][networks[0]].items() if k.endswith("count")}
+        assert counts and 2 * n * settings["horizon"] * iterations in counts.values(), (loss, counts)
+        # each rank carries its own envs on: the reference's are theirs, side by side
+        carried = torch.cat([torch.as_tensor(s["collector"]["carried"]["state"]["th"]) for s in states])
+        torch.testing.assert_close(carried, torch.as_tensor(expected["collector"]["carried"]["state"]["th"]),
+                                   rtol=1e-9, atol=1e-12)
 
 
 GRADIENT_CASES = {
@@ -119,28 +119,31 @@ GRADIENT_CASES = {
 }
 
 
-@pytest.mark.parametrize("loss", sorted(GRADIENT_CASES))
-def test_the_averaged_gradient_is_the_gradient_of_the_concatenated_batch(loss, tmp_path, monkeypatch):
-    batch_size, settings = 8, GRADIENT_CASES[loss]
-    ranks = spawn(workers.gradient_rank, tmp_path, loss, batch_size, settings)
+def test_the_averaged_gradient_is_the_gradient_of_the_concatenated_batch(tmp_path, monkeypatch):
+    """PPO and SAC (in one pair of processes): each rank's step on its half of a fixed batch takes
+    the gradient and the step of one process on the whole batch."""
+    batch_size = 8
+    ranks = spawn(workers.gradient_rank, tmp_path, GRADIENT_CASES, batch_size)
 
     monkeypatch.setattr(torch.distributions.normal, "_standard_normal", lambda shape, dtype, device:
                         torch.zeros(shape, dtype=dtype, device=device))
     import torchrl_diffenvs.modules.actors
     monkeypatch.setattr(torchrl_diffenvs.modules.actors, "standard_normal", lambda shape, dtype, device:
                         torch.zeros(shape, dtype=dtype, device=device))
-    reference = workers.build(loss, 4, 0, **settings)
-    params = workers.step_parameters(reference, loss)
-    reference.gradient_step(workers.fixed_batch(reference, loss, 2 * batch_size))
+    for loss, settings in GRADIENT_CASES.items():
+        reference = workers.build(loss, 4, 0, **settings)
+        params = workers.step_parameters(reference, loss)
+        reference.gradient_step(workers.fixed_batch(reference, loss, 2 * batch_size))
 
-    expected_grads = [p.grad for p in params]
-    assert any(g.abs().max() > 1e-3 for g in expected_grads)  # a gradient that says something
-    for rank in ranks:
-        assert_same_tree(rank["grads"], ranks[0]["grads"])
-        assert_same_tree(rank["params"], ranks[0]["params"])
-        assert_same_tree(rank["grads"], expected_grads, rtol=1e-9, atol=1e-12)
-        assert_same_tree(rank["params"], [p.detach() for p in params], rtol=1e-9, atol=1e-12)
-        assert rank["lr"] == pytest.approx(workers.lr_of(reference, loss), rel=1e-12)
+        expected_grads = [p.grad for p in params]
+        assert any(g.abs().max() > 1e-3 for g in expected_grads), loss  # a gradient that says something
+        results = [rank[loss] for rank in ranks]
+        for result in results:
+            assert_same_tree(result["grads"], results[0]["grads"])
+            assert_same_tree(result["params"], results[0]["params"])
+            assert_same_tree(result["grads"], expected_grads, rtol=1e-9, atol=1e-12)
+            assert_same_tree(result["params"], [p.detach() for p in params], rtol=1e-9, atol=1e-12)
+            assert result["lr"] == pytest.approx(workers.lr_of(reference, loss), rel=1e-12)
 
 
 def test_a_lost_rank_fails_the_others_with_a_clear_error(tmp_path):
