@@ -229,7 +229,8 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
     first = next((r for r in summary if r["levels"]), None)
     ppo_levels = LEVELS if first else ()  # PPO-relative levels need a PPO run
     # one env: the levels' values in the header; several: each env has its own (see each row's env's table)
-    ppo = "PPO" if first is None or first["reference"] == "ppo" else "PPO on Gymnasium's env"
+    # several envs: each names its own PPO in ``own``; one env: the header says which PPO
+    ppo = "PPO on Gymnasium's env" if len(envs) == 1 and first and first["reference"] != "ppo" else "PPO"
     own = " (the env's own" + ("; on Gymnasium's env where it has no PPO run here)"
                                if any(r["reference"] == "ppo:gymnasium" for r in summary) else ")")
     level_names = [f"{f'{ppo} final' if f == 1.0 else f'{f:.0%} of {ppo}'}"
