@@ -93,6 +93,7 @@ def versions() -> dict:
         "numpy": numpy.__version__,
         "torch_threads": torch.get_num_threads(),
         "cpu_count": os.cpu_count(),
+        "cpu_model": cpu_model(),
         "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "platform": platform.platform(),
         "command": " ".join([Path(sys.argv[0]).name, *portable_args(sys.argv[1:])]),
@@ -193,19 +194,24 @@ def print_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str
     return text
 
 
-def machine_name(device: str = "cpu", threads: int | None = None) -> str:
-    """The machine in words, for the data files: CPU model and count, architecture, torch threads
-    (this process's, or ``threads``: those of the runs a summary reads) and, on CUDA, the GPU."""
-    import torch
-
-    model = platform.processor() or platform.machine()
+def cpu_model() -> str:
+    """This machine's CPU model (``/proc/cpuinfo``'s model name; elsewhere ``platform.processor()``)."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
+                return line.split(":", 1)[1].strip()
     except OSError:  # not Linux: platform.processor() it is
         pass
+    return platform.processor() or platform.machine()
+
+
+def machine_name(device: str = "cpu", threads: int | None = None, models: Sequence[str] = ()) -> str:
+    """The machine in words, for the data files: CPU model and count, architecture, torch threads
+    (this process's, or ``threads``: those of the runs a summary reads) and, on CUDA, the GPU.
+    ``models``: the CPU models the summarised runs recorded, where they name others than this one's."""
+    import torch
+
+    model = " / ".join(dict.fromkeys(models)) or cpu_model()
     threads = torch.get_num_threads() if threads is None else threads
     text = f"{os.cpu_count()}-vCPU {model} ({platform.machine()}), {threads} torch thread{'s' if threads > 1 else ''}"
     if str(device).startswith("cuda") and torch.cuda.is_available():

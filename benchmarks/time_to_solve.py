@@ -45,6 +45,7 @@ import json
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
@@ -268,11 +269,13 @@ def seed_counts(runs: list[dict]) -> str:
     return "seeds: " + ", ".join(f"{label} {n}" for label, n in counts.items())
 
 
-def write_summary_data(args, envs, runs, table, per_env_tables=None, threads: int | None = None) -> None:
+def write_summary_data(args, envs, runs, table, per_env_tables=None, threads: int | None = None,
+                       cpu_models: Sequence[str] = ()) -> None:
     """The docs' data file of a summary table (``data=``; see ``_common.write_data``): the table
     under ``levels``, and with several envs one table per env too (under the env's name), whose
     PPO-relative columns name that env's own levels. Each title counts the seeds of its rows;
-    ``threads``: the torch threads of the runs (summarising earlier result files)."""
+    ``threads``: the torch threads of the runs, ``cpu_models`` their CPUs (summarising earlier result
+    files)."""
     cells = "t, env steps (seeds that reached it, speed-up against PPO)"
     tables = {"levels": C.data_table(
         f"Time to solve: {', '.join(envs)} ({seed_counts(runs)}; median [min, max]; {cells})", *C.table_cells(table))}
@@ -280,7 +283,7 @@ def write_summary_data(args, envs, runs, table, per_env_tables=None, threads: in
         env_runs = [r for r in runs if r["env"] == env]
         tables[env] = C.data_table(f"{env} ({seed_counts(env_runs)}; median [min, max]; {cells})",
                                    *C.table_cells(env_table))
-    measured = {"machine": C.machine_name(threads=threads)} if threads is not None else None
+    measured = {"machine": C.machine_name(threads=threads, models=cpu_models)} if threads is not None else None
     C.write_data(args, "time_to_solve_" + "_".join(envs), tables, source="time_to_solve", measured=measured)
 
 
@@ -330,7 +333,10 @@ def summarise_files(args) -> dict:
                                   [*args.levels, *own_levels[env]])[1]
                    for env in envs} if len(envs) > 1 else None
         threads = {(info or {}).get("torch_threads") for info in infos}
-        write_summary_data(args, envs, runs, table, per_env, threads=threads.pop() if len(threads) == 1 else None)
+        # older result files lack the CPU model: the summarising machine's stands in for them
+        models = [(info or {}).get("cpu_model") or C.cpu_model() for info in infos]
+        write_summary_data(args, envs, runs, table, per_env, threads=threads.pop() if len(threads) == 1 else None,
+                           cpu_models=models)
     return payload
 
 
