@@ -6,7 +6,7 @@
   gradient on the concatenated batch; PPO's advantage standardisation, value normaliser and
   adaptive learning rate included;
 * a lost rank fails the others with a clear error instead of a hang;
-* ``torchrun ... sota_scripts/train.py``: trains every loss, only rank 0 writes, a checkpoint holds
+* ``torchrun ... sota_scripts/train.py``: trains PPO, SAC and SHAC, only rank 0 writes, a checkpoint holds
   every rank and resumes exactly; a killed rank stops the run, which then resumes.
 """
 from __future__ import annotations
@@ -173,22 +173,17 @@ def torchrun(cwd: Path, *overrides: str, timeout: float = 240, env_extra: dict |
                           timeout=timeout)
 
 
-# BPTT's run is SHAC's actor without the critic (its data-parallel step is checked exactly above)
-@pytest.mark.parametrize("loss", ["ppo", "sac", "shac"])
-def test_torchrun_trains_with_two_ranks_and_only_rank_zero_writes(loss, tmp_path):
+def assert_two_rank_run(tmp_path: Path, run_dir: Path, loss: str) -> None:
+    """A finished 4-iteration two-rank run: only rank 0 wrote, the checkpoint holds both ranks,
+    the networks are the same on both ranks and each rank's envs are its own."""
     steps = GLOBAL_STEPS_PER_ITERATION[loss]
-    run_dir = tmp_path / "run"
-    done = torchrun(tmp_path, *RUN, f"loss={loss}", *TINY[loss], f"train.total_env_steps={4 * steps}",
-                    f"train.checkpoint_interval={2 * steps}", f"hydra.run.dir={run_dir}")
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # rank 1 wrote nothing (no Hydra dir either)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [run_dir.name]  # rank 1 wrote nothing (no Hydra dir either)
     result = json.loads((run_dir / "final_metrics.json").read_text())
     assert result["world_size"] == 2 and result["env_steps"] == 4 * steps and result["iterations"] == 4
     ckpt = load_checkpoint(run_dir / "checkpoints" / "last.pt")
     assert ckpt["world_size"] == 2 and len(ckpt["other_ranks"]) == 1
     assert ckpt["config"]["distributed"]["world_size"] == 2 and ckpt["config"]["distributed"]["backend"] == "gloo"
     assert "data parallel: 2 ranks (gloo)" in (run_dir / "train.log").read_text()
-    # networks identical on both ranks; each rank's envs are its own
     mine, other = ckpt["learner"], ckpt["other_ranks"][0]["learner"]
     network = "actor" if loss == "bptt" else "loss"
     assert_same_tree(mine[network], other[network])
@@ -198,12 +193,27 @@ def test_torchrun_trains_with_two_ranks_and_only_rank_zero_writes(loss, tmp_path
     assert [row["env_steps"] for row in rows if "train/reward" in row] == [steps * i for i in (1, 2, 3, 4)]
 
 
+# BPTT's run is SHAC's actor without the critic (its data-parallel step is checked exactly above);
+# SHAC's run is the first run of the resume test below
+@pytest.mark.parametrize("loss", ["ppo", "sac"])
+def test_torchrun_trains_with_two_ranks_and_only_rank_zero_writes(loss, tmp_path):
+    steps = GLOBAL_STEPS_PER_ITERATION[loss]
+    run_dir = tmp_path / "run"
+    done = torchrun(tmp_path, *RUN, f"loss={loss}", *TINY[loss], f"train.total_env_steps={4 * steps}",
+                    f"train.checkpoint_interval={2 * steps}", f"hydra.run.dir={run_dir}")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert_two_rank_run(tmp_path, run_dir, loss)
+
+
 def test_a_two_rank_run_resumes_exactly_and_only_with_two_ranks(tmp_path):
+    """SHAC trained with two ranks (checked as the other losses above), then resumed from its
+    middle checkpoint: the same networks and envs as the run that went through."""
     steps = GLOBAL_STEPS_PER_ITERATION["shac"]
     common = [*RUN, "loss=shac", *TINY["shac"], f"train.total_env_steps={4 * steps}",
               f"train.checkpoint_interval={2 * steps}", "train.keep_checkpoints=4"]
     whole = torchrun(tmp_path, *common, f"hydra.run.dir={tmp_path / 'a'}")
     assert whole.returncode == 0, whole.stderr[-3000:]
+    assert_two_rank_run(tmp_path, tmp_path / "a", "shac")
     middle = tmp_path / "a" / "checkpoints" / f"ckpt_{2 * steps:012d}.pt"
     resumed = torchrun(tmp_path, *common, f"resume={middle}", f"hydra.run.dir={tmp_path / 'b'}")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
