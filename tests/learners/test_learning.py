@@ -134,7 +134,7 @@ def test_system_identification_recovers_edited_masses_and_damping(tmp_path, monk
 
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "sota_scripts"))
     module = importlib.import_module("system_identification")
-    summary = module.main(["trajectories=3", "steps=8", "iterations=8", "true_mass=7,5,2", "true_damping=0.4,0.2,0.3",
+    summary = module.main(["trajectories=3", "steps=8", "iterations=5", "true_mass=7,5,2", "true_damping=0.4,0.2,0.3",
                            f"out_dir={tmp_path}", "progress=false"])
     assert 'mass="7.0"' in (tmp_path / "edited_model.xml").read_text()
     by_name = {p["name"]: p for p in summary["parameters"]}
