@@ -333,8 +333,8 @@ def summarise_files(args) -> dict:
                                   [*args.levels, *own_levels[env]])[1]
                    for env in envs} if len(envs) > 1 else None
         threads = {(info or {}).get("torch_threads") for info in infos}
-        # older result files lack the CPU model: the summarising machine's stands in for them
-        models = [(info or {}).get("cpu_model") or C.cpu_model() for info in infos]
+        # result files written before benchmarks recorded the CPU model say so
+        models = [(info or {}).get("cpu_model") or "CPU not recorded" for info in infos]
         write_summary_data(args, envs, runs, table, per_env, threads=threads.pop() if len(threads) == 1 else None,
                            cpu_models=models)
     return payload

@@ -356,6 +356,24 @@ def test_time_to_solve_takes_ppo_on_gymnasiums_env_where_an_env_has_no_ppo_run_h
     assert "(the env's own; on Gymnasium's env where it has no PPO run here)" in table
 
 
+def test_time_to_solve_summary_names_the_cpus_its_runs_recorded(tmp_path):
+    """A summary of result files from two machines names both CPU models, and says so where a
+    file (written before benchmarks recorded the model) has none; every benchmark records it."""
+    tts = load("time_to_solve")
+    infos = [{"torch_threads": 1, "cpu_model": "Model A"}, {"torch_threads": 1, "cpu_model": "Model B"},
+             {"torch_threads": 1}]
+    paths = []
+    for i, info in enumerate(infos):
+        paths.append(tmp_path / f"runs{i}.json")
+        paths[-1].write_text(json.dumps({"benchmark": "time_to_solve", "info": info, "runs": [
+            _run("a", "sapo", i, [(0, 0, 0), (50_000, 20, 101)])]}))
+    tts.main([f"summarise=[{','.join(map(str, paths))}]", f"out={tmp_path / 'out.json'}",
+              f"data={tmp_path / 'data.json'}"])
+    machine = json.loads((tmp_path / "data.json").read_text())["machine"]
+    assert "Model A / Model B / CPU not recorded" in machine and machine.endswith("1 torch thread")
+    assert load("_common").versions()["cpu_model"]
+
+
 def test_time_to_solve_env_levels_apply_to_their_env_only(tmp_path):
     """``env_levels=[ENV=RETURN]``: a fixed level in that env's table only (another race's PPO
     final when PPO's runs are not among the files); wall time and env steps to it by hand."""
