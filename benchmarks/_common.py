@@ -208,7 +208,7 @@ def cpu_model() -> str:
 def machine_name(device: str = "cpu", threads: int | None = None, models: Sequence[str] = ()) -> str:
     """The machine in words, for the data files: CPU model and count, architecture, torch threads
     (this process's, or ``threads``: those of the runs a summary reads) and, on CUDA, the GPU.
-    ``models``: the CPU models the summarised runs recorded, where they name others than this one's."""
+    ``models``: the CPU models the summarised runs recorded, named instead of this machine's."""
     import torch
 
     model = " / ".join(dict.fromkeys(models)) or cpu_model()
