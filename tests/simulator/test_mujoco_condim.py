@@ -1,5 +1,5 @@
-"""Contacts with torsional and rolling friction (``condim`` 4 and 6, MuJoCo's default pyramidal
-cone) against MuJoCo itself.
+"""Contacts with torsional and rolling friction (``condim`` 4 and 6), with MuJoCo's default
+pyramidal cones and with elliptic ones, against MuJoCo itself.
 
 Oracles: the installed ``mujoco``'s ``mj_forward`` (``efc_J``, ``efc_pos``, ``efc_aref``,
 ``efc_R``, ``efc_force``, ``qfrc_constraint``, ``qacc``), ``mj_contactForce`` and ``cfrc_ext``
@@ -18,7 +18,7 @@ mujoco = pytest.importorskip("mujoco")
 
 from torchrl_diffenvs.articulated import MJCFError, RigidBodyTree, default_params, forward_kinematics, load_mjcf, step  # noqa: E402
 from torchrl_diffenvs.articulated.collision import collide  # noqa: E402
-from torchrl_diffenvs.articulated.constraint import (constraint_rows, contact_frame_forces,  # noqa: E402
+from torchrl_diffenvs.articulated.constraint import (_cone_state, constraint_rows, contact_frame_forces,  # noqa: E402
                                                      contact_row_blocks, solve)
 from torchrl_diffenvs.articulated.inertia import mass_matrix_and_bias  # noqa: E402
 from torchrl_diffenvs.articulated.pipeline import accelerations, body_contact_wrenches, invweight0  # noqa: E402
@@ -277,16 +277,14 @@ def test_one_step_gradcheck_with_condim_6_contacts(tmp_path):
                                     rtol=1e-4)
 
 
-def test_elliptic_cones_and_invalid_condims_are_refused(tmp_path):
-    """An elliptic cone is refused when the file is read (MuJoCo's default pyramidal is the one
-    supported), and by the contact model for a model built with one, naming the geoms; so is a
-    condim MuJoCo has not (2, 5)."""
-    with pytest.raises(MJCFError, match="cone 'elliptic' is not supported; supported: 'pyramidal'"):
-        load_mjcf(_write(tmp_path, "elliptic.xml", ROLLING.replace("<worldbody>", '<option cone="elliptic"/><worldbody>')))
+def test_invalid_cones_and_condims_are_refused(tmp_path):
+    """A cone MuJoCo has not is refused when the file is read and by the contact model for a model
+    built with one; so is a condim MuJoCo has not (2, 5), naming the geoms."""
+    with pytest.raises(MJCFError, match="cone 'round' is invalid; valid: 'pyramidal' .*'elliptic'"):
+        load_mjcf(_write(tmp_path, "round.xml", ROLLING.replace("<worldbody>", '<option cone="round"/><worldbody>')))
     model = load_mjcf(_write(tmp_path, "rolling.xml", ROLLING))
-    with pytest.raises(ValueError, match="geoms 'floor' and 'ball': condim 6 with elliptic friction cones is not "
-                                         "supported"):
-        RigidBodyTree.from_model(dataclasses.replace(model, cone="elliptic"))
+    with pytest.raises(ValueError, match="friction cone 'round' is invalid; valid: 'pyramidal', 'elliptic'"):
+        RigidBodyTree.from_model(dataclasses.replace(model, cone="round"))
     with pytest.raises(MJCFError, match="condim '5' is invalid; valid: 1, 3, 4, 6"):
         load_mjcf(_write(tmp_path, "five.xml", ROLLING.replace('condim="4"', 'condim="5"')))
     condim = model.geom_condim.copy()
@@ -294,3 +292,180 @@ def test_elliptic_cones_and_invalid_condims_are_refused(tmp_path):
     with pytest.raises(ValueError, match="geoms 'floor' and 'block': condim 5 is not supported .*supported: 1 "
                                          r"\(frictionless\), 3 \(sliding friction\), 4 \(and torsional\) and 6"):
         RigidBodyTree.from_model(dataclasses.replace(model, geom_condim=condim))
+
+
+# MIXED with elliptic cones, and impratio 3 (the friction rows' R is the normal's over it)
+ELLIPTIC = MIXED.replace("<worldbody>", '<option cone="elliptic" impratio="3"/><worldbody>', 1)
+
+
+@pytest.fixture(scope="module")
+def elliptic(tmp_path_factory):
+    """MuJoCo's ``mj_forward`` with elliptic cones at the states of `_mixed_states` (Newton, tolerance
+    1e-14), and ours at all of them as one batch."""
+    model, tree, mm, data = _load(tmp_path_factory.mktemp("elliptic"), ELLIPTIC)
+    mm.opt.tolerance = 1e-14
+    qpos_np, qvel_np = _mixed_states(mm, data)
+    theirs = []
+    for q, v in zip(qpos_np, qvel_np):
+        data.qpos[:], data.qvel[:], data.qacc_warmstart[:] = q, v, 0.0
+        mujoco.mj_forward(mm, data)
+        mujoco.mj_rnePostConstraint(mm, data)
+        inertial = np.zeros(mm.nv)
+        mujoco.mj_mulM(mm, data, inertial, data.qacc - data.qacc_smooth)
+        contacts = []
+        for j in range(data.ncon):
+            con = data.contact[j]
+            force = np.zeros(6)
+            mujoco.mj_contactForce(mm, data, j, force)
+            a, k = con.efc_address, int(con.dim)
+            contacts.append(dict(geom=tuple(map(int, con.geom)), point=con.pos.copy(), dim=k, force6=force,
+                                 state=int(data.efc_state[a]), J=data.efc_J.reshape(data.nefc, mm.nv)[a:a + k].copy(),
+                                 **{f: getattr(data, "efc_" + f)[a:a + k].copy() for f in ("pos", "aref", "R", "force")}))
+        theirs.append(dict(contacts=contacts, qacc=data.qacc.copy(), qacc_smooth=data.qacc_smooth.copy(),
+                           residual=np.abs(inertial - data.qfrc_constraint).max(), cfrc_ext=data.cfrc_ext.copy(),
+                           com=data.subtree_com.copy()))
+    params = _params(tree, len(theirs))
+    weights = invweight0(tree, params)
+    qpos, qvel = torch.as_tensor(qpos_np), torch.as_tensor(qvel_np)
+    kin = forward_kinematics(tree, qpos)
+    contacts = collide(tree.contact_slots, kin)
+    rows = constraint_rows(tree, tree.contact_slots, kin, contacts, qpos, qvel, params, weights.dof, weights.body)
+    mass, _ = mass_matrix_and_bias(tree, kin, qvel, params)
+    qacc_smooth = torch.as_tensor(np.array([t["qacc_smooth"] for t in theirs]))
+    solution = solve(mass, qacc_smooth, rows, mm.opt.iterations, mm.opt.tolerance)
+    return dict(model=model, tree=tree, mm=mm, theirs=theirs, qpos=qpos, qvel=qvel, params=params, weights=weights,
+                contacts=contacts, rows=rows, mass=mass, qacc_smooth=qacc_smooth, solution=solution)
+
+
+def _elliptic_matched(elliptic):
+    """`_matched` for elliptic cones: ``(state, slot, our rows, MuJoCo's contact)``, ``condim`` rows each."""
+    tree, contacts, rows = elliptic["tree"], elliptic["contacts"], elliptic["rows"]
+    slots, out = tree.contact_slots, []
+    for k, state in enumerate(elliptic["theirs"]):
+        ours = {}
+        for condim, index, start in contact_row_blocks(slots, rows):
+            for n, s in enumerate(index.tolist()):
+                if contacts.active[k, s]:
+                    key = (tuple(slots.geom[s].tolist()), tuple(np.round(contacts.pos[k, s].numpy(), 9)))
+                    ours[key] = (s, slice(start + condim * n, start + condim * (n + 1)))
+        assert len(ours) == len(state["contacts"])
+        for con in state["contacts"]:
+            s, index = ours.pop((con["geom"], tuple(np.round(con["point"], 9))))
+            assert slots.condim[s] == con["dim"]
+            out.append((k, s, index, con))
+    return out
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_elliptic_rows_and_cone_force_law_match_mjdata(elliptic):
+    """Elliptic cones: efc_J, efc_pos, efc_aref and efc_R of every contact (condim rows each: the
+    friction rows' R from the normal's over impratio) as mjData's (measured: 2e-15, 0, 2e-12, 7e-14
+    relative), and the cone's force law (`_cone_state`, mj_constraintUpdate's top, bottom and middle
+    zones) at MuJoCo's own qacc gives its efc_force (measured: 4e-12), with contacts in each zone."""
+    rows = elliptic["rows"]
+    qacc = torch.as_tensor(np.array([t["qacc"] for t in elliptic["theirs"]]))
+    jar = (rows.jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - rows.aref
+    force, _, _ = _cone_state(jar, rows.weight, rows.exists, rows.cones)
+    worst = dict(J=0.0, pos=0.0, aref=0.0, R=0.0, force=0.0)
+    zones, condims = {}, {}
+    for k, s, index, con in _elliptic_matched(elliptic):
+        zones[con["state"]] = zones.get(con["state"], 0) + 1
+        condims[con["dim"]] = condims.get(con["dim"], 0) + 1
+        for name, ours in (("J", rows.jacobian[k, index]), ("pos", rows.pos[k, index]), ("aref", rows.aref[k, index]),
+                           ("force", force[k, index])):
+            worst[name] = max(worst[name], np.abs(ours.numpy() - con[name]).max())
+        worst["R"] = max(worst["R"], (np.abs(rows.regulariser[k, index].numpy() - con["R"]) / con["R"]).max())
+    assert worst["J"] < 1e-12 and worst["pos"] < 1e-12 and worst["aref"] < 1e-9 and worst["R"] < 1e-10, worst
+    assert worst["force"] < 1e-9, worst
+    state = mujoco.mjtConstraintState
+    assert min(zones.get(int(z), 0) for z in (state.mjCNSTRSTATE_SATISFIED, state.mjCNSTRSTATE_QUADRATIC,
+                                               state.mjCNSTRSTATE_CONE)) > 5, zones
+    assert condims.get(4, 0) > 50 and condims.get(6, 0) > 30 and condims.get(3, 0) > 30 and condims.get(1, 0) > 30
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_elliptic_solve_is_the_minimiser_mujocos_newton_approaches(elliptic):
+    """Our solve with elliptic cones meets the optimality condition M (qacc - qacc_smooth) =
+    J' f(J qacc - aref) to 1e-9 at every state; MuJoCo's Newton, even at tolerance 1e-14, stops up
+    to 3e-6 short of it in its own terms (M (qacc - qacc_smooth) - qfrc_constraint from mjData:
+    measured 2.8e-6) and its qacc, efc_force and mj_contactForce lie within that of ours (measured
+    1.2e-6, 2.5e-6)."""
+    rows, solution, mass = elliptic["rows"], elliptic["solution"], elliptic["mass"]
+    assert bool(solution.converged.all())
+    inertial = (mass @ (solution.qacc - elliptic["qacc_smooth"]).unsqueeze(-1)).squeeze(-1)
+    constraint = (rows.jacobian.transpose(-1, -2) @ solution.force.unsqueeze(-1)).squeeze(-1)
+    assert (inertial - constraint).abs().max() < 1e-9
+    theirs = elliptic["theirs"]
+    mujocos_residual = max(t["residual"] for t in theirs)
+    assert 1e-8 < mujocos_residual < 1e-5, mujocos_residual
+    np.testing.assert_allclose(solution.qacc.numpy(), np.array([t["qacc"] for t in theirs]), rtol=0, atol=1e-5)
+    tree, params = elliptic["tree"], elliptic["params"]
+    slots = tree.contact_slots
+    local = contact_frame_forces(slots, rows, solution.force, params["contact_friction"][:, slots.friction_slot])
+    for k, s, index, con in _elliptic_matched(elliptic):
+        np.testing.assert_allclose(solution.force[k, index].numpy(), con["force"], rtol=0, atol=1e-5)
+        np.testing.assert_allclose(local[k, s, :con["dim"]].numpy(), con["force6"][:con["dim"]], rtol=0, atol=1e-5)
+    ctrl = torch.zeros(len(theirs), 0, dtype=torch.float64)
+    # the simulator's own path (the file's tolerance, 1e-8) to the same minimiser
+    qacc = accelerations(tree, elliptic["qpos"], elliptic["qvel"], ctrl, params, invweight0=elliptic["weights"])
+    np.testing.assert_allclose(qacc.numpy(), solution.qacc.numpy(), rtol=0, atol=1e-9)
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_elliptic_rolling_and_spinning_steps_match_mj_step(tmp_path):
+    """200 steps of the ball rolling and spinning and the box spinning on the floor with elliptic
+    cones: one step of ours from each of MuJoCo's states lands on mj_step's within its solver's
+    residual (measured: 4e-7 at worst, 7e-16 median; the cones' middle zone in 18% of the rows)."""
+    model, tree, mm, data = _load(tmp_path, ROLLING.replace("<worldbody>", '<option cone="elliptic"/><worldbody>', 1))
+    _rolling_start(mm, data)
+    gaps = gaps_to_mj_step(tree, mm, data, 200)
+    assert max(gaps) < 1e-6, max(gaps)
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_elliptic_one_step_gradcheck_and_gradient_modes(tmp_path):
+    """One Euler step with elliptic cones against finite differences (float64) in qvel and the
+    sliding friction, the rolling, spinning ball's condim-6 contact and the box's condim-4 ones
+    active, every one in the cone's middle zone; the solve-shaping gradient modes refuse an elliptic model, naming the valid ones."""
+    model, tree, mm, data = _load(tmp_path, ROLLING.replace("<worldbody>", '<option cone="elliptic"/><worldbody>', 1))
+    _rolling_start(mm, data)
+    qpos, qvel = torch.as_tensor(data.qpos).unsqueeze(0), torch.as_tensor(data.qvel).unsqueeze(0)
+    active = collide(tree.contact_slots, forward_kinematics(tree, qpos)).active[0]
+    assert [tree.contact_slots.condim[s] for s in np.flatnonzero(active.numpy())] == [6, 4, 4, 4, 4]
+    params = _params(tree)
+    weights = invweight0(tree, params)
+    friction = params["contact_friction"].clone().requires_grad_(True)
+
+    def one_step(qvel, friction):
+        result = step(tree, qpos, qvel, torch.zeros(1, 0, dtype=torch.float64), {**params, "contact_friction": friction},
+                      mm.opt.timestep, model.integrator, weights)
+        return result.qpos, result.qvel
+
+    assert torch.autograd.gradcheck(one_step, (qvel.clone().requires_grad_(True), friction), eps=1e-6, atol=1e-5,
+                                    rtol=1e-4)
+    for mode in ("cfd", "smooth"):
+        with pytest.raises(ValueError, match=f"contact_gradient='{mode}' .*elliptic \\(valid there: 'exact', 'penalty'\\)"):
+            RigidBodyTree.from_model(model).use_contact_gradient(mode)
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_elliptic_contact_step_compiles_into_one_graph(tmp_path):
+    """A physics step with elliptic cones in their middle zone traces into one graph
+    (``fullgraph=True``: the Newton rounds, with their line search, are one ``torch.while_loop``)
+    and gives eager's next state."""
+    if not hasattr(torch, "while_loop"):
+        pytest.skip("this torch has no torch.while_loop: the Newton solve is a graph break")
+    model, tree, mm, data = _load(tmp_path, ROLLING.replace("<worldbody>", '<option cone="elliptic"/><worldbody>', 1))
+    _rolling_start(mm, data)
+    qpos, qvel = torch.as_tensor(data.qpos).unsqueeze(0), torch.as_tensor(data.qvel).unsqueeze(0)
+    params = _params(tree)
+    weights = invweight0(tree, params)
+
+    def one(qpos, qvel):
+        return step(tree, qpos, qvel, torch.zeros(1, 0, dtype=torch.float64), params, mm.opt.timestep,
+                    model.integrator, weights)
+
+    eager = one(qpos, qvel)
+    traced = torch.compile(one, fullgraph=True, backend="aot_eager")(qpos, qvel)
+    torch.testing.assert_close(traced.qvel, eager.qvel, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(traced.qpos, eager.qpos, rtol=1e-12, atol=1e-12)

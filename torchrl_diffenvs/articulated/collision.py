@@ -9,8 +9,8 @@ same ops run whatever touches.
 Each contact has MuJoCo's ``pos``, ``frame`` (normal first, pointing from geom 1 to geom 2),
 ``dist`` and the pair's mixed parameters (``condim``, friction, ``solref``, ``solimp``,
 ``includemargin``: `_mix`, as ``mj_contactParam``). ``condim`` 1 (frictionless), 3 (sliding
-friction), 4 (and torsional) and 6 (and rolling) are supported, with MuJoCo's default pyramidal
-friction cones; elliptic cones are refused.
+friction), 4 (and torsional) and 6 (and rolling) are supported, with the model's friction cone:
+MuJoCo's default pyramidal, or elliptic.
 """
 from __future__ import annotations
 
@@ -84,14 +84,14 @@ def _mix(model: ArticulatedModel, g1: int, g2: int) -> dict:
     if condim not in (1, 3, 4, 6):
         raise ValueError(f"{model.path}: geoms {model.geom_names[g1]!r} and {model.geom_names[g2]!r}: condim "
                          f"{condim} is not supported by MuJoCo's contact model here; supported: 1 (frictionless), "
-                         "3 (sliding friction), 4 (and torsional) and 6 (and rolling), with pyramidal cones")
-    if condim > 1 and model.cone != "pyramidal":
-        raise ValueError(f"{model.path}: geoms {model.geom_names[g1]!r} and {model.geom_names[g2]!r}: condim "
-                         f"{condim} with {model.cone} friction cones is not supported by MuJoCo's contact model "
-                         "here; supported: pyramidal cones (MuJoCo's default)")
+                         "3 (sliding friction), 4 (and torsional) and 6 (and rolling)")
     return dict(condim=condim, friction=float(fri[0]), torsional=float(fri[1]), rolling=float(fri[2]),
                 solref=np.array(solref, dtype=np.float64), solimp=solimp,
                 margin=float(model.geom_margin[g1] + model.geom_margin[g2]))
+
+
+#: MuJoCo's friction cones (``<option cone>``), its default first
+CONES = ("pyramidal", "elliptic")
 
 
 class _Geoms(NamedTuple):
@@ -141,14 +141,18 @@ class ContactSlots:
     # [npair, 2] each geom pair's mixed solref (the entries of params["contact_friction"]): the
     # default of the params' contact_solref; MuJoCo's default (0.02, 1) for a pair with no slot
     pair_solref: torch.Tensor
+    # the model's friction cone: "pyramidal" (MuJoCo's default: 2 (condim - 1) edge rows per
+    # frictional contact) or "elliptic" (condim rows: the normal, then the frame's friction directions)
+    cone: str = "pyramidal"
 
     @property
     def count(self) -> int:
         return len(self.condim)
 
-    def pyramids(self) -> tuple[tuple[int, torch.Tensor], ...]:
+    def frictional(self) -> tuple[tuple[int, torch.Tensor], ...]:
         """The frictional slots by condim, in the order of their constraint rows: ``(condim,
-        slots)`` for condim 3, 4 and 6 (each slot ``2 (condim - 1)`` pyramid edges)."""
+        slots)`` for condim 3, 4 and 6 (each slot ``2 (condim - 1)`` pyramid edges, or ``condim``
+        rows of an elliptic cone)."""
         return (3, self.pyramid_index), (4, self.torsional_index), (6, self.rolling_index)
 
 
@@ -162,6 +166,8 @@ def unsupported_pairs(model: ArticulatedModel) -> list[tuple[str, str]]:
 def contact_slots(model: ArticulatedModel, friction_slots: list[tuple[str, str]], dtype, device) -> ContactSlots:
     """The [`ContactSlots`][torchrl_diffenvs.articulated.collision.ContactSlots] of a model. ``friction_slots``: the geom-name pairs of the
     ``contact_friction`` param (``RigidBodyTree.contact_pairs``, either order)."""
+    if model.cone not in CONES:
+        raise ValueError(f"{model.path}: friction cone {model.cone!r} is invalid; valid: {', '.join(map(repr, CONES))}")
     slot_of = {frozenset(pair): i for i, pair in enumerate(friction_slots)}
     by_primitive: dict[tuple[str, str], list[tuple[int, int]]] = {}
     for g1, g2 in colliding_pairs(model):
@@ -197,7 +203,7 @@ def contact_slots(model: ArticulatedModel, friction_slots: list[tuple[str, str]]
         torsional_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 4], (-1,)),
         rolling_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 6], (-1,)),
         spin_friction=t([[r[3]["torsional"], r[3]["rolling"], r[3]["rolling"]] for r in rows], (-1, 3)),
-        pair_solref=t(_pair_solref(rows, len(friction_slots)), (-1, 2)))
+        pair_solref=t(_pair_solref(rows, len(friction_slots)), (-1, 2)), cone=model.cone)
 
 
 def _pair_solref(rows: list, npair: int) -> np.ndarray:

@@ -7,7 +7,9 @@ contact slots (MuJoCo's default pyramidal cone, ``2 (condim - 1)`` edges ``J_n +
 contact): four per condim-3 slot (sliding friction along the two tangents), then six per condim-4
 slot (and torsional friction: ``J_d`` the relative angular velocity about the normal), then ten
 per condim-6 slot (and rolling friction: about the two tangents), then one row per frictionless
-(condim 1) slot ([`contact_row_blocks`][torchrl_diffenvs.articulated.constraint.contact_row_blocks]). A row MuJoCo would not create (a limit not
+(condim 1) slot ([`contact_row_blocks`][torchrl_diffenvs.articulated.constraint.contact_row_blocks]). A model with elliptic cones (``<option cone="elliptic">``) has
+``condim`` rows per frictional contact instead, its frame's Jacobian as it is (the normal, the
+tangents, the spin and the rolls). A row MuJoCo would not create (a limit not
 within its margin, a contact slot without a contact) is kept with ``exists = False`` and no force:
 the shapes never depend on the state (on the CPU the solve drops the rows that exist in no env of
 the batch, a host read that costs nothing there).
@@ -18,7 +20,11 @@ whose unique minimiser is what MuJoCo's Newton solver converges to. [`solve`][to
 Newton's method with an exact line search (the cost is piecewise quadratic along a line, so the
 search sorts the rows' breakpoints) without autograd, then takes one differentiable solve with
 the active set it found: the value is the minimiser, and the gradient is the implicit gradient of
-the solution (exact wherever the active set does not change). Differentiating through the
+the solution (exact wherever the active set does not change). With elliptic cones the cost has a third
+piece per contact, ``D_0 / (mu^2 (1 + mu^2)) (N - mu T)^2 / 2`` in the cone's middle zone
+(`_cone_state`, MuJoCo's ``mj_constraintUpdate``): Newton's method with a line search by Newton
+steps finds the minimiser, and one Newton step from it with the Hessian held carries the implicit
+gradient (`_solve_elliptic`). Differentiating through the
 iterations instead would cost a backward pass per iteration and carry the line search's
 breakpoints into the gradient; at the solution, one solve gives the same gradient. Under
 ``torch.compile`` the Newton search is one ``torch.while_loop`` that ends once every env has
@@ -44,6 +50,20 @@ __all__ = ["ConstraintRows", "constraint_rows", "contact_frame_forces", "contact
            "solve", "SolverResult"]
 
 
+class EllipticCones(NamedTuple):
+    """A block of elliptic-cone contacts of one condim ``d``: ``count`` contacts of ``d`` rows each
+    from row ``start`` (the normal, the two tangents, then the spin about the normal and the roll
+    about the tangents), with the regularised cone's ``mu [N, count]`` (MuJoCo's ``contact.mu``:
+    the sliding friction times ``sqrt(R_1 / R_0)``) and ``friction [N, count, d - 1]`` (the
+    contact's friction along each of its friction rows)."""
+
+    start: int
+    dim: int
+    count: int
+    mu: torch.Tensor
+    friction: torch.Tensor
+
+
 class ConstraintRows(NamedTuple):
     """MuJoCo's ``efc_*`` arrays at fixed row positions ``[N, R]`` (see the module docstring)."""
 
@@ -54,8 +74,9 @@ class ConstraintRows(NamedTuple):
     regulariser: torch.Tensor  # [N, R] efc_R
     exists: torch.Tensor  # [N, R] bool: MuJoCo has this row
     found: torch.Tensor  # [N, R] bool: a contact row whose contact is there at any distance (limits: False)
-    # (limit rows, pyramid rows of every condim): where the contact rows start, and the frictionless
+    # (limit rows, frictional contact rows of every condim): where the contact rows start, and the frictionless
     rows_per_slot: tuple[int, int]
+    cones: tuple[EllipticCones, ...] = ()  # the elliptic cones' row blocks (none with pyramidal cones)
 
     @property
     def weight(self) -> torch.Tensor:
@@ -77,15 +98,45 @@ def _contact_frame_jacobian(tree: RigidBodyTree, kin: Kinematics, body1: torch.T
     return jacobian * mask.unsqueeze(-2)
 
 
-def _rows_per_contact(condim: int) -> int:
-    """A contact's constraint rows: its pyramid's ``2 (condim - 1)`` edges, or the normal alone (condim 1)."""
-    return 2 * (condim - 1) if condim > 1 else 1
+def _rows_per_contact(condim: int, cone: str = "pyramidal") -> int:
+    """A contact's constraint rows: its pyramid's ``2 (condim - 1)`` edges, an elliptic cone's
+    ``condim`` rows, or the normal alone (condim 1)."""
+    if condim == 1 or cone == "elliptic":
+        return condim
+    return 2 * (condim - 1)
 
 
 def _angular_jacobian(tree: RigidBodyTree, kin: Kinematics, body1: torch.Tensor, body2: torch.Tensor) -> torch.Tensor:
     """``[N, S, nv, 3]`` each dof's angular velocity of ``body2 [S]`` relative to ``body1 [S]`` (world)."""
     angular = kin.motion[..., :3].unsqueeze(1)  # [N, 1, nv, 3]
     return angular * (tree.body_dof_mask[body2] - tree.body_dof_mask[body1]).unsqueeze(-1)
+
+
+def _elliptic_rows(tree: RigidBodyTree, slots: ContactSlots, index: torch.Tensor, frame_jacobian: torch.Tensor,
+                   dist, cmargin, qvel, mu, translation, solref, contacts: Contacts, start: int):
+    """The rows of elliptic-cone contacts of one condim ``d`` (``mj_instantiateContact``,
+    ``mj_makeImpedance``): ``frame_jacobian [N, S, d, nv]`` as they are, the distance and margin on
+    the normal row only (0 on the friction rows, whose reference acceleration is damping alone),
+    ``R_0`` from the normal's impedance and diagApprox, ``R_1 = R_0 / impratio`` and
+    ``R_j = R_1 mu_1^2 / mu_j^2`` on the others. Returns the per-row arrays in the order
+    `constraint_rows` gathers them, then their [`EllipticCones`][torchrl_diffenvs.articulated.constraint.EllipticCones]."""
+    n, count, d = frame_jacobian.shape[0], index.numel(), frame_jacobian.shape[2]
+    zeros = dist.new_zeros(n, count, d - 1)
+    row_pos = torch.cat([dist.unsqueeze(-1), zeros], dim=-1)  # [N, S, d]
+    row_margin = torch.cat([cmargin.unsqueeze(-1), cmargin.new_zeros(count, d - 1)], dim=-1)  # [S, d]
+    velocity = (frame_jacobian @ qvel[:, None, :, None]).squeeze(-1)  # [N, S, d]
+    row_aref, imp = _reference(row_pos, row_margin, velocity, solref[:, :, None], slots.solimp[index, None],
+                               tree.model.timestep)
+    r0 = ((1 - imp[..., 0]) * translation / imp[..., 0]).clamp_min(_MINVAL)
+    r1 = r0 / max(_MINVAL, tree.model.impratio)
+    # the contact's friction along its friction rows: sliding twice, then torsional, rolling twice
+    friction = torch.cat([mu.unsqueeze(-1).expand(-1, -1, 2),
+                          slots.spin_friction[None, index, :d - 3].expand(n, -1, -1)], dim=-1)[..., :d - 1]
+    r = torch.cat([r0.unsqueeze(-1), r1.unsqueeze(-1) * (mu.unsqueeze(-1) / friction) ** 2], dim=-1)
+    active = contacts.active[:, index, None].expand(-1, -1, d)
+    cone = EllipticCones(start, d, count, mu * torch.sqrt(r1 / r0), friction)
+    return (frame_jacobian.flatten(1, 2), row_pos.flatten(1), row_margin.flatten(), row_aref.flatten(1), r.flatten(1),
+            active.flatten(1), contacts.found[:, index, None].expand(-1, -1, d).flatten(1), cone)
 
 
 def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, contacts: Contacts, qpos, qvel,
@@ -100,7 +151,7 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
     timestep = tree.model.timestep
     n, nv = qpos.shape[0], tree.nv
     dtype = qpos.dtype
-    jac, pos, margin, aref, reg, exists, found = [], [], [], [], [], [], []
+    jac, pos, margin, aref, reg, exists, found, cones = [], [], [], [], [], [], [], []
     # joint limits: one row per side, J = +-1 on its dof
     if tree.limit_dof.numel():
         dof, sign = tree.limit_dof, tree.limit_sign
@@ -123,18 +174,27 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
         mu = params["contact_friction"][:, slots.friction_slot]  # [N, C]
         # [N or 1, C, 2]: each env's time constant and damping ratio of its pair, or the model's
         solref = params["contact_solref"][:, slots.friction_slot] if "contact_solref" in params else slots.solref[None]
-        for condim, index in (*slots.pyramids(), (1, slots.normal_index)):
+        for condim, index in (*slots.frictional(), (1, slots.normal_index)):
             if not index.numel():
                 continue
             c = in_frame[:, index]
             dist, cmargin = contacts.dist[:, index], slots.margin[index]
+            if condim > 3:  # torsional (and rolling): the relative angular velocity about the normal (and tangents)
+                spin = contacts.frame[:, index, :condim - 3] @ _angular_jacobian(tree, kin, body1[index],
+                                                                                 body2[index]).transpose(-1, -2)
+                c = torch.cat([c, spin], dim=2)  # [N, S, condim, nv]
+            if condim > 1 and slots.cone == "elliptic":
+                block = _elliptic_rows(tree, slots, index, c, dist, cmargin, qvel, mu[:, index], translation[:, index],
+                                       solref[:, index], contacts, start=sum(p.shape[-1] for p in pos))
+                for out, value in zip((jac, pos, margin, aref, reg, exists, found), block[:-1]):
+                    out.append(value)
+                cones.append(block[-1])
+                pyramid_rows += condim * index.numel()
+                continue
             if condim > 1:
                 m = mu[:, index, None, None]  # the sliding friction, on both tangents
                 normal, directions = c[:, :, :1], c[:, :, 1:]
-                if condim > 3:  # torsional (and rolling): the relative angular velocity about the normal (and tangents)
-                    spin = contacts.frame[:, index, :condim - 3] @ _angular_jacobian(tree, kin, body1[index],
-                                                                                     body2[index]).transpose(-1, -2)
-                    directions = torch.cat([directions, spin], dim=2)
+                if condim > 3:
                     m = torch.cat([m.expand(-1, -1, 2, -1),
                                    slots.spin_friction[None, index, :condim - 3, None].expand(n, -1, -1, -1)], dim=2)
                 # MuJoCo's edge pairs J_n +- mu_d J_d, d = t1 t2 (then the normal's spin, the tangents' roll)
@@ -165,7 +225,8 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
         return ConstraintRows(qvel.new_zeros(n, 0, nv), empty, qvel.new_zeros(0), empty, empty,
                               empty.bool(), empty.bool(), (0, 0))
     return ConstraintRows(torch.cat(jac, 1), torch.cat(pos, 1), torch.cat(margin), torch.cat(aref, 1),
-                          torch.cat(reg, 1), torch.cat(exists, 1), torch.cat(found, 1), (limit_rows, pyramid_rows))
+                          torch.cat(reg, 1), torch.cat(exists, 1), torch.cat(found, 1), (limit_rows, pyramid_rows),
+                          tuple(cones))
 
 
 class SolverResult(NamedTuple):
@@ -228,27 +289,65 @@ def _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance: float):
     return torch.where(finite.unsqueeze(-1), new, qacc), settled
 
 
-def _newton(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
-    """Newton's method on the primal (no autograd), at most ``iterations`` rounds with converged
-    envs held (a mask: no host-device synchronisation): ``(qacc [N, nv], iterations [N],
-    converged [N])``. On CUDA the host stops issuing rounds once it sees, without waiting, that
-    every env has converged ([`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch])."""
-    qacc = smooth
+def _masked_rounds(round_, start, iterations: int):
+    """Newton rounds ``round_(qacc) -> (new qacc, settled)`` from ``start`` (no autograd), at most
+    ``iterations``, with converged envs held (a mask: no host-device synchronisation): ``(qacc
+    [N, nv], iterations [N], converged [N])``. They stop once every env has converged: on the CPU
+    by reading the flags (free there), on CUDA once the host sees it without waiting
+    ([`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch])."""
+    qacc = start
     converged = torch.zeros(qacc.shape[0], dtype=torch.bool, device=qacc.device)
     used = torch.zeros(qacc.shape[0], dtype=torch.long, device=qacc.device)
     watch = ConvergenceWatch.for_device(qacc.device)
+    on_cpu = qacc.device.type == "cpu" and not torch.compiler.is_compiling()
     for _ in range(iterations):
-        new, settled = _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance)
+        new, settled = round_(qacc)
         qacc = torch.where(converged.unsqueeze(-1), qacc, new)
         used = used + (~converged).long()
         converged = converged | settled
-        if watch is not None and watch.all_done(converged):
+        if (watch is not None and watch.all_done(converged)) or (on_cpu and bool(converged.all())):
             break
     return qacc, used, converged
 
 
+def _while_rounds(round_, start, iterations: int):
+    """`_masked_rounds` as one ``torch.while_loop`` for ``torch.compile``: the round is traced once
+    (an unrolled loop would make a step's graph hundreds of times larger) and the loop ends once
+    every env has converged or ``iterations`` rounds have run."""
+    n = start.shape[0]
+
+    def unfinished(round_index, qacc, used, converged):
+        return (round_index < iterations) & ~converged.all()
+
+    def one_round(round_index, qacc, used, converged):
+        new, settled = round_(qacc)
+        return (round_index + 1, torch.where(converged.unsqueeze(-1), qacc, new), used + (~converged).long(),
+                converged | settled)
+
+    begin = (torch.zeros((), dtype=torch.long, device=start.device), start.clone(),
+             torch.zeros(n, dtype=torch.long, device=start.device),
+             torch.zeros(n, dtype=torch.bool, device=start.device))
+    _, qacc, used, converged = torch.while_loop(unfinished, one_round, begin)
+    return qacc, used, converged
+
+
+_masked_rounds_outside_the_graph = torch.compiler.disable(_masked_rounds)
+
+
+def _rounds_driver(device: torch.device):
+    """How Newton's rounds run: eagerly `_masked_rounds`; under ``torch.compile`` one
+    ``while_loop`` (`_while_rounds`), except on CUDA and on a torch without ``torch.while_loop``,
+    where they are a graph break (inductor runs a while_loop's condition on the host, a
+    synchronisation per round, and leaves it out of CUDA graphs; the eager rounds stop without one)."""
+    if not torch.compiler.is_compiling():
+        return _masked_rounds
+    if device.type == "cuda" or not hasattr(torch, "while_loop"):
+        return _masked_rounds_outside_the_graph
+    return _while_rounds
+
+
 def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
-    """`_newton` on the CPU, where reading the data costs nothing: envs without rows keep
+    """Newton's rounds on the CPU, where reading the data costs nothing: envs without rows keep
     ``qacc_smooth``, the others iterate on their existing rows only (the batch's largest count of
     them), each round on the envs that have not converged yet."""
     n = smooth.shape[0]
@@ -275,49 +374,17 @@ def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance:
     return qacc.index_copy(0, envs, q), used.index_copy(0, envs, used_c), converged.index_copy(0, envs, converged_c)
 
 
-def _newton_loop(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
-    """`_newton` as one ``torch.while_loop`` for ``torch.compile``: the round is traced once (an
-    unrolled loop would make a step's graph hundreds of times larger) and the loop ends once every
-    env has converged or ``iterations`` rounds have run."""
-    n = smooth.shape[0]
-
-    def unfinished(round_, qacc, used, converged):
-        return (round_ < iterations) & ~converged.all()
-
-    def one_round(round_, qacc, used, converged):
-        new, settled = _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance)
-        return (round_ + 1, torch.where(converged.unsqueeze(-1), qacc, new), used + (~converged).long(),
-                converged | settled)
-
-    start = (torch.zeros((), dtype=torch.long, device=smooth.device), smooth.clone(),
-             torch.zeros(n, dtype=torch.long, device=smooth.device),
-             torch.zeros(n, dtype=torch.bool, device=smooth.device))
-    _, qacc, used, converged = torch.while_loop(unfinished, one_round, start)
-    return qacc, used, converged
-
-
-_newton_outside_the_graph = torch.compiler.disable(_newton)
-
-
 @torch.no_grad()
 def _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations: int, tolerance: float):
-    """The Newton search (no autograd): ``(qacc, iterations, converged, active rows)``.
-
-    Under ``torch.compile`` one ``while_loop`` (`_newton_loop`), except on CUDA and on a torch
-    without ``torch.while_loop``, where it is a graph break (`_newton` runs eagerly); eagerly on
-    the CPU on the compacted rows and envs (`_newton_compacted`), elsewhere the masked rounds
-    (`_newton`)."""
+    """The Newton search (no autograd): ``(qacc, iterations, converged, active rows)``: eagerly on
+    the CPU on the compacted rows and envs (`_newton_compacted`), elsewhere the rounds of
+    `_rounds_driver`."""
     m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
-    if not torch.compiler.is_compiling():
-        newton = _newton_compacted if smooth.device.type == "cpu" else _newton
-    elif smooth.device.type == "cuda" or not hasattr(torch, "while_loop"):
-        # inductor runs a while_loop's condition on the host (a synchronisation per round) and leaves
-        # it out of CUDA graphs: on CUDA the search runs eagerly between the compiled graphs, where
-        # the ConvergenceWatch stops it without a synchronisation
-        newton = _newton_outside_the_graph
+    if smooth.device.type == "cpu" and not torch.compiler.is_compiling():
+        qacc, used, converged = _newton_compacted(m, smooth, j, w, ar, exists, iterations, tolerance)
     else:
-        newton = _newton_loop
-    qacc, used, converged = newton(m, smooth, j, w, ar, exists, iterations, tolerance)
+        qacc, used, converged = _rounds_driver(smooth.device)(
+            lambda q: _newton_round(q, m, smooth, j, w, ar, exists, tolerance), smooth, iterations)
     active = (((j @ qacc.unsqueeze(-1)).squeeze(-1) - ar) < 0) & exists
     return qacc, used, converged, active
 
@@ -348,6 +415,153 @@ def _solve_with(mass, qacc_smooth, jacobian, aref, row_weight):
     return qacc, -row_weight * ((jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - aref)
 
 
+def _cone_state(jar, weight, exists, cones: tuple[EllipticCones, ...]):
+    """MuJoCo's ``mj_constraintUpdate`` with elliptic cones, at row residuals ``jar = J qacc - aref``:
+    ``(force [N, R], quadratic [N, R], hessians)``. Rows outside the cones (limits, frictionless
+    contacts) are quadratic where ``jar < 0``. A cone maps its rows to ``U = (mu jar_0, mu_j jar_j)``,
+    ``N = U_0``, ``T = |U_1..|``, and is in the top zone (``N >= mu T``: no force), the bottom zone
+    (``mu N + T <= 0``: every row quadratic) or the middle one, whose cost
+    ``D_0 / (mu^2 (1 + mu^2)) (N - mu T)^2 / 2`` is not a sum over rows: its force, and its
+    ``[N, S, d, d]`` Hessian in ``hessians`` (one per block, zero outside the middle zone).
+    ``quadratic`` holds each quadratic row's weight ``D`` (0 elsewhere)."""
+    quadratic = weight * ((jar < 0) & exists)
+    force = -quadratic * jar
+    hessians = []
+    for cone in cones:
+        rows = slice(cone.start, cone.start + cone.count * cone.dim)
+        r = jar[:, rows].unflatten(1, (cone.count, cone.dim))
+        d = weight[:, rows].unflatten(1, (cone.count, cone.dim))
+        present = exists[:, rows].unflatten(1, (cone.count, cone.dim))[..., 0]
+        mu, friction = cone.mu, cone.friction
+        u = r[..., 1:] * friction  # the friction rows, in the regular cone's space
+        normal = r[..., 0] * mu
+        t_squared = (u * u).sum(-1)
+        tangent = torch.sqrt(t_squared.clamp_min(_MINVAL * _MINVAL))  # clamped inside the root: see primitives._sphere_sphere
+        flat = t_squared <= 0
+        top = (normal >= mu * tangent) | (flat & (normal >= 0))
+        bottom = ~top & ((mu * normal + tangent <= 0) | (flat & (normal < 0)))
+        middle = ~top & ~bottom & present
+        bottom = bottom & present
+        scale = d[..., 0] / (mu * mu * (1 + mu * mu))
+        gap = normal - mu * tangent
+        f_normal = -scale * gap * mu
+        f_friction = -(f_normal / tangent).unsqueeze(-1) * u * friction
+        cone_force = torch.where(middle.unsqueeze(-1), torch.cat([f_normal.unsqueeze(-1), f_friction], -1),
+                                 torch.where(bottom.unsqueeze(-1), -d * r, torch.zeros_like(r)))
+        force = torch.cat([force[:, :rows.start], cone_force.flatten(1), force[:, rows.stop:]], dim=1)
+        quadratic = torch.cat([quadratic[:, :rows.start], (d * bottom.unsqueeze(-1)).flatten(1),
+                               quadratic[:, rows.stop:]], dim=1)
+        # the middle zone's Hessian in U, (1, -mu/T U'; -mu/T U, mu N/T^3 U U' + (mu^2 - mu N/T) I),
+        # then scaled by diag(mu, friction) on both sides and by its D
+        first = torch.cat([torch.ones_like(tangent).unsqueeze(-1), -(mu / tangent).unsqueeze(-1) * u], -1)
+        block = (mu * normal / tangent ** 3)[..., None, None] * (u.unsqueeze(-1) * u.unsqueeze(-2))
+        block = block + ((mu * mu - mu * normal / tangent)[..., None, None]
+                         * torch.eye(cone.dim - 1, dtype=r.dtype, device=r.device))
+        hessian = torch.cat([first.unsqueeze(-2), torch.cat([first[..., 1:].unsqueeze(-1), block], -1)], -2)
+        axes = torch.cat([mu.unsqueeze(-1), friction], -1)
+        hessian = hessian * axes.unsqueeze(-1) * axes.unsqueeze(-2) * scale[..., None, None]
+        hessians.append(torch.where(middle[..., None, None], hessian, torch.zeros_like(hessian)))
+    return force, quadratic, hessians
+
+
+def _cone_curvature(cones: tuple[EllipticCones, ...], hessians, rows_of):
+    """``sum_c x_c' H_c x_c`` over the middle-zone cones, ``x = rows_of`` per row: ``[N, R]`` (a
+    direction's ``J d``: the line search's curvature, ``[N]``) or ``[N, R, nv]`` (the Jacobian: the
+    Hessian's ``J_c' H_c J_c``, ``[N, nv, nv]``)."""
+    total = 0
+    for cone, hessian in zip(cones, hessians):
+        x = rows_of[:, cone.start:cone.start + cone.count * cone.dim].unflatten(1, (cone.count, cone.dim))
+        if x.dim() == 3:
+            total = total + (x.unsqueeze(-2) @ hessian @ x.unsqueeze(-1)).flatten(1).sum(-1)
+        else:
+            total = total + torch.einsum("nsiv,nsij,nsjw->nvw", x, hessian, x)
+    return total
+
+
+def _elliptic_round(qacc, m, smooth, j, w, aref, exists, cones, tolerance: float, line_iterations: int):
+    """One Newton step on the primal with elliptic cones: ``(new qacc, converged, Hessian at the
+    new point)``. The cost along the direction is convex and twice differentiable but piecewise
+    (the cones' zones): the line search is Newton's method on its derivative, kept inside the
+    bracket of the minimiser (bisection where a step leaves it)."""
+    jt = j.transpose(-1, -2)
+    jar = (j @ qacc.unsqueeze(-1)).squeeze(-1) - aref
+    force, quadratic, hessians = _cone_state(jar, w, exists, cones)
+    gradient = (m @ (qacc - smooth).unsqueeze(-1)).squeeze(-1) - (jt @ force.unsqueeze(-1)).squeeze(-1)
+    hessian = m + jt @ (quadratic.unsqueeze(-1) * j) + _cone_curvature(cones, hessians, j)
+    direction = -torch.linalg.solve_ex(hessian, gradient)[0]
+    jd = (j @ direction.unsqueeze(-1)).squeeze(-1)
+    md = (m @ direction.unsqueeze(-1)).squeeze(-1)
+    slope0, curvature0 = (md * (qacc - smooth)).sum(-1), (md * direction).sum(-1)
+    def line_step(index, alpha, low, high):
+        f, q, h = _cone_state(jar + alpha.unsqueeze(-1) * jd, w, exists, cones)
+        slope = slope0 + alpha * curvature0 - (f * jd).sum(-1)
+        curvature = curvature0 + (q * jd * jd).sum(-1) + _cone_curvature(cones, h, jd)
+        low, high = torch.where(slope < 0, alpha, low), torch.where(slope >= 0, alpha, high)
+        step = alpha - slope / curvature.clamp_min(_MINVAL)
+        inside = (step >= low) & (step <= high)
+        return index + 1, torch.where(inside, step, torch.where(torch.isfinite(high), (low + high) / 2, 2 * alpha)), \
+            low, high
+
+    search = (torch.zeros((), dtype=torch.long, device=qacc.device), torch.ones_like(slope0), torch.zeros_like(slope0),
+              torch.full_like(slope0, torch.inf))
+    if torch.compiler.is_compiling() and hasattr(torch, "while_loop"):  # traced once, not unrolled
+        search = torch.while_loop(lambda index, *_: index < line_iterations, line_step, search)
+    else:
+        for _ in range(line_iterations):
+            search = line_step(*search)
+    new = qacc + search[1].unsqueeze(-1) * direction
+    jar = (j @ new.unsqueeze(-1)).squeeze(-1) - aref
+    force, quadratic, hessians = _cone_state(jar, w, exists, cones)
+    inertial = (m @ (new - smooth).unsqueeze(-1)).squeeze(-1)
+    constraint = (jt @ force.unsqueeze(-1)).squeeze(-1)
+    size = inertial.norm(dim=-1) + constraint.norm(dim=-1) + _MINVAL
+    finite = torch.isfinite(new).all(-1)
+    stalled = (new - qacc).norm(dim=-1) <= 100 * torch.finfo(qacc.dtype).eps * (qacc.norm(dim=-1) + 1)
+    settled = ((inertial - constraint).norm(dim=-1) <= tolerance * size) | stalled | ~finite
+    return torch.where(finite.unsqueeze(-1), new, qacc), settled
+
+
+#: the line search's Newton iterations in the elliptic solve (quadratic convergence once bracketed)
+_ELLIPTIC_LINE_ITERATIONS = 20
+
+
+@torch.no_grad()
+def _elliptic_minimiser(mass, qacc_smooth, jacobian, weight, aref, exists, cones, iterations: int,
+                        tolerance: float):
+    """The minimiser of the primal with elliptic cones (no autograd), by the rounds of
+    `_rounds_driver`: ``(qacc, iterations, converged)``."""
+    m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
+    cones = tuple(c._replace(mu=c.mu.detach(), friction=c.friction.detach()) for c in cones)
+    return _rounds_driver(smooth.device)(
+        lambda q: _elliptic_round(q, m, smooth, j, w, ar, exists, cones, tolerance, _ELLIPTIC_LINE_ITERATIONS),
+        smooth, iterations)
+
+
+def _solve_elliptic(mass, qacc_smooth, rows: ConstraintRows, iterations: int, tolerance: float) -> SolverResult:
+    """The solve with elliptic cones: Newton's method finds the minimiser ``qacc*`` without
+    autograd, then one Newton step from it with the Hessian held, ``qacc* - H^-1 g(qacc*)``, gives
+    the value (``g`` is below the tolerance there) and the implicit gradient of the solution,
+    ``-H^-1 dg``: the cones' middle zone makes the cost non-quadratic, so no fixed row weights
+    reproduce the solution as with pyramidal cones."""
+    weight = rows.weight
+    found, used, converged = _elliptic_minimiser(mass, qacc_smooth, rows.jacobian, weight, rows.aref, rows.exists,
+                                                 rows.cones, iterations, tolerance)
+    jt = rows.jacobian.transpose(-1, -2)
+    with torch.no_grad():
+        jar = (rows.jacobian.detach() @ found.unsqueeze(-1)).squeeze(-1) - rows.aref.detach()
+        held = tuple(c._replace(mu=c.mu.detach(), friction=c.friction.detach()) for c in rows.cones)
+        _, quadratic, hessians = _cone_state(jar, weight.detach(), rows.exists, held)
+        j = rows.jacobian.detach()
+        hessian = mass.detach() + j.transpose(-1, -2) @ (quadratic.unsqueeze(-1) * j) + _cone_curvature(held, hessians, j)
+    jar = (rows.jacobian @ found.unsqueeze(-1)).squeeze(-1) - rows.aref
+    force, _, _ = _cone_state(jar, weight, rows.exists, rows.cones)
+    gradient = (mass @ (found - qacc_smooth).unsqueeze(-1)).squeeze(-1) - (jt @ force.unsqueeze(-1)).squeeze(-1)
+    qacc = found - torch.linalg.solve_ex(hessian, gradient)[0]
+    jar = (rows.jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - rows.aref
+    force, _, _ = _cone_state(jar, weight, rows.exists, rows.cones)
+    return SolverResult(qacc, force, (force != 0) & rows.exists, used, converged)
+
+
 def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, iterations: int,
           tolerance: float = 1e-8, gradient: ContactGradient = ContactGradient()) -> SolverResult:
     """The constrained acceleration (see the module docstring): at most ``iterations`` Newton
@@ -365,6 +579,11 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
         empty = qacc_smooth.new_zeros(qacc_smooth.shape[0], 0)
         done = torch.ones(qacc_smooth.shape[0], dtype=torch.bool, device=qacc_smooth.device)
         return SolverResult(qacc_smooth, empty, empty.bool(), torch.zeros_like(done, dtype=torch.long), done)
+    if rows.cones:
+        if gradient.mode != "exact":
+            raise ValueError(f"contact_gradient={gradient.mode!r} shapes the solve of pyramidal friction cones only; "
+                             "with elliptic cones valid: 'exact', 'penalty'")
+        return _solve_elliptic(mass, qacc_smooth, rows, iterations, tolerance)
     compact = qacc_smooth.device.type == "cpu" and not torch.compiler.is_compiling()
 
     def rows_where(needed, *arrays):
@@ -406,22 +625,24 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
 
 def contact_row_blocks(slots: ContactSlots, rows: ConstraintRows) -> list[tuple[int, torch.Tensor, int]]:
     """Where each condim's contact rows lie: ``(condim, slots [S] long, first row)``, each slot
-    taking ``2 (condim - 1)`` consecutive rows (its pyramid's edges), or 1 for condim 1 (see the
-    module docstring); condims without slots are left out."""
+    taking ``2 (condim - 1)`` consecutive rows (its pyramid's edges), ``condim`` with elliptic
+    cones, or 1 for condim 1 (see the module docstring); condims without slots are left out."""
     out, start = [], rows.rows_per_slot[0]
-    for condim, index in (*slots.pyramids(), (1, slots.normal_index)):
+    for condim, index in (*slots.frictional(), (1, slots.normal_index)):
         if index.numel():
             out.append((condim, index, start))
-            start += _rows_per_contact(condim) * index.numel()
+            start += _rows_per_contact(condim, slots.cone) * index.numel()
     return out
 
 
 def contact_normal_forces(slots: ContactSlots, rows: ConstraintRows, force: torch.Tensor) -> torch.Tensor:
-    """``[N, C]`` each contact slot's normal force (the sum of its pyramid's edge forces)."""
+    """``[N, C]`` each contact slot's normal force (the sum of its pyramid's edge forces, an
+    elliptic cone's normal row)."""
     out = force.new_zeros(force.shape[0], slots.count)
     for condim, index, start in contact_row_blocks(slots, rows):
-        edges = _rows_per_contact(condim)
-        out = out.index_copy(1, index, force[:, start:start + edges * index.numel()].unflatten(1, (-1, edges)).sum(-1))
+        edges = _rows_per_contact(condim, slots.cone)
+        block = force[:, start:start + edges * index.numel()].unflatten(1, (-1, edges))
+        out = out.index_copy(1, index, block[..., 0] if slots.cone == "elliptic" else block.sum(-1))
     return out
 
 
@@ -430,13 +651,13 @@ def contact_frame_forces(slots: ContactSlots, rows: ConstraintRows, force: torch
     ``mj_contactForce``: the force along the normal and the two tangents, then the torque about
     the normal (torsional friction, condim 4 and 6) and the two tangents (rolling friction, condim
     6). A pyramid's normal force is the sum of its edges', its friction in direction ``d`` is
-    ``mu_d (f_{+d} - f_{-d})``. ``friction [N, C]``: each slot's sliding ``mu`` (the torsional and
-    rolling ones are the model's, ``slots.spin_friction``)."""
+    ``mu_d (f_{+d} - f_{-d})``; an elliptic cone's rows are these forces. ``friction [N, C]``: each
+    slot's sliding ``mu`` (the torsional and rolling ones are the model's, ``slots.spin_friction``)."""
     out = force.new_zeros(force.shape[0], slots.count, 6)
     for condim, index, start in contact_row_blocks(slots, rows):
-        if condim == 1:
-            normal = force[:, start:start + index.numel()]
-            out = out.index_copy(1, index, torch.cat([normal.unsqueeze(-1), normal.new_zeros(*normal.shape, 5)], -1))
+        if condim == 1 or slots.cone == "elliptic":
+            local = force[:, start:start + condim * index.numel()].unflatten(1, (-1, condim))
+            out = out.index_copy(1, index, torch.cat([local, local.new_zeros(*local.shape[:-1], 6 - condim)], -1))
             continue
         edges = force[:, start:start + 2 * (condim - 1) * index.numel()].unflatten(1, (-1, condim - 1, 2))  # [N, S, d, +-]
         mu = friction[:, index, None].expand(-1, -1, 2)

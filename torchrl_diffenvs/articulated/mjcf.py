@@ -222,8 +222,8 @@ class _Reader:
         if solver not in ("Newton", "CG", "PGS"):
             raise self.fail(element, f"solver {solver!r} is not supported; supported: 'Newton', 'CG', 'PGS'")
         cone = element.get("cone", "pyramidal")
-        if cone != "pyramidal":
-            raise self.fail(element, f"cone {cone!r} is not supported; supported: 'pyramidal' (MuJoCo's default)")
+        if cone not in ("pyramidal", "elliptic"):
+            raise self.fail(element, f"cone {cone!r} is invalid; valid: 'pyramidal' (MuJoCo's default), 'elliptic'")
         options = dict(solver=solver.lower(), iterations=int(element.get("iterations", 100)),
                        tolerance=float(element.get("tolerance", 1e-8)),
                        ls_iterations=int(element.get("ls_iterations", 50)), cone=cone,

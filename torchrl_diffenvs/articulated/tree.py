@@ -161,6 +161,9 @@ class RigidBodyTree:
         if gradient.mode != "exact" and self.contact_model != "mujoco":
             raise ValueError(f"contact_gradient={gradient.mode!r} shapes the gradient of MuJoCo's constraint solve; "
                              f"this tree uses the {self.contact_model!r} contact model (valid there: 'exact')")
+        if gradient.mode in ("cfd", "smooth") and self.model.cone == "elliptic":
+            raise ValueError(f"contact_gradient={gradient.mode!r} shapes the solve of pyramidal friction cones; "
+                             "this model's cones are elliptic (valid there: 'exact', 'penalty')")
         self.contact_gradient = gradient
         return self
 
