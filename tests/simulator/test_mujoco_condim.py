@@ -426,7 +426,9 @@ def test_elliptic_rolling_and_spinning_steps_match_mj_step(tmp_path):
 def test_elliptic_one_step_gradcheck_and_gradient_modes(tmp_path):
     """One Euler step with elliptic cones against finite differences (float64) in qvel and the
     sliding friction, the rolling, spinning ball's condim-6 contact and the box's condim-4 ones
-    active, every one in the cone's middle zone; the solve-shaping gradient modes refuse an elliptic model, naming the valid ones."""
+    active, every one in the cone's middle zone. The solve-shaping gradient modes refuse an
+    elliptic model, naming the valid ones; the penalty mode keeps the elliptic forward and
+    shapes the backward only (a ball alone: the smooth model has no box)."""
     model, tree, mm, data = _load(tmp_path, ROLLING.replace("<worldbody>", '<option cone="elliptic"/><worldbody>', 1))
     _rolling_start(mm, data)
     qpos, qvel = torch.as_tensor(data.qpos).unsqueeze(0), torch.as_tensor(data.qvel).unsqueeze(0)
@@ -446,6 +448,23 @@ def test_elliptic_one_step_gradcheck_and_gradient_modes(tmp_path):
     for mode in ("cfd", "smooth"):
         with pytest.raises(ValueError, match=f"contact_gradient='{mode}' .*elliptic \\(valid there: 'exact', 'penalty'\\)"):
             RigidBodyTree.from_model(model).use_contact_gradient(mode)
+    # the penalty mode (outside the solve) keeps the elliptic forward, and shapes the backward only
+    from torchrl_diffenvs.envs.mujoco.base import CONTACT_DEFAULTS
+
+    ball = load_mjcf(_write(tmp_path, "ball.xml", ROLLING.replace("<worldbody>", '<option cone="elliptic"/><worldbody>', 1)
+                            .split('  <body name="block"')[0] + "</worldbody></mujoco>"))
+    ball_params = {**_params(RigidBodyTree.from_model(ball)),
+                   **{k: torch.full((1,), float(v), dtype=torch.float64) for k, v in CONTACT_DEFAULTS.items()}}
+    start = torch.tensor([[0.0, 0.0, 0.099, 1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    results = {}
+    for mode in ("exact", "penalty"):
+        tree_mode = RigidBodyTree.from_model(ball).use_contact_gradient(mode)
+        spin = torch.tensor([[1.0, 0.0, 0.0, 0.0, 0.0, 5.0]], dtype=torch.float64, requires_grad=True)
+        result = step(tree_mode, start, spin, torch.zeros(1, 0, dtype=torch.float64), ball_params, mm.opt.timestep,
+                      ball.integrator, invweight0(tree_mode, ball_params))
+        results[mode] = (result.qvel.detach(), torch.autograd.grad(result.qvel.sum(), spin)[0])
+    torch.testing.assert_close(results["penalty"][0], results["exact"][0], rtol=0, atol=0)
+    assert torch.isfinite(results["penalty"][1]).all() and not torch.allclose(results["penalty"][1], results["exact"][1])
 
 
 @pytest.mark.filterwarnings("ignore")
