@@ -92,6 +92,8 @@ def _mix(model: ArticulatedModel, g1: int, g2: int) -> dict:
 
 #: MuJoCo's friction cones (``<option cone>``), its default first
 CONES = ("pyramidal", "elliptic")
+#: MuJoCo's ``mjMINMU``: every friction coefficient of a contact is at least this (``mj_assignFriction``)
+MIN_FRICTION = 1e-5
 
 
 class _Geoms(NamedTuple):
@@ -202,7 +204,8 @@ def contact_slots(model: ArticulatedModel, friction_slots: list[tuple[str, str]]
         normal_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 1], (-1,)),
         torsional_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 4], (-1,)),
         rolling_index=idx([i for i, r in enumerate(rows) if r[3]["condim"] == 6], (-1,)),
-        spin_friction=t([[r[3]["torsional"], r[3]["rolling"], r[3]["rolling"]] for r in rows], (-1, 3)),
+        spin_friction=t([[max(MIN_FRICTION, r[3]["torsional"]), max(MIN_FRICTION, r[3]["rolling"]),
+                          max(MIN_FRICTION, r[3]["rolling"])] for r in rows], (-1, 3)),
         pair_solref=t(_pair_solref(rows, len(friction_slots)), (-1, 2)), cone=model.cone)
 
 

@@ -11,8 +11,8 @@ per condim-6 slot (and rolling friction: about the two tangents), then one row p
 ``condim`` rows per frictional contact instead, its frame's Jacobian as it is (the normal, the
 tangents, the spin and the rolls). A row MuJoCo would not create (a limit not
 within its margin, a contact slot without a contact) is kept with ``exists = False`` and no force:
-the shapes never depend on the state (on the CPU the solve drops the rows that exist in no env of
-the batch, a host read that costs nothing there).
+the shapes never depend on the state (on the CPU the solve with pyramidal cones drops the rows
+that exist in no env of the batch, a host read that costs nothing there).
 
 The solve minimises MuJoCo's convex primal over ``qacc``,
 ``1/2 (qacc - qacc_smooth)' M (qacc - qacc_smooth) + sum_i 1/2 D_i min(0, J_i qacc - aref_i)^2``,
@@ -38,7 +38,7 @@ from typing import NamedTuple
 
 import torch
 
-from .collision import Contacts, ContactSlots
+from .collision import MIN_FRICTION, Contacts, ContactSlots
 from .contact_gradient import ContactGradient
 from .convergence import ConvergenceWatch
 from .kinematics import Kinematics
@@ -131,7 +131,7 @@ def _elliptic_rows(tree: RigidBodyTree, slots: ContactSlots, index: torch.Tensor
     r1 = r0 / max(_MINVAL, tree.model.impratio)
     # the contact's friction along its friction rows: sliding twice, then torsional, rolling twice
     friction = torch.cat([mu.unsqueeze(-1).expand(-1, -1, 2),
-                          slots.spin_friction[None, index, :d - 3].expand(n, -1, -1)], dim=-1)[..., :d - 1]
+                          slots.spin_friction[None, index, :d - 3].expand(n, -1, -1)], dim=-1)
     r = torch.cat([r0.unsqueeze(-1), r1.unsqueeze(-1) * (mu.unsqueeze(-1) / friction) ** 2], dim=-1)
     active = contacts.active[:, index, None].expand(-1, -1, d)
     cone = EllipticCones(start, d, count, mu * torch.sqrt(r1 / r0), friction)
@@ -141,8 +141,8 @@ def _elliptic_rows(tree: RigidBodyTree, slots: ContactSlots, index: torch.Tensor
 
 def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, contacts: Contacts, qpos, qvel,
                     params: Params, dof_weight: torch.Tensor, body_weight: torch.Tensor) -> ConstraintRows:
-    """The constraint rows at a state: joint limits, then contacts (pyramidal cones; the layout is
-    the module docstring's).
+    """The constraint rows at a state: joint limits, then contacts (pyramidal or elliptic cones, the
+    model's; the layout is the module docstring's).
 
     ``dof_weight [N, nv]`` and ``body_weight [N, nbody, 2]``: MuJoCo's ``dof_invweight0`` and
     ``body_invweight0`` for these params (`dof_invweight0`,
@@ -171,7 +171,8 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
         body1, body2 = slots.body[:, 0], slots.body[:, 1]
         in_frame = _contact_frame_jacobian(tree, kin, body1, body2, contacts.pos, contacts.frame)  # [N, C, 3, nv]
         translation = body_weight[:, body1, 0] + body_weight[:, body2, 0]  # [N, C]
-        mu = params["contact_friction"][:, slots.friction_slot]  # [N, C]
+        # [N, C]; at least MuJoCo's mjMINMU, as mj_assignFriction clamps it
+        mu = params["contact_friction"][:, slots.friction_slot].clamp_min(MIN_FRICTION)
         # [N or 1, C, 2]: each env's time constant and damping ratio of its pair, or the model's
         solref = params["contact_solref"][:, slots.friction_slot] if "contact_solref" in params else slots.solref[None]
         for condim, index in (*slots.frictional(), (1, slots.normal_index)):
@@ -445,7 +446,11 @@ def _cone_state(jar, weight, exists, cones: tuple[EllipticCones, ...]):
         scale = d[..., 0] / (mu * mu * (1 + mu * mu))
         gap = normal - mu * tangent
         f_normal = -scale * gap * mu
-        f_friction = -(f_normal / tangent).unsqueeze(-1) * u * friction
+        # outside the middle zone T may be ~0: a unit denominator there keeps the unselected
+        # branch (and its backward) finite
+        safe_tangent = torch.where(middle, tangent, torch.ones_like(tangent))
+        unit = u / safe_tangent.unsqueeze(-1)  # the friction direction, |unit| = 1 in the middle zone
+        f_friction = -f_normal.unsqueeze(-1) * unit * friction
         cone_force = torch.where(middle.unsqueeze(-1), torch.cat([f_normal.unsqueeze(-1), f_friction], -1),
                                  torch.where(bottom.unsqueeze(-1), -d * r, torch.zeros_like(r)))
         force = torch.cat([force[:, :rows.start], cone_force.flatten(1), force[:, rows.stop:]], dim=1)
@@ -453,9 +458,10 @@ def _cone_state(jar, weight, exists, cones: tuple[EllipticCones, ...]):
                                quadratic[:, rows.stop:]], dim=1)
         # the middle zone's Hessian in U, (1, -mu/T U'; -mu/T U, mu N/T^3 U U' + (mu^2 - mu N/T) I),
         # then scaled by diag(mu, friction) on both sides and by its D
-        first = torch.cat([torch.ones_like(tangent).unsqueeze(-1), -(mu / tangent).unsqueeze(-1) * u], -1)
-        block = (mu * normal / tangent ** 3)[..., None, None] * (u.unsqueeze(-1) * u.unsqueeze(-2))
-        block = block + ((mu * mu - mu * normal / tangent)[..., None, None]
+        # (mu N / T^3) U U' written as (mu N / T) e e', e = U / T: no T^3 to underflow in float32
+        first = torch.cat([torch.ones_like(tangent).unsqueeze(-1), -mu.unsqueeze(-1) * unit], -1)
+        block = (mu * normal / safe_tangent)[..., None, None] * (unit.unsqueeze(-1) * unit.unsqueeze(-2))
+        block = block + ((mu * mu - mu * normal / safe_tangent)[..., None, None]
                          * torch.eye(cone.dim - 1, dtype=r.dtype, device=r.device))
         hessian = torch.cat([first.unsqueeze(-2), torch.cat([first[..., 1:].unsqueeze(-1), block], -1)], -2)
         axes = torch.cat([mu.unsqueeze(-1), friction], -1)
@@ -660,7 +666,7 @@ def contact_frame_forces(slots: ContactSlots, rows: ConstraintRows, force: torch
             out = out.index_copy(1, index, torch.cat([local, local.new_zeros(*local.shape[:-1], 6 - condim)], -1))
             continue
         edges = force[:, start:start + 2 * (condim - 1) * index.numel()].unflatten(1, (-1, condim - 1, 2))  # [N, S, d, +-]
-        mu = friction[:, index, None].expand(-1, -1, 2)
+        mu = friction[:, index, None].clamp_min(MIN_FRICTION).expand(-1, -1, 2)  # as the rows' (mj_assignFriction)
         if condim > 3:
             mu = torch.cat([mu, slots.spin_friction[None, index, :condim - 3].expand(mu.shape[0], -1, -1)], -1)
         local = torch.cat([edges.sum((-1, -2)).unsqueeze(-1), mu * (edges[..., 0] - edges[..., 1])], dim=-1)
