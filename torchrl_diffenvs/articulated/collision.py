@@ -230,8 +230,8 @@ class Contacts(NamedTuple):
 
 def _posed(kin, geoms: _Geoms) -> PosedGeoms:
     """Geoms in the world at the configurations of ``kin`` (MuJoCo's geom_xpos, geom_xmat)."""
-    rot = kin.body_rot[:, geoms.body]
-    return PosedGeoms(kin.body_pos[:, geoms.body] + (rot @ geoms.pos.unsqueeze(-1)).squeeze(-1), rot @ geoms.rot,
+    rot = kin.body_rot.index_select(1, geoms.body)
+    return PosedGeoms(kin.body_pos.index_select(1, geoms.body) + (rot @ geoms.pos.unsqueeze(-1)).squeeze(-1), rot @ geoms.rot,
                       geoms.size)
 
 

@@ -133,10 +133,10 @@ def _elliptic_rows(tree: RigidBodyTree, slots: ContactSlots, index: torch.Tensor
     friction = torch.cat([mu.unsqueeze(-1).expand(-1, -1, 2),
                           slots.spin_friction[None, index, :d - 3].expand(n, -1, -1)], dim=-1)
     r = torch.cat([r0.unsqueeze(-1), r1.unsqueeze(-1) * (mu.unsqueeze(-1) / friction) ** 2], dim=-1)
-    active = contacts.active[:, index, None].expand(-1, -1, d)
+    active = contacts.active.index_select(1, index)[:, :, None].expand(-1, -1, d)
     cone = EllipticCones(start, d, count, mu * torch.sqrt(r1 / r0), friction)
     return (frame_jacobian.flatten(1, 2), row_pos.flatten(1), row_margin.flatten(), row_aref.flatten(1), r.flatten(1),
-            active.flatten(1), contacts.found[:, index, None].expand(-1, -1, d).flatten(1), cone)
+            active.flatten(1), contacts.found.index_select(1, index)[:, :, None].expand(-1, -1, d).flatten(1), cone)
 
 
 def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, contacts: Contacts, qpos, qvel,
@@ -178,47 +178,51 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
         for condim, index in (*slots.frictional(), (1, slots.normal_index)):
             if not index.numel():
                 continue
-            c = in_frame[:, index]
-            dist, cmargin = contacts.dist[:, index], slots.margin[index]
+            # index_select, not x[:, index]: advanced indexing is several times slower on the CPU
+            c = in_frame.index_select(1, index)
+            dist, cmargin = contacts.dist.index_select(1, index), slots.margin[index]
+            slot_mu, slot_translation = mu.index_select(1, index), translation.index_select(1, index)
             if condim > 3:  # torsional (and rolling): the relative angular velocity about the normal (and tangents)
                 spin = contacts.frame[:, index, :condim - 3] @ _angular_jacobian(tree, kin, body1[index],
                                                                                  body2[index]).transpose(-1, -2)
                 c = torch.cat([c, spin], dim=2)  # [N, S, condim, nv]
             if condim > 1 and slots.cone == "elliptic":
-                block = _elliptic_rows(tree, slots, index, c, dist, cmargin, qvel, mu[:, index], translation[:, index],
-                                       solref[:, index], contacts, start=sum(p.shape[-1] for p in pos))
+                block = _elliptic_rows(tree, slots, index, c, dist, cmargin, qvel, slot_mu, slot_translation,
+                                       solref.index_select(1, index), contacts, start=sum(p.shape[-1] for p in pos))
                 for out, value in zip((jac, pos, margin, aref, reg, exists, found), block[:-1]):
                     out.append(value)
                 cones.append(block[-1])
                 pyramid_rows += condim * index.numel()
                 continue
             if condim > 1:
-                m = mu[:, index, None, None]  # the sliding friction, on both tangents
+                m = slot_mu[:, :, None, None]  # the sliding friction, on both tangents
                 normal, directions = c[:, :, :1], c[:, :, 1:]
                 if condim > 3:
                     m = torch.cat([m.expand(-1, -1, 2, -1),
                                    slots.spin_friction[None, index, :condim - 3, None].expand(n, -1, -1, -1)], dim=2)
                 # MuJoCo's edge pairs J_n +- mu_d J_d, d = t1 t2 (then the normal's spin, the tangents' roll)
-                edges = torch.stack([normal + m * directions, normal - m * directions], dim=3).flatten(2, 3)
+                # (d1+, d1-, d2+, ...): one broadcast op, several times faster than stacking the two signs
+                plus_minus = torch.tensor([[1.0], [-1.0]], dtype=c.dtype, device=c.device)
+                edges = (normal.unsqueeze(3) + plus_minus * (m * directions).unsqueeze(3)).flatten(2, 3)
                 rows = _rows_per_contact(condim)
                 # diagApprox of the first edge, R from it, and MuJoCo's common pyramid R = 2 mu^2 R / impratio
-                diag = translation[:, index] * (1 + mu[:, index] ** 2)
+                diag = slot_translation * (1 + slot_mu ** 2)
             else:
                 edges, rows = c[:, :, :1], 1
-                diag = translation[:, index]
+                diag = slot_translation
             velocity = (edges @ qvel[:, None, :, None]).squeeze(-1)  # [N, S, rows]
-            row_aref, imp = _reference(dist.unsqueeze(-1), cmargin[:, None], velocity, solref[:, index, None],
+            row_aref, imp = _reference(dist.unsqueeze(-1), cmargin[:, None], velocity, solref.index_select(1, index)[:, :, None],
                                        slots.solimp[index, None], timestep)
             r = ((1 - imp[..., 0]) * diag / imp[..., 0]).clamp_min(_MINVAL)
             if condim > 1:
-                r = 2 * mu[:, index] ** 2 * r / tree.model.impratio
+                r = 2 * slot_mu ** 2 * r / tree.model.impratio
             jac.append(edges.flatten(1, 2))
             pos.append(dist.repeat_interleave(rows, dim=1))
             margin.append(cmargin.repeat_interleave(rows))
             aref.append(row_aref.flatten(1))
             reg.append(r.repeat_interleave(rows, dim=1))
-            exists.append(contacts.active[:, index].repeat_interleave(rows, dim=1))
-            found.append(contacts.found[:, index].repeat_interleave(rows, dim=1))
+            exists.append(contacts.active.index_select(1, index).repeat_interleave(rows, dim=1))
+            found.append(contacts.found.index_select(1, index).repeat_interleave(rows, dim=1))
             if condim > 1:
                 pyramid_rows += rows * index.numel()
     if not jac:
@@ -358,17 +362,19 @@ def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance:
     converged = torch.ones(n, dtype=torch.bool, device=smooth.device)
     if envs.numel() == 0:
         return qacc, used, converged
-    order = torch.argsort((~exists[envs]).to(torch.int8), dim=-1, stable=True)[:, :int(count.max())]
-    rows_of = lambda x: x[envs].gather(1, order)  # noqa: E731  (existing rows first)
-    args = (m[envs], smooth[envs], j[envs].gather(1, order.unsqueeze(-1).expand(-1, -1, j.shape[-1])),
+    # index_select and index_copy_, not x[envs]: advanced indexing is several times slower on the CPU
+    of_envs = lambda x: x.index_select(0, envs)  # noqa: E731
+    order = torch.argsort((~of_envs(exists)).to(torch.int8), dim=-1, stable=True)[:, :int(count.max())]
+    rows_of = lambda x: of_envs(x).gather(1, order)  # noqa: E731  (existing rows first)
+    args = (of_envs(m), of_envs(smooth), of_envs(j).gather(1, order.unsqueeze(-1).expand(-1, -1, j.shape[-1])),
             rows_of(w), rows_of(aref), rows_of(exists))
     q, left = args[1].clone(), torch.arange(envs.numel(), device=smooth.device)
     used_c, converged_c = torch.zeros_like(left), torch.zeros_like(left, dtype=torch.bool)
     for _ in range(iterations):
-        new, settled = _newton_round(q[left], *(a[left] for a in args), tolerance)
-        q[left] = new
-        used_c[left] += 1
-        converged_c[left] = settled
+        new, settled = _newton_round(q.index_select(0, left), *(a.index_select(0, left) for a in args), tolerance)
+        q.index_copy_(0, left, new)
+        used_c.index_add_(0, left, torch.ones_like(left))
+        converged_c.index_copy_(0, left, settled)
         left = left[~settled]
         if not left.numel():
             break
@@ -598,7 +604,7 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
         if not compact:
             return arrays, None
         keep = needed.any(0).nonzero().squeeze(-1)
-        return tuple(a[:, keep] for a in arrays), keep
+        return tuple(a.index_select(1, keep) for a in arrays), keep
 
     def full(x, keep):  # back to the fixed row positions
         return x if keep is None else x.new_zeros(rows.aref.shape).index_copy(1, keep, x)
