@@ -88,55 +88,64 @@ def _mixed_states(mm, data):
     return np.array(qpos), np.array(qvel)
 
 
-@pytest.fixture(scope="module")
-def mixed(tmp_path_factory):
-    """MuJoCo's ``mj_forward`` at the states of `_mixed_states` (Newton run to 1e-14: at its
-    default 1e-8 its forces stop ~1e-8 short of the minimiser), and ours at all of them as one
-    batch: the rows, the solve and the contact forces."""
-    model, tree, mm, data = _load(tmp_path_factory.mktemp("condim"), MIXED)
+def _forward_at_mixed_states(tmp_path, text):
+    """MuJoCo's ``mj_forward`` at the states of `_mixed_states` of the model ``text`` (Newton run to
+    1e-14: at its default 1e-8 its forces stop ~1e-8 short of the minimiser; each contact's efc rows,
+    its first row's state, MuJoCo's own residual ``M (qacc - qacc_smooth) - qfrc_constraint``), and
+    ours at all of them as one batch: the rows, the solve (to the same tolerance) and the contact forces."""
+    model, tree, mm, data = _load(tmp_path, text)
     mm.opt.tolerance = 1e-14
     qpos_np, qvel_np = _mixed_states(mm, data)
+    elliptic = mm.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     theirs = []
     for q, v in zip(qpos_np, qvel_np):
         data.qpos[:], data.qvel[:], data.qacc_warmstart[:] = q, v, 0.0
         mujoco.mj_forward(mm, data)
         mujoco.mj_rnePostConstraint(mm, data)
+        inertial = np.zeros(mm.nv)
+        mujoco.mj_mulM(mm, data, inertial, data.qacc - data.qacc_smooth)
         contacts = []
         for j in range(data.ncon):
             con = data.contact[j]
             force = np.zeros(6)
             mujoco.mj_contactForce(mm, data, j, force)
-            a, k = con.efc_address, (2 * (con.dim - 1) if con.dim > 1 else 1)
+            a, k = con.efc_address, (int(con.dim) if elliptic or con.dim == 1 else 2 * (con.dim - 1))
             contacts.append(dict(geom=tuple(map(int, con.geom)), point=con.pos.copy(), dim=int(con.dim), force6=force,
-                                 J=data.efc_J.reshape(data.nefc, mm.nv)[a:a + k].copy(),
-                                 **{f: getattr(data, "efc_" + f)[a:a + k].copy()
-                                    for f in ("pos", "aref", "R", "force")}))
+                                 state=int(data.efc_state[a]), J=data.efc_J.reshape(data.nefc, mm.nv)[a:a + k].copy(),
+                                 **{f: getattr(data, "efc_" + f)[a:a + k].copy() for f in ("pos", "aref", "R", "force")}))
         theirs.append(dict(contacts=contacts, qfrc=data.qfrc_constraint.copy(), qacc=data.qacc.copy(),
-                           qacc_smooth=data.qacc_smooth.copy(), cfrc_ext=data.cfrc_ext.copy(),
-                           com=data.subtree_com.copy()))
-    n = len(theirs)
-    params = _params(tree, n)
+                           qacc_smooth=data.qacc_smooth.copy(), residual=np.abs(inertial - data.qfrc_constraint).max(),
+                           cfrc_ext=data.cfrc_ext.copy(), com=data.subtree_com.copy()))
+    params = _params(tree, len(theirs))
     weights = invweight0(tree, params)
     qpos, qvel = torch.as_tensor(qpos_np), torch.as_tensor(qvel_np)
     kin = forward_kinematics(tree, qpos)
     contacts = collide(tree.contact_slots, kin)
     rows = constraint_rows(tree, tree.contact_slots, kin, contacts, qpos, qvel, params, weights.dof, weights.body)
     mass, _ = mass_matrix_and_bias(tree, kin, qvel, params)
-    solution = solve(mass, torch.as_tensor(np.array([t["qacc_smooth"] for t in theirs])), rows, mm.opt.iterations)
+    qacc_smooth = torch.as_tensor(np.array([t["qacc_smooth"] for t in theirs]))
+    solution = solve(mass, qacc_smooth, rows, mm.opt.iterations, mm.opt.tolerance)
     return dict(model=model, tree=tree, mm=mm, theirs=theirs, qpos=qpos, qvel=qvel, params=params, weights=weights,
-                contacts=contacts, rows=rows, solution=solution)
+                contacts=contacts, rows=rows, mass=mass, qacc_smooth=qacc_smooth, solution=solution)
+
+
+@pytest.fixture(scope="module")
+def mixed(tmp_path_factory):
+    """`_forward_at_mixed_states` with MuJoCo's default pyramidal cones."""
+    return _forward_at_mixed_states(tmp_path_factory.mktemp("condim"), MIXED)
 
 
 def _matched(mixed):
     """Our rows matched to MuJoCo's contacts: ``(state, slot, our rows, MuJoCo's contact)`` for
-    every contact of every state, by geom pair and position (the same contacts, each once)."""
+    every contact of every state, by geom pair and position (the same contacts, each once), with
+    pyramidal or elliptic cones."""
     tree, contacts, rows = mixed["tree"], mixed["contacts"], mixed["rows"]
     slots = tree.contact_slots
     out = []
     for k, state in enumerate(mixed["theirs"]):
         ours = {}
         for condim, index, start in contact_row_blocks(slots, rows):
-            edges = 2 * (condim - 1) if condim > 1 else 1
+            edges = condim if condim == 1 or slots.cone == "elliptic" else 2 * (condim - 1)
             for n, s in enumerate(index.tolist()):
                 if contacts.active[k, s]:
                     key = (tuple(slots.geom[s].tolist()), tuple(np.round(contacts.pos[k, s].numpy(), 9)))
@@ -254,16 +263,25 @@ def _write(tmp_path, name, text):
     return str(path)
 
 
+def _with_cone(text, cone):
+    return text if cone == "pyramidal" else text.replace("<worldbody>", f'<option cone="{cone}"/><worldbody>', 1)
+
+
 @pytest.mark.filterwarnings("ignore")
-def test_one_step_gradcheck_with_condim_6_contacts(tmp_path):
+@pytest.mark.parametrize("cone", ["pyramidal", "elliptic"])
+def test_one_step_gradcheck_with_condim_6_contacts(tmp_path, cone):
     """One Euler step's qpos and qvel against finite differences (float64) in qvel and in the
     pairs' sliding friction (``params["contact_friction"]``), with the rolling, spinning ball's
-    condim-6 contact and the box's condim-4 contacts active."""
-    model, tree, mm, data = _load(tmp_path, ROLLING)
+    condim-6 contact and the box's condim-4 contacts active; with elliptic cones every one in
+    the cone's middle zone, where the solve is not a fixed-weight one."""
+    model, tree, mm, data = _load(tmp_path, _with_cone(ROLLING, cone))
     _rolling_start(mm, data)
     qpos, qvel = torch.as_tensor(data.qpos).unsqueeze(0), torch.as_tensor(data.qvel).unsqueeze(0)
     active = collide(tree.contact_slots, forward_kinematics(tree, qpos)).active[0]
     assert [tree.contact_slots.condim[s] for s in np.flatnonzero(active.numpy())] == [6, 4, 4, 4, 4]
+    if cone == "elliptic":
+        mujoco.mj_forward(mm, data)
+        assert (data.efc_state[:data.nefc] == mujoco.mjtConstraintState.mjCNSTRSTATE_CONE).all()
     params = _params(tree)
     weights = invweight0(tree, params)
     friction = params["contact_friction"].clone().requires_grad_(True)
@@ -300,60 +318,8 @@ ELLIPTIC = MIXED.replace("<worldbody>", '<option cone="elliptic" impratio="3"/><
 
 @pytest.fixture(scope="module")
 def elliptic(tmp_path_factory):
-    """MuJoCo's ``mj_forward`` with elliptic cones at the states of `_mixed_states` (Newton, tolerance
-    1e-14), and ours at all of them as one batch."""
-    model, tree, mm, data = _load(tmp_path_factory.mktemp("elliptic"), ELLIPTIC)
-    mm.opt.tolerance = 1e-14
-    qpos_np, qvel_np = _mixed_states(mm, data)
-    theirs = []
-    for q, v in zip(qpos_np, qvel_np):
-        data.qpos[:], data.qvel[:], data.qacc_warmstart[:] = q, v, 0.0
-        mujoco.mj_forward(mm, data)
-        mujoco.mj_rnePostConstraint(mm, data)
-        inertial = np.zeros(mm.nv)
-        mujoco.mj_mulM(mm, data, inertial, data.qacc - data.qacc_smooth)
-        contacts = []
-        for j in range(data.ncon):
-            con = data.contact[j]
-            force = np.zeros(6)
-            mujoco.mj_contactForce(mm, data, j, force)
-            a, k = con.efc_address, int(con.dim)
-            contacts.append(dict(geom=tuple(map(int, con.geom)), point=con.pos.copy(), dim=k, force6=force,
-                                 state=int(data.efc_state[a]), J=data.efc_J.reshape(data.nefc, mm.nv)[a:a + k].copy(),
-                                 **{f: getattr(data, "efc_" + f)[a:a + k].copy() for f in ("pos", "aref", "R", "force")}))
-        theirs.append(dict(contacts=contacts, qacc=data.qacc.copy(), qacc_smooth=data.qacc_smooth.copy(),
-                           residual=np.abs(inertial - data.qfrc_constraint).max(), cfrc_ext=data.cfrc_ext.copy(),
-                           com=data.subtree_com.copy()))
-    params = _params(tree, len(theirs))
-    weights = invweight0(tree, params)
-    qpos, qvel = torch.as_tensor(qpos_np), torch.as_tensor(qvel_np)
-    kin = forward_kinematics(tree, qpos)
-    contacts = collide(tree.contact_slots, kin)
-    rows = constraint_rows(tree, tree.contact_slots, kin, contacts, qpos, qvel, params, weights.dof, weights.body)
-    mass, _ = mass_matrix_and_bias(tree, kin, qvel, params)
-    qacc_smooth = torch.as_tensor(np.array([t["qacc_smooth"] for t in theirs]))
-    solution = solve(mass, qacc_smooth, rows, mm.opt.iterations, mm.opt.tolerance)
-    return dict(model=model, tree=tree, mm=mm, theirs=theirs, qpos=qpos, qvel=qvel, params=params, weights=weights,
-                contacts=contacts, rows=rows, mass=mass, qacc_smooth=qacc_smooth, solution=solution)
-
-
-def _elliptic_matched(elliptic):
-    """`_matched` for elliptic cones: ``(state, slot, our rows, MuJoCo's contact)``, ``condim`` rows each."""
-    tree, contacts, rows = elliptic["tree"], elliptic["contacts"], elliptic["rows"]
-    slots, out = tree.contact_slots, []
-    for k, state in enumerate(elliptic["theirs"]):
-        ours = {}
-        for condim, index, start in contact_row_blocks(slots, rows):
-            for n, s in enumerate(index.tolist()):
-                if contacts.active[k, s]:
-                    key = (tuple(slots.geom[s].tolist()), tuple(np.round(contacts.pos[k, s].numpy(), 9)))
-                    ours[key] = (s, slice(start + condim * n, start + condim * (n + 1)))
-        assert len(ours) == len(state["contacts"])
-        for con in state["contacts"]:
-            s, index = ours.pop((con["geom"], tuple(np.round(con["point"], 9))))
-            assert slots.condim[s] == con["dim"]
-            out.append((k, s, index, con))
-    return out
+    """`_forward_at_mixed_states` with elliptic cones."""
+    return _forward_at_mixed_states(tmp_path_factory.mktemp("elliptic"), ELLIPTIC)
 
 
 @pytest.mark.filterwarnings("ignore")
@@ -368,7 +334,7 @@ def test_elliptic_rows_and_cone_force_law_match_mjdata(elliptic):
     force, _, _ = _cone_state(jar, rows.weight, rows.exists, rows.cones)
     worst = dict(J=0.0, pos=0.0, aref=0.0, R=0.0, force=0.0)
     zones, condims = {}, {}
-    for k, s, index, con in _elliptic_matched(elliptic):
+    for k, s, index, con in _matched(elliptic):
         zones[con["state"]] = zones.get(con["state"], 0) + 1
         condims[con["dim"]] = condims.get(con["dim"], 0) + 1
         for name, ours in (("J", rows.jacobian[k, index]), ("pos", rows.pos[k, index]), ("aref", rows.aref[k, index]),
@@ -401,7 +367,7 @@ def test_elliptic_solve_is_the_minimiser_mujocos_newton_approaches(elliptic):
     tree, params = elliptic["tree"], elliptic["params"]
     slots = tree.contact_slots
     local = contact_frame_forces(slots, rows, solution.force, params["contact_friction"][:, slots.friction_slot])
-    for k, s, index, con in _elliptic_matched(elliptic):
+    for k, s, index, con in _matched(elliptic):
         np.testing.assert_allclose(solution.force[k, index].numpy(), con["force"], rtol=0, atol=1e-5)
         np.testing.assert_allclose(local[k, s, :con["dim"]].numpy(), con["force6"][:con["dim"]], rtol=0, atol=1e-5)
     n = len(theirs)
@@ -421,7 +387,7 @@ def test_elliptic_rolling_and_spinning_steps_match_mj_step(tmp_path):
     """200 steps of the ball rolling and spinning and the box spinning on the floor with elliptic
     cones: one step of ours from each of MuJoCo's states lands on mj_step's within its solver's
     residual (measured: 4e-7 at worst, 7e-16 median; the cones' middle zone in 18% of the rows)."""
-    model, tree, mm, data = _load(tmp_path, ROLLING.replace("<worldbody>", '<option cone="elliptic"/><worldbody>', 1))
+    model, tree, mm, data = _load(tmp_path, _with_cone(ROLLING, "elliptic"))
     _rolling_start(mm, data)
     states = []
     gaps = gaps_to_mj_step(tree, mm, data, 200, lambda d: states.append(d.efc_state[:d.nefc].copy()))
@@ -430,35 +396,27 @@ def test_elliptic_rolling_and_spinning_steps_match_mj_step(tmp_path):
 
 
 @pytest.mark.filterwarnings("ignore")
-def test_elliptic_one_step_gradcheck_and_gradient_modes(tmp_path):
-    """One Euler step with elliptic cones against finite differences (float64) in qvel and the
-    sliding friction, the rolling, spinning ball's condim-6 contact and the box's condim-4 ones
-    active, every one in the cone's middle zone. The solve-shaping gradient modes refuse an
-    elliptic model, naming the valid ones; the penalty mode keeps the elliptic forward and
-    shapes the backward only (a ball alone: the smooth model has no box)."""
-    model, tree, mm, data = _load(tmp_path, ROLLING.replace("<worldbody>", '<option cone="elliptic"/><worldbody>', 1))
+def test_elliptic_zero_friction_and_gradient_modes(tmp_path):
+    """Elliptic cones: a zero friction is MuJoCo's minimum (mjMINMU), as mj_step's (50 steps of
+    the ball and the box rolling and spinning on a frictionless floor; measured: 5e-14) with a
+    finite gradient. The solve-shaping gradient modes refuse an elliptic model, naming the valid
+    ones; the penalty mode keeps the elliptic forward and shapes the backward only (a ball alone:
+    the smooth model has no box)."""
+    frictionless = _with_cone(ROLLING, "elliptic").replace('size="5 5 0.1"/>', 'size="5 5 0.1" friction="0 0 0"/>')
+    frictionless = frictionless.replace('friction="1 0.01 0.01"', 'friction="0 0 0"').replace(
+        'friction="0.7 0.03 0.001"', 'friction="0 0 0"')
+    model, tree, mm, data = _load(tmp_path, frictionless)
     _rolling_start(mm, data)
     qpos, qvel = torch.as_tensor(data.qpos).unsqueeze(0), torch.as_tensor(data.qvel).unsqueeze(0)
-    active = collide(tree.contact_slots, forward_kinematics(tree, qpos)).active[0]
-    assert [tree.contact_slots.condim[s] for s in np.flatnonzero(active.numpy())] == [6, 4, 4, 4, 4]
-    mujoco.mj_forward(mm, data)  # every cone in its middle zone, where the solve is not a fixed-weight one
-    assert (data.efc_state[:data.nefc] == mujoco.mjtConstraintState.mjCNSTRSTATE_CONE).all()
+    gaps = gaps_to_mj_step(tree, mm, data, 50)
+    assert max(gaps) < 1e-9, max(gaps)
     params = _params(tree)
     weights = invweight0(tree, params)
+    assert (params["contact_friction"] == 0).all()
     friction = params["contact_friction"].clone().requires_grad_(True)
-
-    def one_step(qvel, friction):
-        result = step(tree, qpos, qvel, torch.zeros(1, 0, dtype=torch.float64), {**params, "contact_friction": friction},
-                      mm.opt.timestep, model.integrator, weights)
-        return result.qpos, result.qvel
-
-    assert torch.autograd.gradcheck(one_step, (qvel.clone().requires_grad_(True), friction), eps=1e-6, atol=1e-5,
-                                    rtol=1e-4)
-    # a zero friction is MuJoCo's minimum (mjMINMU): the step stays finite, its gradient too
-    frictionless = torch.zeros_like(friction).requires_grad_(True)
-    result = step(tree, qpos, qvel, torch.zeros(1, 0, dtype=torch.float64), {**params, "contact_friction": frictionless},
+    result = step(tree, qpos, qvel, torch.zeros(1, 0, dtype=torch.float64), {**params, "contact_friction": friction},
                   mm.opt.timestep, model.integrator, weights)
-    (gradient,) = torch.autograd.grad(result.qvel.sum(), frictionless)
+    (gradient,) = torch.autograd.grad(result.qvel.sum(), friction)
     assert torch.isfinite(result.qvel).all() and torch.isfinite(gradient).all()
     for mode in ("cfd", "smooth"):
         with pytest.raises(ValueError, match=f"contact_gradient='{mode}' .*elliptic \\(valid there: 'exact', 'penalty'\\)"):
@@ -466,8 +424,8 @@ def test_elliptic_one_step_gradcheck_and_gradient_modes(tmp_path):
     # the penalty mode (outside the solve) keeps the elliptic forward, and shapes the backward only
     from torchrl_diffenvs.envs.mujoco.base import CONTACT_DEFAULTS
 
-    ball = load_mjcf(_write(tmp_path, "ball.xml", ROLLING.replace("<worldbody>", '<option cone="elliptic"/><worldbody>', 1)
-                            .split('  <body name="block"')[0] + "</worldbody></mujoco>"))
+    ball = load_mjcf(_write(tmp_path, "ball.xml", _with_cone(ROLLING, "elliptic").split('  <body name="block"')[0]
+                            + "</worldbody></mujoco>"))
     ball_params = {**_params(RigidBodyTree.from_model(ball)),
                    **{k: torch.full((1,), float(v), dtype=torch.float64) for k, v in CONTACT_DEFAULTS.items()}}
     start = torch.tensor([[0.0, 0.0, 0.099, 1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
@@ -489,7 +447,7 @@ def test_elliptic_contact_step_compiles_into_one_graph(tmp_path):
     and gives eager's next state."""
     if not hasattr(torch, "while_loop"):
         pytest.skip("this torch has no torch.while_loop: the Newton solve is a graph break")
-    model, tree, mm, data = _load(tmp_path, ROLLING.replace("<worldbody>", '<option cone="elliptic"/><worldbody>', 1))
+    model, tree, mm, data = _load(tmp_path, _with_cone(ROLLING, "elliptic"))
     _rolling_start(mm, data)
     qpos, qvel = torch.as_tensor(data.qpos).unsqueeze(0), torch.as_tensor(data.qvel).unsqueeze(0)
     params = _params(tree)
