@@ -18,8 +18,9 @@ mujoco = pytest.importorskip("mujoco")
 
 from torchrl_diffenvs.articulated import MJCFError, RigidBodyTree, default_params, forward_kinematics, load_mjcf, step  # noqa: E402
 from torchrl_diffenvs.articulated.collision import collide  # noqa: E402
-from torchrl_diffenvs.articulated.constraint import (_cone_state, constraint_rows, contact_frame_forces,  # noqa: E402
+from torchrl_diffenvs.articulated.constraint import (constraint_rows, contact_frame_forces,  # noqa: E402
                                                      contact_row_blocks, solve)
+from torchrl_diffenvs.articulated.elliptic import _cone_state  # noqa: E402
 from torchrl_diffenvs.articulated.inertia import mass_matrix_and_bias  # noqa: E402
 from torchrl_diffenvs.articulated.pipeline import accelerations, body_contact_wrenches, invweight0  # noqa: E402
 
