@@ -415,11 +415,11 @@ def _solve_elliptic(mass, qacc_smooth, rows: ConstraintRows, iterations: int, to
         j = rows.jacobian.detach()
         hessian = mass.detach() + j.transpose(-1, -2) @ (quadratic.unsqueeze(-1) * j) + _cone_curvature(held, hessians, j)
     jar = (rows.jacobian @ found.unsqueeze(-1)).squeeze(-1) - rows.aref
-    force, _, _ = _cone_state(jar, weight, rows.exists, rows.cones)
+    force, _, _ = _cone_state(jar, weight, rows.exists, rows.cones, with_hessians=False)
     gradient = (mass @ (found - qacc_smooth).unsqueeze(-1)).squeeze(-1) - (jt @ force.unsqueeze(-1)).squeeze(-1)
     qacc = found - torch.linalg.solve_ex(hessian, gradient)[0]
     jar = (rows.jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - rows.aref
-    force, _, _ = _cone_state(jar, weight, rows.exists, rows.cones)
+    force, _, _ = _cone_state(jar, weight, rows.exists, rows.cones, with_hessians=False)
     return SolverResult(qacc, force, (force != 0) & rows.exists, used, converged)
 
 

@@ -58,7 +58,7 @@ def _elliptic_rows(tree: RigidBodyTree, slots: ContactSlots, index: torch.Tensor
             active.flatten(1), contacts.found.index_select(1, index)[:, :, None].expand(-1, -1, d).flatten(1), cone)
 
 
-def _cone_state(jar, weight, exists, cones: tuple[EllipticCones, ...]):
+def _cone_state(jar, weight, exists, cones: tuple[EllipticCones, ...], with_hessians: bool = True):
     """MuJoCo's ``mj_constraintUpdate`` with elliptic cones, at row residuals ``jar = J qacc - aref``:
     ``(force [N, R], quadratic [N, R], hessians)``. Rows outside the cones (limits, frictionless
     contacts) are quadratic where ``jar < 0``. A cone maps its rows to ``U = (mu jar_0, mu_j jar_j)``,
@@ -66,7 +66,8 @@ def _cone_state(jar, weight, exists, cones: tuple[EllipticCones, ...]):
     (``mu N + T <= 0``: every row quadratic) or the middle one, whose cost
     ``D_0 / (mu^2 (1 + mu^2)) (N - mu T)^2 / 2`` is not a sum over rows: its force, and its
     ``[N, S, d, d]`` Hessian in ``hessians`` (one per block, zero outside the middle zone).
-    ``quadratic`` holds each quadratic row's weight ``D`` (0 elsewhere)."""
+    ``quadratic`` holds each quadratic row's weight ``D`` (0 elsewhere). ``with_hessians=False``
+    skips the Hessians (an empty list) where only the force is read."""
     quadratic = weight * ((jar < 0) & exists)
     force = -quadratic * jar
     hessians = []
@@ -98,6 +99,8 @@ def _cone_state(jar, weight, exists, cones: tuple[EllipticCones, ...]):
         force = torch.cat([force[:, :rows.start], cone_force.flatten(1), force[:, rows.stop:]], dim=1)
         quadratic = torch.cat([quadratic[:, :rows.start], (d * bottom.unsqueeze(-1)).flatten(1),
                                quadratic[:, rows.stop:]], dim=1)
+        if not with_hessians:
+            continue
         # the middle zone's Hessian in U, (1, -mu/T U'; -mu/T U, mu N/T^3 U U' + (mu^2 - mu N/T) I),
         # then scaled by diag(mu, friction) on both sides and by its D
         # (mu N / T^3) U U' written as (mu N / T) e e', e = U / T: no T^3 to underflow in float32
@@ -127,8 +130,8 @@ def _cone_curvature(cones: tuple[EllipticCones, ...], hessians, rows_of):
 
 
 def _elliptic_round(qacc, m, smooth, j, w, aref, exists, cones, tolerance: float, line_iterations: int):
-    """One Newton step on the primal with elliptic cones: ``(new qacc, converged, Hessian at the
-    new point)``. The cost along the direction is convex and twice differentiable but piecewise
+    """One Newton step on the primal with elliptic cones: ``(new qacc, converged)``. The
+    cost along the direction is convex and twice differentiable but piecewise
     (the cones' zones): the line search is Newton's method on its derivative, kept inside the
     bracket of the minimiser (bisection where a step leaves it)."""
     jt = j.transpose(-1, -2)
@@ -159,7 +162,7 @@ def _elliptic_round(qacc, m, smooth, j, w, aref, exists, cones, tolerance: float
             search = line_step(*search)
     new = qacc + search[1].unsqueeze(-1) * direction
     jar = (j @ new.unsqueeze(-1)).squeeze(-1) - aref
-    force, quadratic, hessians = _cone_state(jar, w, exists, cones)
+    force, _, _ = _cone_state(jar, w, exists, cones, with_hessians=False)
     inertial = (m @ (new - smooth).unsqueeze(-1)).squeeze(-1)
     constraint = (jt @ force.unsqueeze(-1)).squeeze(-1)
     size = inertial.norm(dim=-1) + constraint.norm(dim=-1) + _MINVAL
