@@ -1,5 +1,6 @@
-"""One physics step of ours from each of MuJoCo's states along a trajectory it steps, against
-``mj_step``: the comparison the contact tests share. Not a test module."""
+"""What the contact tests share: one physics step of ours from each of MuJoCo's states along a
+trajectory it steps, against ``mj_step``; MuJoCo's own verdict on its solver's convergence. Not a
+test module."""
 from __future__ import annotations
 
 from typing import Callable
@@ -31,3 +32,11 @@ def gaps_to_mj_step(tree: RigidBodyTree, mm, data, steps: int, each: Callable | 
                   mm.opt.timestep, tree.model.integrator, invweight0(tree, params))
     ours = torch.cat([result.qpos, result.qvel], dim=1).numpy()
     return np.abs(ours - np.array(after)).max(1)
+
+
+def mujoco_converged(mm, data) -> bool:
+    """MuJoCo's own verdict after mj_forward: its solver stopped before ``opt.iterations``, or its
+    last iteration met the tolerance (engine_solver.c: scaled improvement or gradient below it)."""
+    used = int(data.solver_niter[0])
+    last = data.solver[used - 1]
+    return used < mm.opt.iterations or last.improvement < mm.opt.tolerance or last.gradient < mm.opt.tolerance

@@ -20,7 +20,7 @@ from torchrl_diffenvs.articulated.pipeline import accelerations, body_contact_wr
 from torchrl_diffenvs.envs import make_env  # noqa: E402
 
 from _env_helpers import REPO, load_script  # noqa: E402
-from _mujoco_steps import gaps_to_mj_step  # noqa: E402
+from _mujoco_steps import gaps_to_mj_step, mujoco_converged  # noqa: E402
 
 # the Pusher's pushing trajectories (MuJoCo's own) come from the benchmark that reports them
 CONTACT_MODEL = load_script("contact_model", REPO / "benchmarks" / "contact_model.py")
@@ -829,14 +829,6 @@ def test_pusher_contacts_and_step_match_mujoco_while_pushing():
     assert qvel_gaps(single[depth[single] < -0.02]).max() < 1e-4
 
 
-def _mujoco_converged(mm, data) -> bool:
-    """MuJoCo's own verdict after mj_forward: its solver stopped before ``opt.iterations``, or its
-    last iteration met the tolerance (engine_solver.c: scaled improvement or gradient below it)."""
-    used = int(data.solver_niter[0])
-    last = data.solver[used - 1]
-    return used < mm.opt.iterations or last.improvement < mm.opt.tolerance or last.gradient < mm.opt.tolerance
-
-
 @pytest.mark.filterwarnings("ignore")
 @pytest.mark.parametrize("filename", ["half_cheetah.xml", "hopper.xml", "ant.xml"])
 def test_solver_convergence_report_follows_mujocos_termination(filename):
@@ -857,7 +849,7 @@ def test_solver_convergence_report_follows_mujocos_termination(filename):
             if data.solver_niter[0] == 0:  # no constraint active: nothing to solve
                 continue
             _, report = accelerations(tree, *t64(qpos, qvel, ctrl), params, with_contact_force=True)
-            ours, theirs = bool(report.solver_converged[0]), _mujoco_converged(mm, data)
+            ours, theirs = bool(report.solver_converged[0]), mujoco_converged(mm, data)
             if iterations == model.iterations:
                 assert ours and theirs
             agree, total = agree + (ours == theirs), total + 1
