@@ -134,8 +134,10 @@ def test_system_identification_recovers_edited_masses_and_damping(tmp_path, monk
 
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "sota_scripts"))
     module = importlib.import_module("system_identification")
-    summary = module.main(["trajectories=3", "steps=8", "iterations=5", "true_mass=7,5,2", "true_damping=0.4,0.2,0.3",
-                           f"out_dir={tmp_path}", "progress=false"])
+    # one-step segments: half the physics per loss evaluation of the default two (the fit's cost is
+    # the 20 RK4 stages per env step, not the batch); recovered to 1e-8 in five L-BFGS steps
+    summary = module.main(["trajectories=3", "steps=8", "segment=1", "iterations=5", "true_mass=7,5,2",
+                           "true_damping=0.4,0.2,0.3", f"out_dir={tmp_path}", "progress=false"])
     assert 'mass="7.0"' in (tmp_path / "edited_model.xml").read_text()
     by_name = {p["name"]: p for p in summary["parameters"]}
     assert by_name["mass cart"]["true"] == 7.0 and by_name["damping hinge2"]["true"] == 0.3

@@ -26,7 +26,7 @@ from torchrl_diffenvs.envs.rollout import (
 )
 
 N = 5
-STEPS = 11
+STEPS = 6  # past the time limit: every env resets inside the rollout and steps on from its new start
 MAX_EPISODE_STEPS = 4  # short episodes: auto-resets happen inside the rollouts
 
 
