@@ -40,10 +40,20 @@ _TOLERANCES = {torch.float64: (1e-13, 1e-16, 1e-9, 1e-14)}
 _SINGLE = (1e-6, 1e-7, 1e-5, 1e-10)
 _EDGEBIAS = 1e-6  # an edge axis must beat the faces by this relative amount (mjBOXBOX_EDGEBIAS)
 _NEXT, _PREV = [1, 2, 0], [2, 0, 1]  # (i + 1) % 3 and (i + 2) % 3 of i = 0, 1, 2
-# _PERMUTE[a] @ v = (v[a + 1], v[a + 2], v[a]) (indices mod 3): a gather as an exact product by 0s and 1s
-_PERMUTE = [[[1.0 if k == (a + r + 1) % 3 else 0.0 for k in range(3)] for r in range(3)] for a in range(3)]
-_CORNERS = ([1.0, -1.0, -1.0, 1.0], [1.0, 1.0, -1.0, -1.0])  # the incident face's winding (MuJoCo's corner_sign)
-_VARIANTS = ([0.0, 0.0, 1.0, 1.0], [0.0, 1.0, 0.0, 1.0])  # the edge pairs tried, MuJoCo's loop order
+
+
+def _permutations(like: torch.Tensor) -> torch.Tensor:
+    """The axis permutations as exact products by 0s and 1s (a gather): ``[3, 3, 3]`` with ``[a] @ v = (v[a + 1], v[a + 2], v[a])`` (indices mod 3), made on ``like``'s
+    device: a tensor built from Python numbers is a host-to-device copy, which synchronises on CUDA."""
+    k = torch.arange(3, device=like.device)
+    return torch.eye(3, dtype=like.dtype, device=like.device)[(k[:, None] + k[None, :] + 1) % 3]
+
+
+def _corner_signs(like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The incident face's winding (MuJoCo's corner_sign), ``(1, -1, -1, 1)`` and ``(1, 1, -1, -1)``,
+    made on ``like``'s device."""
+    k = torch.arange(4, device=like.device)
+    return (1 - 2 * (k % 3 != 0)).to(like.dtype), (1 - 2 * (k >= 2)).to(like.dtype)
 
 
 # the products below keep MuJoCo's operation order (left to right), so values match to the bit
@@ -146,7 +156,9 @@ def _edge_contact(size1, size2, pos21, rot, i, j, axis, ambiguous, eye):
     denom = 1 - b * b
     parallel = denom < _MINVAL
     half1, half2 = _take(size1, i).unsqueeze(-1), _take(size2, j).unsqueeze(-1)
-    v1, v2 = (axis.new_tensor(v).unsqueeze(-1) for v in _VARIANTS)  # [4, 1]: the four pairs on a new axis
+    # [4, 1]: the four pairs on a new axis, (0, 0, 1, 1) and (0, 1, 0, 1): MuJoCo's loop order, made on the device
+    pair = torch.arange(4, device=axis.device)
+    v1, v2 = (pair >= 2).to(axis.dtype).unsqueeze(-1), (pair % 2).to(axis.dtype).unsqueeze(-1)
     corner1 = torch.where(axis >= 0, size1, -size1) * (1 - ei)  # support along +axis; component i zero
     corner2 = torch.where(a2 >= 0, -size2, size2) * (1 - ej)  # support along -axis, box 2's frame
     c1 = corner1.unsqueeze(-2) * (1 - 2 * v1 * flip1.unsqueeze(-2))  # [.., 4, 3]
@@ -181,7 +193,7 @@ def _face_contacts(size1, size2, pos1, pos2, mat1, mat2, pos21, pos12, rot, code
     posref, posoi = torch.where(r, pos1, pos2), torch.where(r, pos21, pos12)  # posoi: incident centre, reference frame
     matref = torch.where(r.unsqueeze(-1), mat1, mat2)
     rinc = torch.where(r.unsqueeze(-1), rot, rot.transpose(-1, -2))  # rinc[r, c]: incident axis c, reference frame
-    permute = pos1.new_tensor(_PERMUTE)
+    permute = _permutations(pos1)
     qa = permute[a]  # reference axes (ax, ay, a): the face's plane, then its normal
     rows = qa @ rinc
     binc = rows[..., 2, :].abs().argmax(-1)  # the incident axis most aligned with the normal, the first of equals
@@ -198,7 +210,7 @@ def _face_contacts(size1, size2, pos1, pos2, mat1, mat2, pos21, pos12, rot, code
     up = torch.stack([torch.ones_like(sgn), torch.ones_like(sgn), sgn], dim=-1)
     cx = torch.cat([cx[..., :2], (sgn * cx[..., 2] - sref[..., 2]).unsqueeze(-1)], dim=-1)
     du, dv = du * up, dv * up
-    su, sv = (poso.new_tensor(c).unsqueeze(-1) for c in _CORNERS)
+    su, sv = (c.unsqueeze(-1) for c in _corner_signs(poso))
     poly = cx.unsqueeze(-2) + su * du.unsqueeze(-2) + sv * dv.unsqueeze(-2)
     poly = torch.cat([poly, torch.zeros_like(poly)], dim=-2)  # the buffer of K = 8
     count = torch.full_like(a, 4)

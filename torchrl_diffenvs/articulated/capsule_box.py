@@ -79,7 +79,7 @@ def _scan(pos, halfaxis, half, radius, halflength, margin):
     (``s1``) or of the segment (``s2``), 1 between; -4: nothing found). The 14 candidates are
     computed at once, then chosen in MuJoCo's order with its comparisons."""
     device = pos.device
-    ends = torch.tensor([-1.0, 1.0], dtype=pos.dtype, device=device)
+    ends = 2 * torch.arange(2, dtype=pos.dtype, device=device) - 1  # (-1, 1), made on the device: no copy to it
     # each end over a face (out of the box along one axis at most) or inside it
     tips = pos.unsqueeze(-2) + halfaxis.unsqueeze(-2) * ends.unsqueeze(-1)  # [N, P, 2, 3]
     box = half.unsqueeze(-2)

@@ -162,7 +162,9 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
                                    slots.spin_friction[None, index, :condim - 3, None].expand(n, -1, -1, -1)], dim=2)
                 # MuJoCo's edge pairs J_n +- mu_d J_d, d = t1 t2 (then the normal's spin, the tangents' roll)
                 # (d1+, d1-, d2+, ...): one broadcast op, several times faster than stacking the two signs
-                plus_minus = torch.tensor([[1.0], [-1.0]], dtype=c.dtype, device=c.device)
+                # (1, -1) made on the device: a tensor built from Python numbers is a host-to-device copy,
+                # which synchronises on CUDA
+                plus_minus = 1 - 2 * torch.arange(2, dtype=c.dtype, device=c.device).unsqueeze(-1)
                 edges = (normal.unsqueeze(3) + plus_minus * (m * directions).unsqueeze(3)).flatten(2, 3)
                 rows = _rows_per_contact(condim)
                 # diagApprox of the first edge, R from it, and MuJoCo's common pyramid R = 2 mu^2 R / impratio
