@@ -256,6 +256,13 @@ def _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance: float):
     return torch.where(finite.unsqueeze(-1), new, qacc), settled
 
 
+def _reads_data_freely(device: torch.device) -> bool:
+    """Whether the solve may look at the data to skip work (converged envs, rows no env needs):
+    eagerly on the CPU, where it costs nothing; not on a GPU (a host-device synchronisation) nor
+    under ``torch.compile`` (a graph break)."""
+    return device.type == "cpu" and not torch.compiler.is_compiling()
+
+
 def _masked_rounds(round_, start, iterations: int):
     """Newton rounds ``round_(qacc) -> (new qacc, settled)`` from ``start`` (no autograd), at most
     ``iterations``, with converged envs held (a mask: no host-device synchronisation): ``(qacc
@@ -266,7 +273,7 @@ def _masked_rounds(round_, start, iterations: int):
     converged = torch.zeros(qacc.shape[0], dtype=torch.bool, device=qacc.device)
     used = torch.zeros(qacc.shape[0], dtype=torch.long, device=qacc.device)
     watch = ConvergenceWatch.for_device(qacc.device)
-    on_cpu = qacc.device.type == "cpu" and not torch.compiler.is_compiling()
+    on_cpu = _reads_data_freely(qacc.device)
     for _ in range(iterations):
         new, settled = round_(qacc)
         qacc = torch.where(converged.unsqueeze(-1), qacc, new)
@@ -349,7 +356,7 @@ def _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations: i
     the CPU on the compacted rows and envs (`_newton_compacted`), elsewhere the rounds of
     `_rounds_driver`."""
     m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
-    if smooth.device.type == "cpu" and not torch.compiler.is_compiling():
+    if _reads_data_freely(smooth.device):
         qacc, used, converged = _newton_compacted(m, smooth, j, w, ar, exists, iterations, tolerance)
     else:
         qacc, used, converged = _rounds_driver(smooth.device)(
@@ -447,7 +454,7 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
             raise ValueError(f"contact_gradient={gradient.mode!r} shapes the solve of pyramidal friction cones only; "
                              "with elliptic cones valid: 'exact', 'penalty'")
         return _solve_elliptic(mass, qacc_smooth, rows, iterations, tolerance)
-    compact = qacc_smooth.device.type == "cpu" and not torch.compiler.is_compiling()
+    compact = _reads_data_freely(qacc_smooth.device)
 
     def rows_where(needed, *arrays):
         """``arrays`` (per row), on the CPU without the rows needed in no env of the batch (a host
