@@ -12,6 +12,9 @@
 #      one), one after the other (benchmarks/gpu_training.py: the time to tuned PPO's final MuJoCo
 #      return in the CPU race); each run's metrics.jsonl is copied to OUT_DIR/<loss>_metrics.jsonl;
 #   4. HalfCheetah-v5 compiled and with CUDA graphs, with what is left of TOTAL_S.
+# PARTS names the parts to run (default: tests eager train compiled); HOTSPOTS=K adds to the eager
+# diagnostics the K source lines that take the most GPU time in one env step; COMPILED_MODES and
+# COMPILED_KINDS choose the compiled cells (default: cudagraphs,compiled and rollout).
 # Every result is a flat file directly under OUT_DIR (suite.log holds the summary).
 # Usage: bash benchmarks/gpu_suite.sh OUT_DIR
 set -u
@@ -21,21 +24,28 @@ work=$(mktemp -d)
 start=$(date +%s); elapsed() { echo $(( $(date +%s) - start )); }
 export PYTHONUNBUFFERED=1 WANDB_MODE=disabled OMP_NUM_THREADS=1
 py=${PYTHON:-python3}
+parts=" ${PARTS:-tests eager train compiled} "
+run_part() { [[ "$parts" == *" $1 "* ]]; }
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 "$py" -c "import torch, torchrl, tensordict; print('torch', torch.__version__, 'torchrl', torchrl.__version__, 'tensordict', tensordict.__version__)"
 
+if run_part tests; then
 echo "== tests ($(elapsed) s)"
 # -v writes each test's outcome as it ends, so a run stopped at its limit still names what failed
 timeout "${TEST_S:-150}" "$py" -m pytest -v tests/project/test_gpu.py -n 8 -p no:cacheprovider --timeout=120 \
     --tb=short -rfE > "$out/pytest_gpu.txt" 2>&1
 echo "pytest exit $?"; grep -E "(FAILED|ERROR)|passed|failed" "$out/pytest_gpu.txt" | tail -40
+fi
 
+if run_part eager; then
 echo "== eager throughput ($(elapsed) s)"
 timeout "${EAGER_S:-170}" "$py" benchmarks/gpu_throughput.py modes=[eager] \
     "tasks=[${EAGER_TASKS:-HalfCheetah-v5:recompute,Ant-v5}]" \
     "sizes=[${EAGER_SIZES:-65536}]" steps=8 window=16 repeats=1 budget_s="${EAGER_BUDGET_S:-150}" \
-    out="$out/gpu_eager.json" data=none
+    hotspots="${HOTSPOTS:-0}" out="$out/gpu_eager.json" data=none
+fi
 
+if run_part train; then
 echo "== train.py on CUDA ($(elapsed) s)"
 grad=${GRAD_LOSS:-ahac}
 ppo_s=${PPO_S:-${TRAIN_S:-100}} grad_s=${GRAD_S:-${TRAIN_S:-100}}
@@ -46,11 +56,12 @@ for run in ppo "$grad"; do
     cp "$work/train/$run/metrics.jsonl" "$out/${run}_metrics.jsonl" 2>/dev/null
     cat "$work/train/$run.log" >> "$out/train.log" 2>/dev/null
 done
+fi
 
 echo "== compiled and CUDA graphs ($(elapsed) s)"
 left=$(( ${TOTAL_S:-540} - $(elapsed) ))
-if [ "$left" -gt 30 ]; then
-    timeout "$left" "$py" benchmarks/gpu_throughput.py modes=[cudagraphs,compiled] tasks=[HalfCheetah-v5] \
-        kinds=[rollout] sizes=[65536] steps=16 window=16 budget_s=$(( left - 10 )) out="$out/gpu_compiled.json" data=none
+if run_part compiled && [ "$left" -gt 30 ]; then
+    timeout "$left" "$py" benchmarks/gpu_throughput.py "modes=[${COMPILED_MODES:-cudagraphs,compiled}]" tasks=[HalfCheetah-v5] \
+        "kinds=[${COMPILED_KINDS:-rollout}]" sizes=[65536] steps=16 window=16 budget_s=$(( left - 10 )) out="$out/gpu_compiled.json" data=none
 fi
 echo "== done ($(elapsed) s)"

@@ -17,7 +17,8 @@ graphs, so their cell is ``n/a``). A compiled mode's warm-up time (tracing, comp
 as ``first call s``. Two diagnostics per task, at the first size: the CUDA kernels launched by
 one env step without gradient (``torch.profiler``) and the host-device synchronisations in it
 (``torch.cuda.set_sync_debug_mode``): an eager GPU step that launches thousands of small kernels is
-bound by their launch overhead, not by the GPU.
+bound by their launch overhead, not by the GPU. With ``hotspots=K``, also the K source lines of the
+library whose torch calls take the most device time in one env step (the docs' hotspot table).
 
 A MuJoCo task can be named with options after colons: its contact model (``HalfCheetah-v5:smooth``;
 default: the task's own, ``mujoco``) and ``recompute`` (``recompute_in_backward=True``: each env
@@ -52,6 +53,7 @@ from torchrl_diffenvs import checks  # noqa: E402
 from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 
 MODES = ("eager", "compiled", "cudagraphs")
+HOTSPOT_ROWS = 12  # per task in the docs table (the raw results keep all `hotspots=` asked)
 NOT_APPLICABLE = "n/a: windows with gradient compile without CUDA graphs (the compiled column)"
 KINDS = ("rollout", "bptt")
 # The Ivy tasks, Gymnasium's classic control and the MuJoCo suite (the multi-agent envs roll out through
@@ -74,6 +76,9 @@ class GPUThroughputSettings(C.BenchmarkSettings):
     # the raw results (out=) of earlier runs on one machine: write their data file again (tables, date,
     # machine, commands), the runs' cells in the order given
     from_results: list[str] | None = None
+    # the library's source lines that take the most time in one env step (device time on a GPU, CPU time on
+    # the CPU), with the ops they run: where fusing or batching pays; 0 leaves them out
+    hotspots: int = checked(0, checks.nonnegative_int)
 
 
 TASK_OPTIONS = {"mujoco": {"contact": "mujoco"}, "smooth": {"contact": "smooth"},
@@ -149,6 +154,53 @@ def step_diagnostics(task: str, n: int, device: str) -> dict:
              if "synchronizing" in str(w.message) and "prototype" not in str(w.message)]
     return {"kernels_per_step": kernels, "syncs_per_step": len(syncs),
             "sync_sites": {site: syncs.count(site) for site in dict.fromkeys(syncs)}}
+
+
+def step_hotspots(task: str, n: int, device: str, top: int) -> list[dict]:
+    """The ``top`` source lines of the library that take the most time in one env step without
+    gradient (after a warm-up step): the device time of the kernels their torch calls launch on a
+    GPU, CPU time on the CPU; each with its share of the step's total and its calls' counts. Each
+    torch call is wrapped in a profiler range named by the library line that made it (a torch
+    function mode: the profiler's own Python stacks are not recorded by default)."""
+    import collections
+
+    import torch
+    from torch.overrides import TorchFunctionMode
+
+    class NameCallSites(TorchFunctionMode):
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            frame = sys._getframe(1)
+            while frame is not None and "torchrl_diffenvs" not in frame.f_code.co_filename:
+                frame = frame.f_back
+            if frame is None:
+                return func(*args, **(kwargs or {}))
+            site = f"{frame.f_code.co_filename.split('torchrl_diffenvs/')[-1]}:{frame.f_lineno}"
+            with torch.profiler.record_function(f"site {site} {getattr(func, '__name__', func)}"):
+                return func(*args, **(kwargs or {}))
+
+    env = make_task_env(task, n, device)
+    cuda = device.startswith("cuda")
+    activities = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if cuda else [])
+    with torch.no_grad():
+        td = env.rand_action(env.reset())
+        env.step(td)
+        td = env.rand_action(env.reset())
+        if cuda:
+            torch.cuda.synchronize()
+        with torch.profiler.profile(activities=activities) as prof, NameCallSites():
+            env.step(td)
+            if cuda:
+                torch.cuda.synchronize()
+    cost = (lambda e: e.device_time_total) if cuda else (lambda e: e.cpu_time_total)
+    seconds, calls = collections.Counter(), collections.defaultdict(collections.Counter)
+    for event in prof.events():
+        if event.name.startswith("site "):
+            _, site, call = event.name.split(" ", 2)
+            seconds[site] += cost(event) / 1e6
+            calls[site][call] += 1
+    total = sum(seconds.values()) or 1.0
+    return [{"site": site, "ms": 1e3 * s, "share": s / total, "calls": dict(calls[site].most_common(4))}
+            for site, s in seconds.most_common(top)]
 
 
 def measure(task: str, n: int, mode: str, kind: str, args) -> dict:
@@ -233,6 +285,14 @@ def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
             [[d.get("task", task), d["N"], d.get("kernels_per_step", "-"), d.get("syncs_per_step", "-"),
               ", ".join(d.get("sync_sites", {})) or "-", d.get("aten_ops_per_step", "-")]
              for task, d in diagnostics.items()])
+    hot = [(task, h) for task, d in diagnostics.items() for h in d.get("hotspots", [])[:HOTSPOT_ROWS]]
+    if hot:
+        tables["hotspots"] = C.data_table(
+            f"Where one env step without gradient spends its time {where}: the library's source lines whose torch "
+            f"calls take the most (device time on a GPU), the top {HOTSPOT_ROWS} per task",
+            ["task", "N", "source line", "ms", "share of the step", "calls (most frequent)"],
+            [[task, diagnostics[task]["N"], f"`{h['site']}`", f"{h['ms']:.1f}", f"{100 * h['share']:.1f}%",
+              ", ".join(f"{name} x{count}" for name, count in h["calls"].items())] for task, h in hot])
     return tables
 
 
@@ -285,6 +345,8 @@ def main(argv=None) -> dict:
                     if mode == "eager" and task not in diagnostics:
                         try:
                             diagnostics[task] = {"N": n, **step_diagnostics(task, n, device)}
+                            if args.hotspots:
+                                diagnostics[task]["hotspots"] = step_hotspots(task, n, device, args.hotspots)
                         except Exception as err:  # a diagnostic must not cost the measurements
                             diagnostics[task] = {"N": n, "error": f"{type(err).__name__}: {err}"[:200]}
                     try:

@@ -85,6 +85,33 @@ def test_gpu_throughput_on_the_cpu_quick(tmp_path):
     assert {r.get("error") for r in skipped["results"]} == {"skipped (budget)"}
 
 
+def test_gpu_throughput_hotspots_name_the_library_lines_of_a_step():
+    """``hotspots=K``: the K library lines whose torch calls take the most time in one env step
+    (CPU time here), by decreasing time, each with its share and its calls; the docs table lists them."""
+    bench = load("gpu_throughput")
+    hot = bench.step_hotspots("HalfCheetah-v5", 2, "cpu", 5)
+    assert len(hot) == 5
+    assert all(h["site"].split(":")[0].endswith(".py") and h["site"].split(":")[1].isdigit() for h in hot)
+    assert [h["ms"] for h in hot] == sorted((h["ms"] for h in hot), reverse=True) and hot[-1]["ms"] > 0
+    assert 0 < sum(h["share"] for h in hot) < 1 and all(sum(h["calls"].values()) > 0 for h in hot)
+    assert any(h["site"].startswith("articulated/") for h in hot)  # the physics, not the env's bookkeeping
+    tables = bench.docs_tables([], {"HalfCheetah-v5": {"N": 2, "hotspots": hot}}, "cpu")
+    assert [row[2] for row in tables["hotspots"]["rows"]] == [f"`{h['site']}`" for h in hot]
+
+
+def test_batched_products_quick(tmp_path):
+    """Both forms of every product at the simulator's shapes (checked equal inside), the solves, and
+    the data table with one row per product."""
+    bench = load("batched_products")
+    out = bench.main(["quick=true", "device=cpu", f"out={tmp_path / 'bp.json'}", f"data={tmp_path / 'bp_data.json'}"])
+    products = [r for r in out["rows"] if "matmul_us" in r]
+    assert [r["op"] for r in products] == [name for name, _, _ in bench.SHAPES]
+    assert all(r["matmul_us"] > 0 and r["broadcast_us"] > 0 for r in products)
+    assert {"solve_ex_us", "cholesky_us"} <= set(out["rows"][-2]) and out["rows"][-1]["argsort_us"] > 0
+    table = json.loads((tmp_path / "bp_data.json").read_text())["tables"]["products"]
+    assert len(table["rows"]) == len(bench.SHAPES) and "N = 64" in table["title"]
+
+
 def test_gpu_throughput_data_file_from_several_runs(tmp_path):
     """``from_results`` renders several runs of one machine in one data file, in the order given,
     without rows for cells the budget skipped; runs of two machines are refused."""
