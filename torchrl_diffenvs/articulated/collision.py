@@ -23,7 +23,7 @@ import torch
 from .model import ArticulatedModel
 from .primitive_types import PosedGeoms
 from .primitives import PRIMITIVES
-from .spatial import _MINVAL, _cross, _dot
+from .spatial import _MINVAL, _cross, _dot, small_matmul, small_matvec
 
 __all__ = ["Contacts", "ContactSlots", "colliding_pairs", "contact_slots", "collide", "unsupported_pairs"]
 
@@ -231,7 +231,7 @@ class Contacts(NamedTuple):
 def _posed(kin, geoms: _Geoms) -> PosedGeoms:
     """Geoms in the world at the configurations of ``kin`` (MuJoCo's geom_xpos, geom_xmat)."""
     rot = kin.body_rot.index_select(1, geoms.body)
-    return PosedGeoms(kin.body_pos.index_select(1, geoms.body) + (rot @ geoms.pos.unsqueeze(-1)).squeeze(-1), rot @ geoms.rot,
+    return PosedGeoms(kin.body_pos.index_select(1, geoms.body) + small_matvec(rot, geoms.pos), small_matmul(rot, geoms.rot),
                       geoms.size)
 
 

@@ -44,7 +44,7 @@ from .convergence import ConvergenceWatch
 from .elliptic import EllipticCones, _cone_curvature, _cone_state, _elliptic_round, _elliptic_rows
 from .kinematics import Kinematics
 from .limits import _reference
-from .spatial import _MINVAL, Params, _cross
+from .spatial import _MINVAL, Params, _cross, small_matmul, small_matvec
 from .tree import RigidBodyTree
 
 __all__ = ["ConstraintRows", "constraint_rows", "contact_frame_forces", "contact_normal_forces", "contact_row_blocks",
@@ -81,7 +81,7 @@ def _contact_frame_jacobian(tree: RigidBodyTree, kin: Kinematics, body1: torch.T
     # = (lever x n) . w + n . v: one [3, 6] row block per contact instead of the point's [nv, 3] velocities
     rows = torch.cat([_cross(lever.unsqueeze(2).expand_as(frame), frame), frame], dim=-1)  # [N, C, 3, 6]
     mask = tree.body_dof_mask[body2] - tree.body_dof_mask[body1]  # [C, nv]: +1 body2's dofs, -1 body1's
-    jacobian = (rows.flatten(1, 2) @ kin.motion.transpose(-1, -2)).unflatten(1, rows.shape[1:3])  # one bmm
+    jacobian = small_matmul(rows.flatten(1, 2), kin.motion.transpose(-1, -2)).unflatten(1, rows.shape[1:3])
     return jacobian * mask.unsqueeze(-2)
 
 
@@ -172,7 +172,7 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
             else:
                 edges, rows = c[:, :, :1], 1
                 diag = slot_translation
-            velocity = (edges @ qvel[:, None, :, None]).squeeze(-1)  # [N, S, rows]
+            velocity = small_matvec(edges, qvel[:, None, :])  # [N, S, rows]
             row_aref, imp = _reference(dist.unsqueeze(-1), cmargin[:, None], velocity, solref.index_select(1, index)[:, :, None],
                                        slots.solimp[index, None], timestep)
             r = ((1 - imp[..., 0]) * diag / imp[..., 0]).clamp_min(_MINVAL)
@@ -216,8 +216,7 @@ def _line_search(jar, jd, weight, slope0, curvature0):
     active0 = inside | ((jar == 0) & (jd < 0))
     c1 = curvature0 + (weight * jd * jd * active0).sum(-1)  # f' = c0 + alpha c1 on the first piece
     c0 = slope0 + (weight * jd * jar * active0).sum(-1)
-    order = t.argsort(-1)
-    t_sorted = t.gather(-1, order)
+    t_sorted, order = t.sort(-1)  # argsort is this sort's indices: the same order, without a gather
     # a switching row enters (moving in) or leaves (moving out) at its t
     enter = torch.where(jd < 0, 1.0, -1.0) * switching
     d1 = (enter * weight * jd * jd).gather(-1, order).cumsum(-1)

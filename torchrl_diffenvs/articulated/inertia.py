@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from .kinematics import Kinematics, _tree_sum, forward_kinematics, generalised_force
-from .spatial import Params, _inverse, _skew, cross_force, cross_motion
+from .spatial import Params, _inverse, _skew, cross_force, cross_motion, small_matmul, small_matvec
 from .tree import RigidBodyTree
 
 __all__ = ['mass_matrix_and_bias', 'bias_velocity_jacobian', 'dof_invweight0']
@@ -15,11 +15,11 @@ __all__ = ['mass_matrix_and_bias', 'bias_velocity_jacobian', 'dof_invweight0']
 def _spatial_inertia(tree: RigidBodyTree, kin: Kinematics, params: Params) -> torch.Tensor:
     """``[N, nbody, 6, 6]`` body inertias in world axes about ``kin.origin``."""
     rot, mass = kin.body_rot, params["body_mass"]
-    com = kin.body_pos + (rot @ tree.body_com.unsqueeze(-1)).squeeze(-1) - kin.origin.unsqueeze(1)
-    inertia = rot @ params["body_inertia"] @ rot.transpose(-1, -2)
+    com = kin.body_pos + small_matvec(rot, tree.body_com) - kin.origin.unsqueeze(1)
+    inertia = small_matmul(small_matmul(rot, params["body_inertia"]), rot.transpose(-1, -2))
     c = _skew(com)
     m = mass[..., None, None]
-    top = torch.cat([inertia - m * (c @ c), m * c], dim=-1)
+    top = torch.cat([inertia - m * small_matmul(c, c), m * c], dim=-1)
     eye = torch.eye(3, dtype=mass.dtype, device=mass.device)
     bottom = torch.cat([-m * c, m * eye], dim=-1)
     return torch.cat([top, bottom], dim=-2)
@@ -33,8 +33,8 @@ def _composite_mass_matrix(tree: RigidBodyTree, motion: torch.Tensor, composite:
     The formula holds where dof ``i`` moves dof ``j``'s body; the other triangle follows by
     symmetry, and dofs on separate branches do not couple.
     """
-    momentum = (composite @ motion.unsqueeze(-1)).squeeze(-1)  # Ic_j S_j
-    lower = (motion @ momentum.transpose(-1, -2)) * tree.dof_support  # S_i . Ic_j S_j where i moves j
+    momentum = small_matvec(composite, motion)  # Ic_j S_j
+    lower = small_matmul(motion, momentum.transpose(-1, -2)) * tree.dof_support  # S_i . Ic_j S_j where i moves j
     return lower + lower.transpose(-1, -2) * (1 - tree.dof_support)  # mirrored where j does not move i
 
 
@@ -61,8 +61,8 @@ def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Para
     motion_dot = cross_motion(pre_vel, dof_motion)  # [N, nv, 6] d(S_d)/dt qvel_d
     gravity = torch.cat([torch.zeros_like(params["gravity"]), -params["gravity"]], dim=-1)
     body_acc = gravity.unsqueeze(1) + _tree_sum(tree.body_dof_mask, motion_dot)
-    momentum = (inertia @ body_vel.unsqueeze(-1)).squeeze(-1)
-    force = (inertia @ body_acc.unsqueeze(-1)).squeeze(-1) + cross_force(body_vel, momentum)
+    momentum = small_matvec(inertia, body_vel)
+    force = small_matvec(inertia, body_acc) + cross_force(body_vel, momentum)
     bias = generalised_force(tree.body_dof_mask, kin, force)
     if with_velocity_jacobian:
         return mass, bias, _bias_velocity_jacobian(tree, kin, qvel, inertia)
@@ -97,12 +97,12 @@ def _bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Te
     # v_pre(j) x S_j = -S_j x v_pre(j): one cross with S_j of the velocities weighted by tree.bias_carry
     carried = torch.einsum("bdj,ndk->njkb", tree.bias_carry, dof_motion)  # [N, J, 6, nbody]
     moved = moves.transpose(0, 1)[None, :, None, :]  # [1, J, 1, nbody]: dof j moves body b
-    acc = axis_cross @ carried  # [N, J, 6, nbody]
-    momentum = (inertia @ body_vel.unsqueeze(-1)).squeeze(-1)  # [N, nbody, 6]
+    acc = small_matmul(axis_cross, carried)  # [N, J, 6, nbody]
+    momentum = small_matvec(inertia, body_vel)  # [N, nbody, 6]
     # S_j x* (I_b v_b) = -(S_j x)^T (I_b v_b), and v_b x* (I_b S_j)
-    gyroscopic = -axis_cross.transpose(-1, -2) @ momentum.transpose(1, 2).unsqueeze(1)  # [N, J, 6, nbody]
+    gyroscopic = -small_matmul(axis_cross.transpose(-1, -2), momentum.transpose(1, 2).unsqueeze(1))  # [N, J, 6, nbody]
     axis_momentum = torch.einsum("nbkl,njl->nbkj", inertia, motion)  # [N, nbody, 6, J]: I_b S_j
-    spin = -_motion_cross_matrix(body_vel).transpose(-1, -2) @ axis_momentum  # [N, nbody, 6, J]
+    spin = -small_matmul(_motion_cross_matrix(body_vel).transpose(-1, -2), axis_momentum)  # [N, nbody, 6, J]
     inertial = torch.einsum("nbkl,njlb->njkb", inertia, acc)  # I_b acc_jb
     force = inertial + moved * (gyroscopic + spin.permute(0, 3, 2, 1))  # [N, J, 6, nbody]
 
@@ -159,7 +159,7 @@ def body_invweight0(tree: RigidBodyTree, params: Params) -> torch.Tensor:
     kin0 = kinematics_at_qpos0(tree)
     inertia = _spatial_inertia(tree, kin0, params)
     mass = _joint_space_inertia(tree, kin0.motion, inertia) + torch.diag_embed(params["armature"])
-    com = kin0.body_pos + (kin0.body_rot @ tree.body_com.unsqueeze(-1)).squeeze(-1) - kin0.origin.unsqueeze(1)
+    com = kin0.body_pos + small_matvec(kin0.body_rot, tree.body_com) - kin0.origin.unsqueeze(1)
     angular = kin0.motion[:, None, :, :3].expand(-1, tree.nbody, -1, -1)  # [1, nbody, nv, 3]
     linear = kin0.motion[:, None, :, 3:] + torch.linalg.cross(angular, com[:, :, None, :].expand_as(angular))
     moves = tree.body_dof_mask[None, :, :, None]  # [1, nbody, nv, 1]

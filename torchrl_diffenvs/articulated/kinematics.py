@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .spatial import _cross, integrate_quaternion, quaternion_to_matrix
+from .spatial import _cross, integrate_quaternion, quaternion_to_matrix, small_matmul, small_matvec
 from .tree import RigidBodyTree
 
 __all__ = ['Kinematics', 'body_velocities', 'generalised_force', 'integrate_position', 'forward_kinematics', 'site_positions']
@@ -69,7 +69,7 @@ def integrate_position(tree: RigidBodyTree, qpos: torch.Tensor, qvel: torch.Tens
 
 def _apply(rot: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """``rot [N, g, 3, 3] @ v [g, 3]`` (or ``[N, g, 3]``) -> ``[N, g, 3]``."""
-    return (rot @ v.unsqueeze(-1)).squeeze(-1)
+    return small_matvec(rot, v)
 
 
 def _coordinates(q: torch.Tensor, first: torch.Tensor, count: int) -> torch.Tensor:
@@ -96,7 +96,7 @@ def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
     for group in tree.body_groups:
         # index_select, not rots[:, parents]: advanced indexing is several times slower on the CPU
         parent_rot, parent_pos = rots.index_select(1, group.parents), poss.index_select(1, group.parents)
-        rot = parent_rot @ tree.body_rot[group.bodies]
+        rot = small_matmul(parent_rot, tree.body_rot[group.bodies])
         pos = parent_pos + _apply(parent_rot, tree.body_pos[group.bodies])
         for kind, joint, qa, da in zip(group.kinds, group.joints, group.qposadr, group.dofadr):
             if kind == "hinge":
@@ -104,7 +104,7 @@ def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
                 anchor = pos + _apply(rot, tree.joint_pos[joint])
                 local = (eye + sin[:, qa, None, None] * tree.joint_skew[joint]
                          + (1 - cos[:, qa, None, None]) * tree.joint_skew_squared[joint])  # Rodrigues
-                rot = rot @ local
+                rot = small_matmul(rot, local)
                 pos = anchor - _apply(rot, tree.joint_pos[joint])
                 turning.append((da, axis, anchor))
             elif kind == "slide":
@@ -121,7 +121,7 @@ def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
                         linear_axes.append(eye[:, i].expand_as(pos))
                 else:
                     anchor, turn = pos + _apply(rot, tree.joint_pos[joint]), da
-                    rot = rot @ quaternion_to_matrix(_coordinates(qpos, qa, 4))
+                    rot = small_matmul(rot, quaternion_to_matrix(_coordinates(qpos, qa, 4)))
                     pos = anchor - _apply(rot, tree.joint_pos[joint])
                 for i in range(3):
                     turning.append((turn + i, rot[..., :, i], anchor))
@@ -153,4 +153,4 @@ def site_positions(tree: RigidBodyTree, kin: Kinematics, sites) -> torch.Tensor:
     model = tree.model
     body = torch.as_tensor(model.site_body[list(sites)], device=kin.body_pos.device)
     local = torch.as_tensor(model.site_pos[list(sites)], dtype=kin.body_pos.dtype, device=kin.body_pos.device)
-    return kin.body_pos[:, body] + (kin.body_rot[:, body] @ local.unsqueeze(-1)).squeeze(-1)
+    return kin.body_pos[:, body] + small_matvec(kin.body_rot[:, body], local)
