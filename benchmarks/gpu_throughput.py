@@ -53,6 +53,8 @@ from torchrl_diffenvs import checks  # noqa: E402
 from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 
 MODES = ("eager", "compiled", "cudagraphs")
+# small algebra helpers: their calls count at the line that called them (which product, not which helper)
+HELPER_MODULES = ("articulated/spatial.py",)
 HOTSPOT_ROWS = 12  # per task in the docs table (the raw results keep all `hotspots=` asked)
 NOT_APPLICABLE = "n/a: windows with gradient compile without CUDA graphs (the compiled column)"
 KINDS = ("rollout", "bptt")
@@ -160,8 +162,9 @@ def step_hotspots(task: str, n: int, device: str, top: int) -> list[dict]:
     """The ``top`` source lines of the library that take the most time in one env step without
     gradient (after a warm-up step): the device time of the kernels their torch calls launch on a
     GPU, CPU time on the CPU; each with its share of the step's total and its calls' counts. Each
-    torch call is wrapped in a profiler range named by the library line that made it (a torch
-    function mode: the profiler's own Python stacks are not recorded by default)."""
+    torch call is wrapped in a profiler range named by the library line that made it, or for the
+    algebra helpers of `HELPER_MODULES` the line that called them (a torch function mode: the
+    profiler's own Python stacks are not recorded by default)."""
     import collections
 
     import torch
@@ -170,7 +173,8 @@ def step_hotspots(task: str, n: int, device: str, top: int) -> list[dict]:
     class NameCallSites(TorchFunctionMode):
         def __torch_function__(self, func, types, args=(), kwargs=None):
             frame = sys._getframe(1)
-            while frame is not None and "torchrl_diffenvs" not in frame.f_code.co_filename:
+            while frame is not None and ("torchrl_diffenvs" not in frame.f_code.co_filename
+                                         or frame.f_code.co_filename.endswith(HELPER_MODULES)):
                 frame = frame.f_back
             if frame is None:
                 return func(*args, **(kwargs or {}))
