@@ -581,3 +581,22 @@ def test_gymnasium_baseline_quick_trains_on_both_backends(tmp_path):
     for run in runs.values():
         assert run["env_steps"] == 64 and run["steps_per_s"] > 0
     assert runs["gymnasium"]["eval/gymnasium_return"] == runs["gymnasium"]["eval/return"]
+
+
+def test_contact_model_writes_the_parts_it_measured(tmp_path, monkeypatch):
+    """The speed part alone (``parity_tasks=[]``) writes a data file with the speed table only: a
+    part not measured leaves no empty table behind (the measurement itself is the benchmark's run:
+    here a canned one)."""
+    pytest.importorskip("mujoco")
+    bench = load("contact_model")
+    rates = {key: {"median": rate} for key, rate in (("mujoco step", 400.0), ("smooth step", 1000.0),
+                                                     ("mujoco window", 100.0), ("smooth window", 300.0))}
+    monkeypatch.setattr(bench, "speed", lambda task, n, rounds: {
+        "task": task, "N": n, "rates_cpu": rates, "ratio_mujoco_over_smooth": {"step": 0.4, "window": 1 / 3},
+        "aten_ops_per_env_step": {"mujoco": 300, "smooth": 100}, "integrators": {"mujoco": "rk4", "smooth": "implicit"}})
+    payload = bench.main(["quick=true", "parity_tasks=[]", "speed_tasks=[Ant-v5]", "compile=false",
+                          f"out={tmp_path / 'cm.json'}", f"data={tmp_path / 'cm_data.json'}"])
+    tables = json.loads((tmp_path / "cm_data.json").read_text())["tables"]
+    assert list(tables) == ["speed"] and payload["parity"] == []
+    assert tables["speed"]["rows"] == [["Ant-v5", "16", "rk4 / implicit", "400", "1k", "0.4x", "100", "300", "0.333x",
+                                        "300 / 100", "- / -"]]
