@@ -43,8 +43,9 @@ _NEXT, _PREV = [1, 2, 0], [2, 0, 1]  # (i + 1) % 3 and (i + 2) % 3 of i = 0, 1, 
 
 
 def _permutations(like: torch.Tensor) -> torch.Tensor:
-    """The axis permutations as exact products by 0s and 1s (a gather): ``[3, 3, 3]`` with ``[a] @ v = (v[a + 1], v[a + 2], v[a])`` (indices mod 3), made on ``like``'s
-    device: a tensor built from Python numbers is a host-to-device copy, which synchronises on CUDA."""
+    """The axis permutations ``[3, 3, 3]``, ``[a] @ v = (v[a + 1], v[a + 2], v[a])`` (indices mod 3):
+    a gather as an exact product by 0s and 1s, made on ``like``'s device (a tensor built from
+    Python numbers is a host-to-device copy, which synchronises on CUDA)."""
     k = torch.arange(3, device=like.device)
     return torch.eye(3, dtype=like.dtype, device=like.device)[(k[:, None] + k[None, :] + 1) % 3]
 
