@@ -39,6 +39,7 @@ measured. An out-of-memory cell is reported as such and the run goes on.
 """
 from __future__ import annotations
 
+import os
 import statistics
 import sys
 import time
@@ -170,15 +171,19 @@ def step_hotspots(task: str, n: int, device: str, top: int) -> list[dict]:
     import torch
     from torch.overrides import TorchFunctionMode
 
+    import torchrl_diffenvs
+
+    PACKAGE = str(Path(torchrl_diffenvs.__file__).parent) + os.sep  # the library's own files, not torch's
+
     class NameCallSites(TorchFunctionMode):
         def __torch_function__(self, func, types, args=(), kwargs=None):
             frame = sys._getframe(1)
-            while frame is not None and ("torchrl_diffenvs" not in frame.f_code.co_filename
+            while frame is not None and (not frame.f_code.co_filename.startswith(PACKAGE)
                                          or frame.f_code.co_filename.endswith(HELPER_MODULES)):
                 frame = frame.f_back
             if frame is None:
                 return func(*args, **(kwargs or {}))
-            site = f"{frame.f_code.co_filename.split('torchrl_diffenvs/')[-1]}:{frame.f_lineno}"
+            site = f"{frame.f_code.co_filename.removeprefix(PACKAGE)}:{frame.f_lineno}"
             with torch.profiler.record_function(f"site {site} {getattr(func, '__name__', func)}"):
                 return func(*args, **(kwargs or {}))
 
@@ -198,11 +203,13 @@ def step_hotspots(task: str, n: int, device: str, top: int) -> list[dict]:
     cost = (lambda e: e.device_time_total) if cuda else (lambda e: e.cpu_time_total)
     seconds, calls = collections.Counter(), collections.defaultdict(collections.Counter)
     for event in prof.events():
-        if event.name.startswith("site "):
+        # the CPU-side range only: on CUDA the profiler also records each range as a GPU annotation of the
+        # same name, whose time the CPU range's device time already holds
+        if event.name.startswith("site ") and event.device_type == torch.autograd.DeviceType.CPU:
             _, site, call = event.name.split(" ", 2)
             seconds[site] += cost(event) / 1e6
             calls[site][call] += 1
-    total = sum(seconds.values()) or 1.0
+    total = sum(seconds.values()) or 1.0  # the share is of the time attributed to the library's lines
     return [{"site": site, "ms": 1e3 * s, "share": s / total, "calls": dict(calls[site].most_common(4))}
             for site, s in seconds.most_common(top)]
 
@@ -294,7 +301,7 @@ def docs_tables(results: list[dict], diagnostics: dict, device: str) -> dict:
         tables["hotspots"] = C.data_table(
             f"Where one env step without gradient spends its time {where}: the library's source lines whose torch "
             f"calls take the most (device time on a GPU), the top {HOTSPOT_ROWS} per task",
-            ["task", "N", "source line", "ms", "share of the step", "calls (most frequent)"],
+            ["task", "N", "source line", "ms", "share of the time attributed", "calls (most frequent)"],
             [[task, diagnostics[task]["N"], f"`{h['site']}`", f"{h['ms']:.1f}", f"{100 * h['share']:.1f}%",
               ", ".join(f"{name} x{count}" for name, count in h["calls"].items())] for task, h in hot])
     return tables
