@@ -5,11 +5,11 @@ An env step of a MuJoCo task is mostly products of 3x3 to 30x9 matrices, one per
 or row. Which form is faster depends on the device: on the CPU ``@`` is (a batched GEMM reads
 each operand once; the broadcast form writes a larger intermediate), on a GPU a batched GEMM of
 such small blocks can take longer than the elementwise kernels. The simulator picks the form per
-device (`torchrl_diffenvs.articulated.spatial.small_matmul`); this benchmark measures both
-forms at the step's shapes, interleaved, so that the choice rests on numbers (the median of
-``repeats`` rounds, each call timed until the device is done; also the step's solves:
-``linalg.solve_ex`` against a Cholesky factorisation and solve, and ``argsort`` of the line
-search's row breakpoints).
+device (`torchrl_diffenvs.articulated.spatial.small_matmul`, whose two forms this benchmark times;
+a matrix-vector product is a product with a ``k x 1`` matrix), at the step's shapes, interleaved,
+so that the choice rests on numbers: the median of ``repeats`` rounds, each call timed until the
+device is done. Also the step's solves: ``linalg.solve_ex`` against a Cholesky factorisation and
+solve, and ``argsort`` of the line search's row breakpoints against ``sort``.
 
     python benchmarks/batched_products.py                       # device=cuda, N = 65536
     python benchmarks/batched_products.py device=cpu n=1024     # the CPU's side
@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
 from torchrl_diffenvs import checks  # noqa: E402
+from torchrl_diffenvs.articulated.spatial import small_matmul  # noqa: E402
 from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 
 
@@ -47,10 +48,6 @@ SHAPES = (
 )
 
 
-def broadcast_matmul(a, b):
-    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
-
-
 def main(argv=None) -> dict:
     args = parse_cli(BatchedProductsSettings, argv, __doc__)
     C.setup_threads(args.threads)
@@ -69,8 +66,9 @@ def main(argv=None) -> dict:
     for name, left, right in SHAPES:
         a = rand(n, *left)
         b = rand(*left) if right is None else rand(n, *right)
-        timings = C.interleaved({"matmul": lambda: a @ b, "broadcast": lambda: broadcast_matmul(a, b)}, rounds)
-        assert torch.allclose(a @ b, broadcast_matmul(a, b), rtol=1e-4, atol=1e-4)
+        timings = C.interleaved({"matmul": lambda: a @ b, "broadcast": lambda: small_matmul(a, b, broadcast=True)},
+                                rounds)
+        assert torch.allclose(a @ b, small_matmul(a, b, broadcast=True), rtol=1e-4, atol=1e-4)
         us = {k: 1e6 * statistics.median(v["wall"]) for k, v in timings.items()}
         rows.append({"op": name, "matmul_us": us["matmul"], "broadcast_us": us["broadcast"]})
         print(rows[-1], flush=True)

@@ -97,12 +97,12 @@ def _bias_velocity_jacobian(tree: RigidBodyTree, kin: Kinematics, qvel: torch.Te
     # v_pre(j) x S_j = -S_j x v_pre(j): one cross with S_j of the velocities weighted by tree.bias_carry
     carried = torch.einsum("bdj,ndk->njkb", tree.bias_carry, dof_motion)  # [N, J, 6, nbody]
     moved = moves.transpose(0, 1)[None, :, None, :]  # [1, J, 1, nbody]: dof j moves body b
-    acc = small_matmul(axis_cross, carried)  # [N, J, 6, nbody]
+    acc = axis_cross @ carried  # [N, J, 6, nbody]
     momentum = small_matvec(inertia, body_vel)  # [N, nbody, 6]
     # S_j x* (I_b v_b) = -(S_j x)^T (I_b v_b), and v_b x* (I_b S_j)
-    gyroscopic = -small_matmul(axis_cross.transpose(-1, -2), momentum.transpose(1, 2).unsqueeze(1))  # [N, J, 6, nbody]
+    gyroscopic = -axis_cross.transpose(-1, -2) @ momentum.transpose(1, 2).unsqueeze(1)  # [N, J, 6, nbody]
     axis_momentum = torch.einsum("nbkl,njl->nbkj", inertia, motion)  # [N, nbody, 6, J]: I_b S_j
-    spin = -small_matmul(_motion_cross_matrix(body_vel).transpose(-1, -2), axis_momentum)  # [N, nbody, 6, J]
+    spin = -_motion_cross_matrix(body_vel).transpose(-1, -2) @ axis_momentum  # [N, nbody, 6, J]
     inertial = torch.einsum("nbkl,njlb->njkb", inertia, acc)  # I_b acc_jb
     force = inertial + moved * (gyroscopic + spin.permute(0, 3, 2, 1))  # [N, J, 6, nbody]
 

@@ -30,21 +30,22 @@ def _inverse(matrix: torch.Tensor) -> torch.Tensor:
     return torch.linalg.inv_ex(matrix)[0]
 
 
-def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def small_matmul(a: torch.Tensor, b: torch.Tensor, broadcast: bool | None = None) -> torch.Tensor:
     """``a @ b`` for batches of small blocks (3x3 rotations, 6x6 inertias, their products with
-    vectors): on CUDA a broadcast product summed over the shared axis, 3-9x faster there than the
-    batched GEMM at N = 65536; elsewhere ``@``, the faster on the CPU (both measured by
-    ``benchmarks/batched_products.py``)."""
-    if a.device.type == "cuda":
+    vectors). ``broadcast``: as a broadcast product summed over the shared axis (one elementwise
+    kernel and one reduction) rather than a batched GEMM; by default on CUDA, where cuBLAS's batched
+    GEMM is slow for such blocks (3-8x slower at N = 65536 on an H200), not on the CPU, where ``@``
+    is the faster (both measured by ``benchmarks/batched_products.py``)."""
+    if broadcast is None:
+        broadcast = a.device.type == "cuda"
+    if broadcast:
         return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
     return a @ b
 
 
-def small_matvec(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """``(a @ v[..., None])[..., 0]`` for small blocks ``a``, as `small_matmul` chooses."""
-    if a.device.type == "cuda":
-        return (a * v.unsqueeze(-2)).sum(-1)
-    return (a @ v.unsqueeze(-1)).squeeze(-1)
+def small_matvec(a: torch.Tensor, v: torch.Tensor, broadcast: bool | None = None) -> torch.Tensor:
+    """``(a @ v[..., None])[..., 0]`` for small blocks ``a``, by `small_matmul`."""
+    return small_matmul(a, v.unsqueeze(-1), broadcast).squeeze(-1)
 
 
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
