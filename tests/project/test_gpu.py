@@ -136,12 +136,12 @@ def _sync_sites(fn) -> list[str]:
             and "torchrl_diffenvs" in w.filename]  # ours (TorchRL's own reset bookkeeping is not)
 
 
-@pytest.mark.parametrize("name,contact", [("HalfCheetah-v5", "mujoco"), ("HalfCheetah-v5", "smooth"),
-                                          ("Ant-v5", "mujoco"), ("pendulum", None)])
+@pytest.mark.parametrize("name,contact", [*((name, None) for name in list_envs() if name.endswith("-v5")),
+                                          ("HalfCheetah-v5", "smooth"), ("pendulum", None)])
 def test_an_env_step_and_a_partial_reset_never_synchronise_host_and_device(name, contact):
     """The step (physics, contacts and constraint solve, reward, termination) and the reset of some
     envs run without a host-device synchronisation in this library's code: masks, not
-    data-dependent branches."""
+    data-dependent branches; every MuJoCo task with its own contact model."""
     env = make_env(name, num_envs=64, seed=0, device="cuda", **({"contact": contact} if contact else {}))
     td = env.rand_step(env.reset())  # warm-up: caches, lazily built buffers
     td = env.rand_action(td.get("next").exclude("reward", "done", "terminated", "truncated"))
@@ -185,3 +185,41 @@ def test_the_cuda_solve_stops_once_the_host_sees_every_env_converged(monkeypatch
                                                                                              fixed_rounds)
     assert watched.solver_converged.all()
     torch.testing.assert_close(watched.qvel, fixed.qvel, rtol=0, atol=0)
+
+
+BOXES = """<mujoco><option timestep="0.005"/><worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <body name="box1" pos="0 0 0.035"><freejoint/><geom type="box" size="0.1 0.06 0.04"/></body>
+    <body name="box2" pos="0.02 0.01 0.11"><freejoint/><geom type="box" size="0.05 0.05 0.04"/></body>
+    <body name="capsule" pos="0.05 0 0.165" euler="0 90 0"><freejoint/><geom type="capsule" size="0.02 0.1"/></body>
+    </worldbody></mujoco>"""
+
+
+def test_box_contacts_step_without_synchronising(tmp_path):
+    """The box pairs (plane-box, box-box, capsule-box; no registered task has them) step on CUDA
+    without a host-device synchronisation, as on the CPU."""
+    from torchrl_diffenvs.articulated import RigidBodyTree, load_mjcf, step
+    from torchrl_diffenvs.articulated.dynamics import default_params
+    from torchrl_diffenvs.articulated.pipeline import invweight0
+
+    path = tmp_path / "boxes.xml"
+    path.write_text(BOXES)
+    model = load_mjcf(str(path))
+    outs = {}
+    for device in ("cpu", "cuda"):
+        tree = RigidBodyTree.from_model(model, device=device)
+        assert tree.contact_model == "mujoco"
+        params = {k: v.unsqueeze(0).expand(4, *v.shape).to(device) for k, v in default_params(model).items()}
+        params["contact_friction"] = torch.as_tensor(tree.contact_pair_friction, device=device).expand(4, -1)
+        qpos = torch.as_tensor(model.qpos0, dtype=torch.float64, device=device).expand(4, -1).clone()
+        qvel = torch.zeros(4, model.nv, dtype=torch.float64, device=device)
+        ctrl = torch.zeros(4, 0, dtype=torch.float64, device=device)
+        weights = invweight0(tree, params)
+
+        def one():
+            return step(tree, qpos, qvel, ctrl, params, model.timestep, "euler", weights)
+        one()  # warm-up
+        if device == "cuda":
+            assert _sync_sites(one) == []
+        outs[device] = one()
+    torch.testing.assert_close(outs["cuda"].qvel.cpu(), outs["cpu"].qvel, rtol=1e-9, atol=1e-9)

@@ -39,7 +39,17 @@ K = 8
 _TOLERANCES = {torch.float64: (1e-13, 1e-16, 1e-9, 1e-14)}
 _SINGLE = (1e-6, 1e-7, 1e-5, 1e-10)
 _EDGEBIAS = 1e-6  # an edge axis must beat the faces by this relative amount (mjBOXBOX_EDGEBIAS)
-_NEXT, _PREV = [1, 2, 0], [2, 0, 1]  # (i + 1) % 3 and (i + 2) % 3 of i = 0, 1, 2
+
+
+def _next(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """``x`` at index ``(i + 1) % 3`` along ``dim`` (a roll: indexing a CUDA tensor with a Python
+    list copies the list to the device, a synchronisation)."""
+    return torch.roll(x, -1, dim)
+
+
+def _prev(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """``x`` at index ``(i + 2) % 3`` along ``dim``."""
+    return torch.roll(x, 1, dim)
 
 
 def _permutations(like: torch.Tensor) -> torch.Tensor:
@@ -115,7 +125,7 @@ def _separating_axes(size1, size2, pos21, pos12, rot, septol, parallel):
     seps = torch.cat([pos21.abs() - size1 - radius2, pos12.abs() - size2 - radius1], dim=-1)
     sep_face, code_face = seps.max(-1)  # the first of equals, as MuJoCo's strict comparisons
     # edge axes [.., i, j]: e_i x (box 2's axis j) in box 1's frame, its components i1, i2
-    row1, row2 = rot[..., _NEXT, :], rot[..., _PREV, :]  # rot[i1, j], rot[i2, j]
+    row1, row2 = _next(rot, -2), _prev(rot, -2)  # rot[i1, j], rot[i2, j]
     ax1, ax2 = -row2, row1
     norm2 = ax1 * ax1 + ax2 * ax2
     # nearly parallel edges: MuJoCo skips the axis (pure rounding noise); the root is kept off
@@ -123,11 +133,11 @@ def _separating_axes(size1, size2, pos21, pos12, rot, septol, parallel):
     valid = norm2 >= parallel
     inv = 1 / torch.sqrt(torch.where(valid, norm2, 1.0))
     ax1, ax2 = ax1 * inv, ax2 * inv
-    radius1 = size1[..., _NEXT, None] * ax1.abs() + size1[..., _PREV, None] * ax2.abs()
-    a2_1 = ax1 * row1[..., :, _NEXT] + ax2 * row2[..., :, _NEXT]  # the axis in box 2's frame, components j1, j2
-    a2_2 = ax1 * row1[..., :, _PREV] + ax2 * row2[..., :, _PREV]
-    radius2 = size2[..., None, _NEXT] * a2_1.abs() + size2[..., None, _PREV] * a2_2.abs()
-    sep = (ax1 * pos21[..., _NEXT, None] + ax2 * pos21[..., _PREV, None]).abs() - radius1 - radius2
+    radius1 = _next(size1, -1).unsqueeze(-1) * ax1.abs() + _prev(size1, -1).unsqueeze(-1) * ax2.abs()
+    a2_1 = ax1 * _next(row1, -1) + ax2 * _next(row2, -1)  # the axis in box 2's frame, components j1, j2
+    a2_2 = ax1 * _prev(row1, -1) + ax2 * _prev(row2, -1)
+    radius2 = _next(size2, -1).unsqueeze(-2) * a2_1.abs() + _prev(size2, -1).unsqueeze(-2) * a2_2.abs()
+    sep = (ax1 * _next(pos21, -1).unsqueeze(-1) + ax2 * _prev(pos21, -1).unsqueeze(-1)).abs() - radius1 - radius2
     sep, valid = sep.flatten(-2), valid.flatten(-2)  # [.., 3 i + j]
     separated = (seps > septol.unsqueeze(-1)).any(-1) | (valid & (sep > septol.unsqueeze(-1))).any(-1)
     # MuJoCo's scan: an edge axis wins if its biased separation beats the best so far

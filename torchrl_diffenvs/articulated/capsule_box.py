@@ -62,13 +62,19 @@ def _ratio(num, den):
     return torch.where(zero, torch.inf, num / torch.where(zero, torch.ones_like(den), den))
 
 
-#: MuJoCo's 12 edges in its order (axis j, then the corners i with bit j clear): the edge's axis
-#: and the signs of its middle (0 along the edge), and the corner i it starts from
-_EDGES = [(j, i) for j in range(3) for i in range(8) if not i & (1 << j)]
-_EDGE_AXIS = torch.tensor([j for j, _ in _EDGES])
-_EDGE_CORNER = torch.tensor([i for _, i in _EDGES])
-_EDGE_MIDDLE = torch.tensor([[0.0 if k == j else (1.0 if i & (1 << k) else -1.0) for k in range(3)] for j, i in _EDGES],
-                            dtype=torch.float64)
+def _box_edges(device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """MuJoCo's 12 box edges in its order (axis ``j``, then the corners ``i`` with bit ``j`` clear,
+    ascending): each edge's axis ``[12]``, the corner it starts from ``[12]`` and the signs of its
+    middle ``[12, 3]`` (0 along the edge), made on the device (no copy to it: a synchronisation on
+    CUDA)."""
+    axis, nth = torch.arange(3, device=device).unsqueeze(-1), torch.arange(4, device=device)
+    # the nth corner with bit j clear: nth with a 0 bit inserted at position j
+    low = torch.bitwise_and(nth, torch.bitwise_left_shift(1, axis) - 1)
+    corner = torch.bitwise_or(torch.bitwise_left_shift(torch.bitwise_right_shift(nth, axis), axis + 1), low).flatten()
+    axis = axis.expand(3, 4).flatten()
+    k = torch.arange(3, device=device)
+    signs = 2 * torch.bitwise_and(torch.bitwise_right_shift(corner.unsqueeze(-1), k), 1) - 1
+    return axis, corner, torch.where(k == axis.unsqueeze(-1), 0, signs)
 
 
 def _scan(pos, halfaxis, half, radius, halflength, margin):
@@ -92,9 +98,9 @@ def _scan(pos, halfaxis, half, radius, halflength, margin):
     # the segment against each edge (from its middle along axis j): the closest points of the lines,
     # clamped to the edge (x1), then to the segment (x2) and the edge again, with MuJoCo's labels
     # (s1 keeps its value where x1 is re-solved inside the edge)
-    j = _EDGE_AXIS.to(device)
+    j, edge_corner, edge_middle = _box_edges(device)
     onehot = torch.nn.functional.one_hot(j, 3).to(pos.dtype)  # [12, 3]
-    dif = _EDGE_MIDDLE.to(pos) * half.unsqueeze(-2) - pos.unsqueeze(-2)  # [N, P, 12, 3]
+    dif = edge_middle.to(pos.dtype) * half.unsqueeze(-2) - pos.unsqueeze(-2)  # [N, P, 12, 3]
     s = half[:, j]  # [P, 12]
     ha = halfaxis[..., j]  # [N, P, 12]
     mc = (halflength * halflength).unsqueeze(-1)
@@ -138,7 +144,7 @@ def _scan(pos, halfaxis, half, radius, halflength, margin):
     cltype = torch.where(on_edge, label, torch.where(on_face, 2 * k.squeeze(-1) - 3, -4))
     clface = face.gather(-1, k).squeeze(-1)
     cledge = j[e.squeeze(-1)]
-    clcorner = _EDGE_CORNER.to(device)[e.squeeze(-1)] + (1 << cledge) * (label // 6)  # the upper corner where s1 = 2
+    clcorner = edge_corner[e.squeeze(-1)] + (1 << cledge) * (label // 6)  # the upper corner where s1 = 2
     return bestsegmentpos, bestboxpos, cltype, clface, clcorner, cledge
 
 

@@ -148,9 +148,11 @@ def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
     return Kinematics(rots, poss, motion, origin)
 
 
-def site_positions(tree: RigidBodyTree, kin: Kinematics, sites) -> torch.Tensor:
-    """World positions ``[N, len(sites), 3]`` of the model's sites with these indices."""
-    model = tree.model
-    body = torch.as_tensor(model.site_body[list(sites)], device=kin.body_pos.device)
-    local = torch.as_tensor(model.site_pos[list(sites)], dtype=kin.body_pos.dtype, device=kin.body_pos.device)
-    return kin.body_pos[:, body] + small_matvec(kin.body_rot[:, body], local)
+def site_positions(tree: RigidBodyTree, kin: Kinematics, sites=None) -> torch.Tensor:
+    """World positions ``[N, nsite, 3]`` of the model's sites, or ``[N, len(sites), 3]`` of those
+    with these indices (on a GPU a list of indices is copied to the device, a synchronisation: in
+    a step, index the positions of all sites instead)."""
+    body, local = tree.site_body, tree.site_pos.to(kin.body_pos.dtype)
+    if sites is not None:
+        body, local = body[list(sites)], local[list(sites)]
+    return kin.body_pos.index_select(1, body) + small_matvec(kin.body_rot.index_select(1, body), local)

@@ -62,6 +62,8 @@ class RigidBodyTree:
     body_pos: torch.Tensor  # [nbody, 3]
     body_rot: torch.Tensor  # [nbody, 3, 3]
     body_com: torch.Tensor  # [nbody, 3]
+    site_body: torch.Tensor  # [nsite] long: the body each site is fixed to
+    site_pos: torch.Tensor  # [nsite, 3] in its body's frame
     body_joints: list[list[int]]  # joints of each body, in order
     joint_type: list[str]  # "hinge" | "slide" | "ball" | "free"
     joint_qposadr: list[int]
@@ -296,6 +298,7 @@ class RigidBodyTree:
         tree = cls(
             model=model, body_parent=[int(p) for p in model.body_parent], body_pos=t(model.body_pos),
             body_rot=t(model.body_rot), body_com=t(model.body_com), body_joints=body_joints,
+            site_body=idx(model.site_body), site_pos=t(model.site_pos).reshape(-1, 3),
             joint_type=list(model.joint_type), joint_qposadr=[int(a) for a in model.joint_qposadr],
             joint_dofadr=[int(a) for a in model.joint_dofadr], joint_axis=t(axis).reshape(njnt, 3),
             joint_pos=t(model.joint_pos).reshape(njnt, 3), joint_skew=t(skew),

@@ -34,7 +34,7 @@ class InvertedDoublePendulumV5Env(MuJoCoModelEnv):
 
     def transition(self, state, action, params):
         result = self.simulate(state, action, params)
-        tip = site_positions(self.tree, forward_kinematics(self.tree, result.eval_qpos), [0])[:, 0]
+        tip = site_positions(self.tree, forward_kinematics(self.tree, result.eval_qpos))[:, 0]
         x, y = tip[:, 0], tip[:, 2]
         terminated = y <= 1
         v1, v2 = result.qvel[:, 1], result.qvel[:, 2]
