@@ -226,6 +226,9 @@ def main(argv=None) -> dict:
     from torchrl_diffenvs.checks import parse_cli
 
     args = parse_cli(ContactModelSettings, argv, __doc__)
+    if (not args.parity_tasks or not args.speed_tasks) and args.data is None and not args.quick:
+        raise SystemExit("contact_model: a run that leaves out a part (parity_tasks=[] or speed_tasks=[]) writes its own "
+                         "data file: name it with data=<name> (docs/data/contact_model.json holds both parts)")
     C.setup_threads(args.threads)
     warnings.filterwarnings("ignore")
     steps = 50 if args.quick else args.steps

@@ -58,9 +58,9 @@ for run in ppo "$grad"; do
 done
 fi
 
-echo "== compiled and CUDA graphs ($(elapsed) s)"
 left=$(( ${TOTAL_S:-540} - $(elapsed) ))
 if run_part compiled && [ "$left" -gt 30 ]; then
+    echo "== compiled and CUDA graphs ($(elapsed) s)"
     timeout "$left" "$py" benchmarks/gpu_throughput.py "modes=[${COMPILED_MODES:-cudagraphs,compiled}]" tasks=[HalfCheetah-v5] \
         "kinds=[${COMPILED_KINDS:-rollout}]" sizes=[65536] steps=16 window=16 budget_s=$(( left - 10 )) out="$out/gpu_compiled.json" data=none
 fi

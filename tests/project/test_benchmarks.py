@@ -95,6 +95,8 @@ def test_gpu_throughput_hotspots_name_the_library_lines_of_a_step():
     assert [h["ms"] for h in hot] == sorted((h["ms"] for h in hot), reverse=True) and hot[-1]["ms"] > 0
     assert 0 < sum(h["share"] for h in hot) < 1 and all(sum(h["calls"].values()) > 0 for h in hot)
     assert any(h["site"].startswith("articulated/") for h in hot)  # the physics, not the env's bookkeeping
+    # the algebra helpers' calls count at their callers' lines
+    assert not any(h["site"].startswith(bench.HELPER_MODULES) for h in bench.step_hotspots("HalfCheetah-v5", 2, "cpu", 200))
     tables = bench.docs_tables([], {"HalfCheetah-v5": {"N": 2, "hotspots": hot}}, "cpu")
     assert [row[2] for row in tables["hotspots"]["rows"]] == [f"`{h['site']}`" for h in hot]
 
@@ -600,3 +602,5 @@ def test_contact_model_writes_the_parts_it_measured(tmp_path, monkeypatch):
     assert list(tables) == ["speed"] and payload["parity"] == []
     assert tables["speed"]["rows"] == [["Ant-v5", "16", "rk4 / implicit", "400", "1k", "0.4x", "100", "300", "0.333x",
                                         "300 / 100", "- / -"]]
+    with pytest.raises(SystemExit, match="name it with data=<name>"):
+        bench.main(["parity_tasks=[]", f"out={tmp_path / 'x.json'}"])

@@ -137,7 +137,7 @@ def test_the_surrogate_is_the_same_without_row_compaction(mode, monkeypatch):
     out = []
     from torchrl_diffenvs.articulated import constraint
 
-    for reads_data in (True, False):  # the CPU's compacted solve, then the GPU's and the compiled one's
+    for reads_data in (True, False):  # the CPU's compacted solve, then the rounds on every row and env (a GPU's)
         monkeypatch.setattr(constraint, "_reads_data_freely", lambda device, reads_data=reads_data: reads_data)
         q = qpos.clone().requires_grad_(True)
         result = step(tree, q, qvel, ctrl, params, tree.model.timestep, "euler", invweight0(tree, params))

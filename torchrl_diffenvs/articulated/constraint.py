@@ -272,13 +272,13 @@ def _masked_rounds(round_, start, iterations: int):
     converged = torch.zeros(qacc.shape[0], dtype=torch.bool, device=qacc.device)
     used = torch.zeros(qacc.shape[0], dtype=torch.long, device=qacc.device)
     watch = ConvergenceWatch.for_device(qacc.device)
-    on_cpu = _reads_data_freely(qacc.device)
+    reads_data = _reads_data_freely(qacc.device)
     for _ in range(iterations):
         new, settled = round_(qacc)
         qacc = torch.where(converged.unsqueeze(-1), qacc, new)
         used = used + (~converged).long()
         converged = converged | settled
-        if (watch is not None and watch.all_done(converged)) or (on_cpu and bool(converged.all())):
+        if (watch is not None and watch.all_done(converged)) or (reads_data and bool(converged.all())):
             break
     return qacc, used, converged
 
