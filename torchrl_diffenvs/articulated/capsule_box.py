@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import torch
 
-from .primitive_types import PairContacts, PosedGeoms
+from .primitive_types import PairContacts, PosedGeoms, box_corners
 from .spatial import _MINVAL
 from .sphere_box import sphere_box
 
@@ -62,19 +62,17 @@ def _ratio(num, den):
     return torch.where(zero, torch.inf, num / torch.where(zero, torch.ones_like(den), den))
 
 
-def _box_edges(device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _box_edges(like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """MuJoCo's 12 box edges in its order (axis ``j``, then the corners ``i`` with bit ``j`` clear,
     ascending): each edge's axis ``[12]``, the corner it starts from ``[12]`` and the signs of its
-    middle ``[12, 3]`` (0 along the edge), made on the device (no copy to it: a synchronisation on
-    CUDA)."""
-    axis, nth = torch.arange(3, device=device).unsqueeze(-1), torch.arange(4, device=device)
+    middle ``[12, 3]`` (its corner's, 0 along the edge), made on ``like``'s device and dtype."""
+    axis, nth = torch.arange(3, device=like.device).unsqueeze(-1), torch.arange(4, device=like.device)
     # the nth corner with bit j clear: nth with a 0 bit inserted at position j
     low = torch.bitwise_and(nth, torch.bitwise_left_shift(1, axis) - 1)
     corner = torch.bitwise_or(torch.bitwise_left_shift(torch.bitwise_right_shift(nth, axis), axis + 1), low).flatten()
     axis = axis.expand(3, 4).flatten()
-    k = torch.arange(3, device=device)
-    signs = 2 * torch.bitwise_and(torch.bitwise_right_shift(corner.unsqueeze(-1), k), 1) - 1
-    return axis, corner, torch.where(k == axis.unsqueeze(-1), 0, signs)
+    along = torch.arange(3, device=like.device) == axis.unsqueeze(-1)
+    return axis, corner, torch.where(along, 0, box_corners(like)[corner])
 
 
 def _scan(pos, halfaxis, half, radius, halflength, margin):
@@ -98,9 +96,9 @@ def _scan(pos, halfaxis, half, radius, halflength, margin):
     # the segment against each edge (from its middle along axis j): the closest points of the lines,
     # clamped to the edge (x1), then to the segment (x2) and the edge again, with MuJoCo's labels
     # (s1 keeps its value where x1 is re-solved inside the edge)
-    j, edge_corner, edge_middle = _box_edges(device)
+    j, edge_corner, edge_middle = _box_edges(pos)
     onehot = torch.nn.functional.one_hot(j, 3).to(pos.dtype)  # [12, 3]
-    dif = edge_middle.to(pos.dtype) * half.unsqueeze(-2) - pos.unsqueeze(-2)  # [N, P, 12, 3]
+    dif = edge_middle * half.unsqueeze(-2) - pos.unsqueeze(-2)  # [N, P, 12, 3]
     s = half[:, j]  # [P, 12]
     ha = halfaxis[..., j]  # [N, P, 12]
     mc = (halflength * halflength).unsqueeze(-1)

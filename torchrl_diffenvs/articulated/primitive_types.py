@@ -1,13 +1,13 @@
 """The types every collision primitive takes and returns (see
 [`primitives`][torchrl_diffenvs.articulated.primitives]): the geoms of one type posed in the
-world, a pair's candidate contacts, and a table entry."""
+world, a pair's candidate contacts, a table entry, and a box's corners."""
 from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
 import torch
 
-__all__ = ["PairContacts", "PosedGeoms", "Primitive", "one_contact"]
+__all__ = ["PairContacts", "PosedGeoms", "Primitive", "box_corners", "one_contact"]
 
 
 class PosedGeoms(NamedTuple):
@@ -42,3 +42,11 @@ def one_contact(dist, pos, normal) -> PairContacts:
     """A primitive's single contact per pair, with MuJoCo's default tangent."""
     return PairContacts(dist[..., None], pos[..., None, :], normal[..., None, :], torch.zeros_like(pos)[..., None, :],
                         torch.ones_like(dist, dtype=torch.bool)[..., None])
+
+
+def box_corners(like: torch.Tensor) -> torch.Tensor:
+    """The signs ``[8, 3]`` of a box's corners in MuJoCo's order (corner ``i``: + along axis ``k``
+    where bit ``k`` of ``i`` is set), made on ``like``'s device (a tensor built from Python
+    numbers is a host-to-device copy, a synchronisation on CUDA)."""
+    corner, axis = torch.arange(8, device=like.device).unsqueeze(-1), torch.arange(3, device=like.device)
+    return (2 * torch.bitwise_and(torch.bitwise_right_shift(corner, axis), 1) - 1).to(like.dtype)

@@ -23,7 +23,7 @@ import torch
 from .box_box import box_box
 from .capsule_box import capsule_box
 from .capsule_cylinder import capsule_cylinder as _capsule_cylinder
-from .primitive_types import PairContacts, PosedGeoms, Primitive, one_contact
+from .primitive_types import PairContacts, PosedGeoms, Primitive, box_corners, one_contact
 from .spatial import _MINVAL, _cross, _dot
 from .sphere_box import sphere_box
 
@@ -156,21 +156,13 @@ def plane_cylinder(plane: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tensor
 
 
 #: the box's corners in MuJoCo's order (corner i has +size_k where bit k of i is set)
-def _box_corners(like: torch.Tensor) -> torch.Tensor:
-    """The signs ``[8, 3]`` of a box's corners in MuJoCo's order (corner ``i``: + along axis ``k``
-    where bit ``k`` of ``i`` is set), made on ``like``'s device (a tensor built from Python
-    numbers is a host-to-device copy, a synchronisation on CUDA)."""
-    corner, axis = torch.arange(8, device=like.device).unsqueeze(-1), torch.arange(3, device=like.device)
-    return (2 * torch.bitwise_and(torch.bitwise_right_shift(corner, axis), 1) - 1).to(like.dtype)
-
-
 def plane_box(plane: PosedGeoms, box: PosedGeoms, margin: torch.Tensor) -> PairContacts:
     """MuJoCo's ``mjc_PlaneBox``: the corners below the box's centre (towards the plane) within the
     margin, the first four in MuJoCo's corner order, one contact each. Slot ``k`` holds the
     ``k``-th such corner (``found``: there is one)."""
     normal = plane.rot[..., :, 2]
     centre = _dot(box.pos - plane.pos, normal)  # [N, P]
-    local = _box_corners(box.size) * box.size.unsqueeze(-2)  # [P, 8, 3]
+    local = box_corners(box.size) * box.size.unsqueeze(-2)  # [P, 8, 3]
     corners = (box.rot.unsqueeze(-3) @ local.unsqueeze(-1)).squeeze(-1)  # [N, P, 8, 3], from the centre
     below = _dot(normal.unsqueeze(-2), corners)  # [N, P, 8]
     dist = centre.unsqueeze(-1) + below
