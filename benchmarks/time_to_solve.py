@@ -33,6 +33,16 @@ reported as ``loss:LABEL``; ``levels`` adds columns with the time to reach fixed
 median of a race whose PPO runs are not among the summarised files::
 
     python benchmarks/time_to_solve.py summarise=[hc_s0_sapo.json,hc_s1_sapo.json] env_levels=[HalfCheetah-v5=2230]
+
+A run longer than one sitting (the Ant's, hours on one thread) is kept in ``keep_runs=DIR`` with
+periodic checkpoints and continued later with the same command and ``resume=true``: each run whose
+directory holds a checkpoint resumes from it (train.py's exact resume), its wall time counting on
+from the checkpoint's, so its curve reads as one uninterrupted run::
+
+    python benchmarks/time_to_solve.py envs=[Ant-v5] losses=[ppo] seeds=[0] keep_runs=runs/ant \
+        "override=[train.checkpoint_interval=10000]" out=ant_s0_ppo.json              # stopped part-way
+    python benchmarks/time_to_solve.py envs=[Ant-v5] losses=[ppo] seeds=[0] keep_runs=runs/ant \
+        "override=[train.checkpoint_interval=10000]" out=ant_s0_ppo.json resume=true  # continues it
 """
 from __future__ import annotations
 
@@ -94,6 +104,13 @@ def eval_curve(run_dir: Path) -> list[tuple[int, float, float]]:
             known = [s for s in wall_at if s <= steps]
             curve.append((steps, wall_at[max(known)], row["eval/return"]))
     return curve
+
+
+def checkpoint_env_steps(path: Path) -> int:
+    """The env steps a run had taken when it wrote the checkpoint ``path``."""
+    from torchrl_diffenvs.training import load_checkpoint
+
+    return int(load_checkpoint(path)["progress"]["env_steps"])
 
 
 def first_time_at(curve, threshold: float) -> float:
@@ -355,6 +372,8 @@ class TimeToSolveSettings(C.BenchmarkSettings):
     # PPO runs are not among the summarised files
     env_levels: list[str] = checked([], checks.each(lambda v: None if "=" in str(v) else "expected ENV=RETURN"))
     keep_runs: str | None = None  # keep the run directories here
+    # continue each run whose directory under keep_runs holds a checkpoint (checkpoints/last.pt) from it
+    resume: bool = False
     # only summarise earlier result files (JSON, out= of earlier runs): their runs merged, e.g. one file per task
     # and seed from runs side by side; with data= the summary is also the docs' data file
     summarise: list[str] | None = None
@@ -374,6 +393,9 @@ def main(argv=None) -> dict:
     variants = parse_variants(args.variant) or [("", [])]
     info = C.versions()
     C.print_header("time to solve (sota_scripts/train.py, interleaved runs)", info)
+    if args.resume and not args.keep_runs:
+        raise SystemExit("time_to_solve: resume=true continues the runs kept in keep_runs=DIR; give the directory "
+                         "of the runs to continue")
     runs_root = Path(args.keep_runs) if args.keep_runs else Path(tempfile.mkdtemp(prefix="time_to_solve_"))
 
     # every run's configuration is composed before the first run starts: a mistyped override fails
@@ -392,8 +414,10 @@ def main(argv=None) -> dict:
                     overrides.append(f"train.total_env_steps={budgets[loss]}")
                 overrides += args.override + variant_overrides
                 run_dir = runs_root / f"{env}_{loss}{'_' + variant if variant else ''}_seed{seed}"
+                checkpoint = run_dir / "checkpoints" / "last.pt"
+                resumed_from = checkpoint if args.resume and checkpoint.exists() else None
                 try:
-                    cfg = C.compose(overrides)
+                    cfg = C.compose(overrides + ([f"resume={resumed_from}"] if resumed_from else []))
                 except Exception as error:  # Hydra's composition errors name the override
                     raise SystemExit(f"time_to_solve: the run {env} {loss} {variant or ''} seed {seed} does not "
                                      f"compose ({' '.join(overrides)}): {error}") from None
@@ -401,14 +425,19 @@ def main(argv=None) -> dict:
                     raise SystemExit("time_to_solve: eval.only_gymnasium=true leaves the runs without this library's "
                                      "evaluation returns, which the race reads (eval.gymnasium=true puts Gymnasium's "
                                      "beside them): drop eval.only_gymnasium")
-                plan.append((seed, env, variant, overrides, run_dir, cfg))
+                plan.append((seed, env, variant, overrides, run_dir, cfg, resumed_from))
     runs = []
-    for seed, env, variant, overrides, run_dir, cfg in plan:
+    for seed, env, variant, overrides, run_dir, cfg, resumed_from in plan:
+        resumed_at = None if resumed_from is None else checkpoint_env_steps(resumed_from)  # before it is overwritten
+        if resumed_at is not None:
+            print(f"# {run_dir.name}: resuming {resumed_from} at env step {resumed_at:,}")
         wall, cpu = C.timed(lambda: runs.append(train_script.run(cfg, run_dir, overrides)))
         result = runs[-1]
+        # process_*_s: this process's part of the run (wall_time_s, the run's, counts on across resumes)
         result.update({"overrides": overrides, "variant": variant, "curve": eval_curve(run_dir),
                        "process_wall_s": wall, "process_cpu_s": cpu,
-                       "total_env_steps": int(cfg.train.total_env_steps)})
+                       "total_env_steps": int(cfg.train.total_env_steps),
+                       "resumed_from_env_steps": resumed_at})
         print(f"# {env} {run_label(result)} seed {seed}: eval return {result['eval/return']:.4g} after "
               f"{result['env_steps']:,} env steps, {result['wall_time_s']:.1f} s")
 

@@ -280,6 +280,23 @@ def test_time_to_solve_reports_the_return_in_gymnasiums_env():
     assert "in Gymnasium's env" in table and "0.90 [0.50, 1.00]" in table
 
 
+def test_time_to_solve_resumes_kept_runs_from_their_checkpoints(tmp_path):
+    """A race split across sittings: the second call (a larger budget standing in for the part not
+    yet run) continues the kept run from its checkpoint: the first part's evaluations stay as they
+    were, its env steps and wall time count on, and the result says where it resumed."""
+    tts = load("time_to_solve")
+    common = ["quick=true", "losses=[bptt]", f"keep_runs={tmp_path / 'runs'}"]
+    first = tts.main([*common, "steps=[bptt=32]", f"out={tmp_path / 'a.json'}"])["runs"][0]
+    second = tts.main([*common, "steps=[bptt=64]", "resume=true", f"out={tmp_path / 'b.json'}"])["runs"][0]
+    assert first["resumed_from_env_steps"] is None and second["resumed_from_env_steps"] == first["env_steps"]
+    assert second["env_steps"] >= 64 > first["env_steps"]
+    # the same evaluations at the same wall times (a fresh run would measure other times)
+    assert second["curve"][:len(first["curve"])] == first["curve"]
+    assert second["wall_time_s"] > first["wall_time_s"]
+    with pytest.raises(SystemExit, match="resume=true continues the runs kept in keep_runs=DIR"):
+        tts.main(["quick=true", "losses=[bptt]", "resume=true", f"out={tmp_path / 'c.json'}"])
+
+
 def test_time_to_solve_variants_and_fixed_levels(tmp_path):
     tts = load("time_to_solve")
     payload = tts.main(["quick=true", "losses=[shac]", 'variant=["default=","fast=loss.actor_lr=2e-2"]',
