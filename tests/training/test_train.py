@@ -32,7 +32,8 @@ from torchrl_diffenvs.training import (
 from torchrl_diffenvs.training.config import LOSSES, make_env_from_config, merge_overrides
 
 from _train_helpers import (  # noqa: F401  (shared with the other areas' training tests)
-    COMMON, CONFIGS, CONTACT_ENVS, ROOT, SCRIPT, STEPS_PER_ITER, TINY, _cli, make_cfg, read_jsonl, results_table,
+    COMMON, CONFIGS, CONTACT_ENVS, ROOT, SCRIPT, STEPS_PER_ITER, TINY, _cli, composing, make_cfg, read_jsonl,
+    results_table,
     tiny_cfg, train_script, without_measurements,
 )
 
@@ -60,8 +61,9 @@ def test_every_registered_env_and_loss_has_a_config():
 @pytest.mark.parametrize("env", list_envs())
 def test_default_config_of_every_pair_is_valid(env):
     multi_agent = env in multi_agent_envs()
-    for loss in (*LOSSES, *PRESETS):
-        cfg = make_cfg(f"env={env}", f"loss={loss}")
+    with composing():
+        configs = {loss: make_cfg(f"env={env}", f"loss={loss}") for loss in (*LOSSES, *PRESETS)}
+    for loss, cfg in configs.items():
         assert cfg.env.name == env and cfg.loss.name == PRESETS.get(loss, loss)
         if loss == "ahac" and env not in CONTACT_ENVS:
             with pytest.raises(ConfigError, match=f"loss=ahac: env '{env}' reports no contact force"):
