@@ -7,6 +7,7 @@ Two contact models ([`use_contact_model`][torchrl_diffenvs.articulated.RigidBody
 """
 from __future__ import annotations
 
+from dataclasses import fields
 from typing import NamedTuple
 
 import torch
@@ -17,7 +18,7 @@ from .contact_gradient import ContactGradient
 from .contact import _contact_points_and_forces, _pair_forces, body_contact_forces, contact_force, pair_contact_force
 from .forces import actuator_force, passive_force
 from .inertia import body_invweight0, dof_invweight0, mass_matrix_and_bias
-from .kinematics import forward_kinematics
+from .kinematics import Kinematics, forward_kinematics
 from .limits import limit_force
 from .spatial import Params, _cross, _inverse, _solve
 from .tree import RigidBodyTree
@@ -119,13 +120,35 @@ class ForwardReport(NamedTuple):
     solver_converged: torch.Tensor | None  # [N] bool: the constraint solve converged; None without a solve
 
 
-def _smooth_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt, implicit_bias,
-                          invweight0, with_contact_force):
-    """The ``"smooth"`` contact model's ``qacc`` (see [`accelerations`][torchrl_diffenvs.articulated.accelerations])."""
-    implicit = implicit_damping_dt is not None
+class _Inertial(NamedTuple):
+    """Stages 1-2 at one state, which both of the penalty gradient's forwards read."""
+
+    kin: Kinematics
+    mass: torch.Tensor
+    bias: torch.Tensor
+    bias_jacobian: torch.Tensor | None  # d bias / d qvel, where the implicit integrator asks for it
+
+    def detached(self) -> "_Inertial":
+        kin = Kinematics(*(getattr(self.kin, f.name).detach() for f in fields(self.kin)))
+        return _Inertial(kin, self.mass.detach(), self.bias.detach(),
+                         None if self.bias_jacobian is None else self.bias_jacobian.detach())
+
+
+def _inertial(tree: RigidBodyTree, qpos, qvel, params: Params, with_bias_jacobian: bool) -> _Inertial:
     kin = forward_kinematics(tree, qpos)
-    mass, bias, *bias_jacobian = mass_matrix_and_bias(tree, kin, qvel, params,
-                                                      with_velocity_jacobian=implicit and implicit_bias)
+    mass, bias, *bias_jacobian = mass_matrix_and_bias(tree, kin, qvel, params, with_velocity_jacobian=with_bias_jacobian)
+    return _Inertial(kin, mass, bias, bias_jacobian[0] if bias_jacobian else None)
+
+
+def _smooth_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt, implicit_bias,
+                          invweight0, with_contact_force, inertial: _Inertial | None = None):
+    """The ``"smooth"`` contact model's ``qacc`` (see [`accelerations`][torchrl_diffenvs.articulated.accelerations]);
+    ``inertial``: stages 1-2 when the caller has them."""
+    implicit = implicit_damping_dt is not None
+    if inertial is None:
+        inertial = _inertial(tree, qpos, qvel, params, with_bias_jacobian=implicit and implicit_bias)
+    kin, mass, bias = inertial.kin, inertial.mass, inertial.bias
+    bias_jacobian = [inertial.bias_jacobian] if implicit and implicit_bias else []
     force, damping, largest = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=implicit)
     if bias_jacobian:
         damping = damping + bias_jacobian[0]  # the force carries -bias: its velocity damping is +d bias / d qvel
@@ -152,13 +175,16 @@ def _penalty_gradient_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, param
     if not torch.is_grad_enabled():  # no graph recorded (evaluation, collection): MuJoCo's forward only
         return _constrained_accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt, implicit_bias,
                                           weights, with_contact_force)
+    # stages 1-2 once, with their graph: MuJoCo's forward reads them detached (the same values)
+    inertial = _inertial(tree, qpos, qvel, params, with_bias_jacobian=implicit_bias)
     with torch.no_grad():
         exact = _constrained_accelerations(tree, qpos, qvel, ctrl, params, implicit_damping_dt, implicit_bias,
-                                           weights, with_contact_force)
+                                           weights, with_contact_force, inertial.detached())
     # the penalty force's velocity damping (friction and normal) is stiff: implicit at the physics step
     # under every integrator, as the smooth model runs it, else its RK4 stages' Jacobian diverges
     damping_dt = tree.model.timestep if implicit_damping_dt is None else implicit_damping_dt
-    surrogate = _smooth_accelerations(tree, qpos, qvel, ctrl, params, damping_dt, implicit_bias, weights, False)
+    surrogate = _smooth_accelerations(tree, qpos, qvel, ctrl, params, damping_dt, implicit_bias, weights, False,
+                                      inertial)
     qacc, report = exact if with_contact_force else (exact, None)
     qacc = qacc + (surrogate - surrogate.detach())
     return (qacc, report) if with_contact_force else qacc
@@ -174,13 +200,17 @@ class _MuJoCoForward(NamedTuple):
     bias_jacobian: torch.Tensor | None
 
 
-def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weights, with_bias_jacobian=False):
-    """MuJoCo's forward to the constraint solve, with its intermediates (see `_constrained_accelerations`)."""
+def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weights, with_bias_jacobian=False,
+                    inertial: _Inertial | None = None):
+    """MuJoCo's forward to the constraint solve, with its intermediates (see `_constrained_accelerations`);
+    ``inertial``: stages 1-2 when the caller has them."""
     slots = tree.contact_slots
     if not isinstance(weights, InvWeight0):  # None, or a smooth-contact caller's dof_invweight0
         weights = invweight0(tree, params)
-    kin = forward_kinematics(tree, qpos)
-    mass, bias, *bias_jacobian = mass_matrix_and_bias(tree, kin, qvel, params, with_velocity_jacobian=with_bias_jacobian)
+    if inertial is None:
+        inertial = _inertial(tree, qpos, qvel, params, with_bias_jacobian)
+    kin, mass, bias = inertial.kin, inertial.mass, inertial.bias
+    bias_jacobian = [inertial.bias_jacobian] if with_bias_jacobian else []
     smooth_force = actuator_force(tree, ctrl, tree.nv) + passive_force(tree, kin, qpos, qvel, params) - bias
     qacc_smooth = _solve(mass, smooth_force)
     contacts = collide(slots, kin) if slots.count else None
@@ -221,7 +251,7 @@ def _mujoco_body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params:
 
 
 def _constrained_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, implicit_damping_dt,
-                               implicit_bias, weights, with_contact_force):
+                               implicit_bias, weights, with_contact_force, inertial: _Inertial | None = None):
     """MuJoCo's ``mj_forward`` from the smooth forces on (see [`accelerations`][torchrl_diffenvs.articulated.accelerations]):
 
     1. smooth dynamics: ``qacc_smooth = M^-1 (motors + passive - bias)``;
@@ -233,7 +263,8 @@ def _constrained_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Pa
        (joint damping implicit), and its ``implicit`` integrator adds ``h d bias / d qvel`` to ``D``.
     """
     implicit = implicit_damping_dt is not None
-    f = _mujoco_forward(tree, qpos, qvel, ctrl, params, weights, with_bias_jacobian=implicit and implicit_bias)
+    f = _mujoco_forward(tree, qpos, qvel, ctrl, params, weights, with_bias_jacobian=implicit and implicit_bias,
+                        inertial=inertial)
     slots, mass, smooth_force, rows, solution, bias_jacobian = \
         tree.contact_slots, f.mass, f.smooth_force, f.rows, f.solution, f.bias_jacobian
     qacc = solution.qacc
