@@ -37,12 +37,14 @@ median of a race whose PPO runs are not among the summarised files::
 A run longer than one sitting (the Ant's, hours on one thread) is kept in ``keep_runs=DIR`` with
 periodic checkpoints and continued later with the same command and ``resume=true``: each run whose
 directory holds a checkpoint resumes from it (train.py's exact resume), its wall time counting on
-from the checkpoint's, so its curve reads as one uninterrupted run::
+from the checkpoint's, so that with the same budget its curve reads as one uninterrupted run (a
+larger budget continues it too, with the learning-rate schedule of the new budget; a finished run
+only repeats its final evaluation). Without ``resume=true`` a kept run is never overwritten::
 
     python benchmarks/time_to_solve.py envs=[Ant-v5] losses=[ppo] seeds=[0] keep_runs=runs/ant \
-        "override=[train.checkpoint_interval=10000]" out=ant_s0_ppo.json              # stopped part-way
+        "override=[train.checkpoint_interval=20000]" out=ant_s0_ppo.json              # stopped part-way
     python benchmarks/time_to_solve.py envs=[Ant-v5] losses=[ppo] seeds=[0] keep_runs=runs/ant \
-        "override=[train.checkpoint_interval=10000]" out=ant_s0_ppo.json resume=true  # continues it
+        "override=[train.checkpoint_interval=20000]" out=ant_s0_ppo.json resume=true  # continues it
 """
 from __future__ import annotations
 
@@ -106,11 +108,26 @@ def eval_curve(run_dir: Path) -> list[tuple[int, float, float]]:
     return curve
 
 
-def checkpoint_env_steps(path: Path) -> int:
-    """The env steps a run had taken when it wrote the checkpoint ``path``."""
+def kept_run_checkpoint(run_dir: Path, overrides: list[str], resume: bool) -> int | None:
+    """The env step at which the kept run in ``run_dir`` resumes (``resume=true``), or ``None`` for a
+    fresh run. Refuses, before any run starts, to overwrite a kept run (without ``resume=true``) and
+    to continue one that another command started (other overrides than these; the budget,
+    ``train.total_env_steps``, may differ)."""
     from torchrl_diffenvs.training import load_checkpoint
 
-    return int(load_checkpoint(path)["progress"]["env_steps"])
+    path = run_dir / "checkpoints" / "last.pt"
+    if not path.exists():
+        return None
+    if not resume:
+        raise SystemExit(f"time_to_solve: {run_dir} holds a run with checkpoints ({path}): resume=true continues "
+                         "it; remove the directory to start it over")
+    checkpoint = load_checkpoint(path)
+    budget = lambda items: [o for o in items if not o.startswith("train.total_env_steps=")]  # noqa: E731
+    if budget(checkpoint.get("overrides", [])) != budget(overrides):
+        raise SystemExit(f"time_to_solve: the kept run {run_dir} was started with other overrides "
+                         f"({' '.join(checkpoint.get('overrides', []))}) than this command's ({' '.join(overrides)}); "
+                         "resume it with its own command, or give another keep_runs")
+    return int(checkpoint["progress"]["env_steps"])
 
 
 def first_time_at(curve, threshold: float) -> float:
@@ -414,23 +431,23 @@ def main(argv=None) -> dict:
                     overrides.append(f"train.total_env_steps={budgets[loss]}")
                 overrides += args.override + variant_overrides
                 run_dir = runs_root / f"{env}_{loss}{'_' + variant if variant else ''}_seed{seed}"
-                checkpoint = run_dir / "checkpoints" / "last.pt"
-                resumed_from = checkpoint if args.resume and checkpoint.exists() else None
+                resumed_at = kept_run_checkpoint(run_dir, overrides, args.resume)
                 try:
-                    cfg = C.compose(overrides + ([f"resume={resumed_from}"] if resumed_from else []))
+                    cfg = C.compose(overrides)
                 except Exception as error:  # Hydra's composition errors name the override
                     raise SystemExit(f"time_to_solve: the run {env} {loss} {variant or ''} seed {seed} does not "
                                      f"compose ({' '.join(overrides)}): {error}") from None
+                if resumed_at is not None:
+                    cfg.resume = str(run_dir / "checkpoints" / "last.pt")  # train.py's resume=
                 if cfg.eval.get("only_gymnasium"):
                     raise SystemExit("time_to_solve: eval.only_gymnasium=true leaves the runs without this library's "
                                      "evaluation returns, which the race reads (eval.gymnasium=true puts Gymnasium's "
                                      "beside them): drop eval.only_gymnasium")
-                plan.append((seed, env, variant, overrides, run_dir, cfg, resumed_from))
+                plan.append((seed, env, variant, overrides, run_dir, cfg, resumed_at))
     runs = []
-    for seed, env, variant, overrides, run_dir, cfg, resumed_from in plan:
-        resumed_at = None if resumed_from is None else checkpoint_env_steps(resumed_from)  # before it is overwritten
+    for seed, env, variant, overrides, run_dir, cfg, resumed_at in plan:
         if resumed_at is not None:
-            print(f"# {run_dir.name}: resuming {resumed_from} at env step {resumed_at:,}")
+            print(f"# {run_dir.name}: resuming {cfg.resume} at env step {resumed_at:,}")
         wall, cpu = C.timed(lambda: runs.append(train_script.run(cfg, run_dir, overrides)))
         result = runs[-1]
         # process_*_s: this process's part of the run (wall_time_s, the run's, counts on across resumes)

@@ -46,17 +46,27 @@ CONTACT_ENVS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoi
                 "Pusher-v5")  # they report contact forces (AHAC's signal)
 
 
+_composing = False  # inside `composing()`: Hydra is initialised on CONFIGS
+
+
 @contextmanager
 def composing():
-    """One Hydra initialisation for the `make_cfg` calls inside the block: each call outside one
-    initialises Hydra on the config tree again (a third of a compose's time)."""
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+    """One Hydra initialisation on the project's configs for the `make_cfg` calls inside the block
+    (re-entrant): each call outside one initialises Hydra on the config tree again (a third of a
+    compose's time)."""
+    global _composing
+    if _composing and GlobalHydra.instance().is_initialized():
         yield
+        return
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        _composing = True
+        try:
+            yield
+        finally:
+            _composing = False
 
 
 def make_cfg(*overrides: str):
-    if GlobalHydra.instance().is_initialized():  # inside `composing()`
-        return compose(config_name="config", overrides=list(overrides))
     with composing():
         return compose(config_name="config", overrides=list(overrides))
 

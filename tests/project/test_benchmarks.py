@@ -5,6 +5,7 @@ they run end to end and report what they claim, in seconds, in-process.
 """
 import json
 import math
+import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -281,18 +282,31 @@ def test_time_to_solve_reports_the_return_in_gymnasiums_env():
 
 
 def test_time_to_solve_resumes_kept_runs_from_their_checkpoints(tmp_path):
-    """A race split across sittings: the second call (a larger budget standing in for the part not
-    yet run) continues the kept run from its checkpoint: the first part's evaluations stay as they
-    were, its env steps and wall time count on, and the result says where it resumed."""
+    """A race split across sittings: a kept run stopped at its 32-env-step checkpoint (the
+    uninterrupted run's directory with that checkpoint as its last), continued with
+    ``resume=true``, ends as the uninterrupted run did: the same evaluations (exact resume), the
+    stopped part's own wall times kept, and the result says where it resumed. A kept run is never
+    overwritten without ``resume=true``, nor continued by a command with other overrides."""
     tts = load("time_to_solve")
-    common = ["quick=true", "losses=[bptt]", f"keep_runs={tmp_path / 'runs'}"]
-    first = tts.main([*common, "steps=[bptt=32]", f"out={tmp_path / 'a.json'}"])["runs"][0]
-    second = tts.main([*common, "steps=[bptt=64]", "resume=true", f"out={tmp_path / 'b.json'}"])["runs"][0]
-    assert first["resumed_from_env_steps"] is None and second["resumed_from_env_steps"] == first["env_steps"]
-    assert second["env_steps"] >= 64 > first["env_steps"]
-    # the same evaluations at the same wall times (a fresh run would measure other times)
-    assert second["curve"][:len(first["curve"])] == first["curve"]
-    assert second["wall_time_s"] > first["wall_time_s"]
+    common = ["quick=true", "losses=[bptt]", "steps=[bptt=64]",
+              "override=[train.checkpoint_interval=16,train.keep_checkpoints=8]"]
+    whole = tts.main([*common, f"keep_runs={tmp_path / 'whole'}", f"out={tmp_path / 'a.json'}"])["runs"][0]
+    shutil.copytree(tmp_path / "whole", tmp_path / "stopped")
+    checkpoints = tmp_path / "stopped" / "pendulum_bptt_seed0" / "checkpoints"
+    shutil.copy(checkpoints / "ckpt_000000000032.pt", checkpoints / "last.pt")
+    resumed = tts.main([*common, f"keep_runs={tmp_path / 'stopped'}", "resume=true",
+                        f"out={tmp_path / 'b.json'}"])["runs"][0]
+    assert whole["resumed_from_env_steps"] is None and resumed["resumed_from_env_steps"] == 32
+    assert [(steps, value) for steps, _, value in resumed["curve"]] == [(steps, value) for steps, _, value in whole["curve"]]
+    assert resumed["eval/return"] == whole["eval/return"] and resumed["env_steps"] == whole["env_steps"] == 64
+    # before the checkpoint: the stopped run's rows as they were (a fresh run would measure other times)
+    before = [point for point in whole["curve"] if point[0] < 32]
+    assert len(before) >= 2 and resumed["curve"][:len(before)] == before
+    with pytest.raises(SystemExit, match="holds a run with checkpoints .* resume=true continues it"):
+        tts.main([*common, f"keep_runs={tmp_path / 'stopped'}", f"out={tmp_path / 'c.json'}"])
+    with pytest.raises(SystemExit, match="was started with other overrides"):
+        tts.main(["quick=true", "losses=[bptt]", "steps=[bptt=64]", f"keep_runs={tmp_path / 'stopped'}",
+                  "resume=true", f"out={tmp_path / 'c.json'}"])
     with pytest.raises(SystemExit, match="resume=true continues the runs kept in keep_runs=DIR"):
         tts.main(["quick=true", "losses=[bptt]", "resume=true", f"out={tmp_path / 'c.json'}"])
 

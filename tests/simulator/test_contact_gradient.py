@@ -89,10 +89,12 @@ def test_smooth_mode_tends_to_the_exact_gradient():
     assert (smooth - exact).norm() > 1e-6 * exact.norm()
 
 
-@pytest.mark.parametrize("task", ["Hopper-v5", "Ant-v5"])
-def test_penalty_mode_differentiates_the_smooth_contact_model_at_mujocos_state(task):
+@pytest.mark.parametrize("task,implicit", [("Hopper-v5", False), ("Ant-v5", False), ("Hopper-v5", True)])
+def test_penalty_mode_differentiates_the_smooth_contact_model_at_mujocos_state(task, implicit):
     """Value: MuJoCo's ``qacc``; gradient: the smooth model's, its contact damping implicit at the
-    physics step (the two trees are built independently, one per contact model)."""
+    physics step (the two trees are built independently, one per contact model). ``implicit``:
+    MuJoCo's implicit integrator's acceleration (the bias forces' velocity Jacobian, which the two
+    forwards share, in the solve)."""
     penalty = make_env(task, num_envs=2, seed=1, dtype=torch.float64, contact_gradient="penalty")
     smooth = make_env(task, num_envs=2, seed=1, dtype=torch.float64, contact="smooth")
     exact = make_env(task, num_envs=2, seed=1, dtype=torch.float64)
@@ -114,9 +116,11 @@ def test_penalty_mode_differentiates_the_smooth_contact_model_at_mujocos_state(t
                 for i in range(tree.nv)]
         return qacc.detach(), torch.stack(rows, 1)
 
-    value, jacobian = qacc_and_jacobian(penalty)
-    exact_value, exact_jacobian = qacc_and_jacobian(exact)
-    smooth_value, smooth_jacobian = qacc_and_jacobian(smooth, implicit_damping_dt=tree.model.timestep)
+    integrator = dict(implicit_damping_dt=tree.model.timestep, implicit_bias=True) if implicit else {}
+    value, jacobian = qacc_and_jacobian(penalty, **integrator)
+    exact_value, exact_jacobian = qacc_and_jacobian(exact, **integrator)
+    smooth_value, smooth_jacobian = qacc_and_jacobian(smooth, **{"implicit_damping_dt": tree.model.timestep,
+                                                                 **integrator})
     assert torch.equal(value, exact_value)
     torch.testing.assert_close(jacobian, smooth_jacobian, rtol=1e-10, atol=1e-8)
     assert (smooth_value - exact_value).abs().max() > 1e-3  # the two models' values differ: not a tautology

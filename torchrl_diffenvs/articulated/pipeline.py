@@ -129,7 +129,7 @@ class _Inertial(NamedTuple):
     bias_jacobian: torch.Tensor | None  # d bias / d qvel, where the implicit integrator asks for it
 
     def detached(self) -> "_Inertial":
-        kin = Kinematics(*(getattr(self.kin, f.name).detach() for f in fields(self.kin)))
+        kin = Kinematics(**{f.name: getattr(self.kin, f.name).detach() for f in fields(self.kin)})
         return _Inertial(kin, self.mass.detach(), self.bias.detach(),
                          None if self.bias_jacobian is None else self.bias_jacobian.detach())
 
