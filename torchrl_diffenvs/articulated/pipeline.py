@@ -148,10 +148,9 @@ def _smooth_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params,
     if inertial is None:
         inertial = _inertial(tree, qpos, qvel, params, with_bias_jacobian=implicit and implicit_bias)
     kin, mass, bias = inertial.kin, inertial.mass, inertial.bias
-    bias_jacobian = [inertial.bias_jacobian] if implicit and implicit_bias else []
     force, damping, largest = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias, with_damping=implicit)
-    if bias_jacobian:
-        damping = damping + bias_jacobian[0]  # the force carries -bias: its velocity damping is +d bias / d qvel
+    if implicit and implicit_bias:
+        damping = damping + inertial.bias_jacobian  # the force carries -bias: its velocity damping is +d bias / d qvel
     if tree.limit_dof.numel():
         mass_inv = _inverse(mass)
         smooth_acc = (mass_inv @ force.unsqueeze(-1)).squeeze(-1)
@@ -210,14 +209,14 @@ def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weigh
     if inertial is None:
         inertial = _inertial(tree, qpos, qvel, params, with_bias_jacobian)
     kin, mass, bias = inertial.kin, inertial.mass, inertial.bias
-    bias_jacobian = [inertial.bias_jacobian] if with_bias_jacobian else []
     smooth_force = actuator_force(tree, ctrl, tree.nv) + passive_force(tree, kin, qpos, qvel, params) - bias
     qacc_smooth = _solve(mass, smooth_force)
     contacts = collide(slots, kin) if slots.count else None
     rows = constraint_rows(tree, slots, kin, contacts, qpos, qvel, params, weights.dof, weights.body)
     gradient = tree.contact_gradient if tree.contact_gradient.shapes_solve else ContactGradient()
     solution = solve(mass, qacc_smooth, rows, tree.model.iterations, tree.model.tolerance, gradient)
-    return _MuJoCoForward(kin, mass, smooth_force, contacts, rows, solution, bias_jacobian[0] if bias_jacobian else None)
+    return _MuJoCoForward(kin, mass, smooth_force, contacts, rows, solution,
+                          inertial.bias_jacobian if with_bias_jacobian else None)
 
 
 def body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, about: torch.Tensor,
