@@ -129,27 +129,33 @@ def test_penalty_mode_differentiates_the_smooth_contact_model_at_mujocos_state(t
 
 @pytest.mark.parametrize("mode", ["exact", "cfd", "smooth"])
 def test_the_surrogate_is_the_same_without_row_compaction(mode, monkeypatch):
-    """On the CPU the solve drops the rows no env needs; on a GPU and under torch.compile it keeps
-    them all: values and gradients must not depend on it. The upright Hopper's capsules are
-    parallel (a degenerate branch of the collision, whose gradient must stay finite)."""
+    """On the CPU the constraint stage leaves out the contact slots and the solve the rows that no
+    env needs; on a GPU and under torch.compile they keep them all: values and gradients (and the
+    contact wrenches) must not depend on it. The upright Hopper's capsules are parallel (a
+    degenerate branch of the collision, whose gradient must stay finite)."""
     env, qpos, qvel = _hopper_foot_above_floor(-0.003)  # 3 mm into the floor: contacts and near contacts
     qpos, qvel = qpos.expand(2, -1).clone(), qvel.expand(2, -1).clone()
     qpos[1, 1] += 0.01  # the second env 7 mm above it
     tree = env.tree.use_contact_gradient(mode)
     params = {k: v.expand(2, *v.shape[1:]) for k, v in env.params.items()}
     ctrl = torch.full((2, tree.model.nu), 0.3, dtype=torch.float64)
-    out = []
-    from torchrl_diffenvs.articulated import constraint
+    out, used = [], []
+    from torchrl_diffenvs.articulated import constraint, pipeline
 
-    for reads_data in (True, False):  # the CPU's compacted solve, then the rounds on every row and env (a GPU's)
-        monkeypatch.setattr(constraint, "_reads_data_freely", lambda device, reads_data=reads_data: reads_data)
+    slots_in_use = pipeline._slots_in_use
+    monkeypatch.setattr(pipeline, "_slots_in_use", lambda *a: used.append(slots_in_use(*a)[0].count) or slots_in_use(*a))
+    for reads_data in (True, False):  # the CPU's compacted problem, then every slot, row and env (a GPU's)
+        for module in (constraint, pipeline):
+            monkeypatch.setattr(module, "_reads_data_freely", lambda device, reads_data=reads_data: reads_data)
         q = qpos.clone().requires_grad_(True)
         result = step(tree, q, qvel, ctrl, params, tree.model.timestep, "euler", invweight0(tree, params))
-        (grad,) = torch.autograd.grad(result.qvel.sum(), q)
-        out.append((result.qvel.detach(), grad))
-    torch.testing.assert_close(out[0][0], out[1][0], rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(out[0][1], out[1][1], rtol=1e-9, atol=1e-9)
-    assert out[0][1].abs().sum() > 0
+        wrench = pipeline.body_contact_wrenches(tree, q, qvel, ctrl, params, about=q.new_zeros(2, 3))
+        (grad,) = torch.autograd.grad(result.qvel.sum() + wrench.sum(), q)
+        out.append((result.qvel.detach(), wrench.detach(), grad))
+    assert 0 < used[0] < tree.contact_slots.count  # the slots touching nothing were left out
+    for compacted, every_row, tolerance in zip(out[0], out[1], (1e-12, 1e-12, 1e-9)):
+        torch.testing.assert_close(compacted, every_row, rtol=tolerance, atol=tolerance)
+    assert out[0][1].abs().sum() > 0 and out[0][2].abs().sum() > 0
 
 
 def test_contact_gradient_option_errors_name_what_is_valid():

@@ -157,6 +157,21 @@ class ContactSlots:
         rows of an elliptic cone)."""
         return (3, self.pyramid_index), (4, self.torsional_index), (6, self.rolling_index)
 
+    def subset(self, index: torch.Tensor) -> ContactSlots:
+        """The slots ``index [K]`` (ascending), as a model of their own for the constraint stage:
+        their rows keep their order, so a problem built on them is the full one without the rows
+        of the other slots. No ``groups``: collision runs on every slot."""
+        keep = index.tolist()
+        condim = [self.condim[i] for i in keep]
+        of = lambda d: torch.as_tensor([j for j, c in enumerate(condim) if c == d], dtype=torch.long,  # noqa: E731
+                                       device=index.device)
+        return ContactSlots(
+            groups=[], geom=self.geom.index_select(0, index), body=self.body.index_select(0, index), condim=condim,
+            friction_slot=self.friction_slot.index_select(0, index), solref=self.solref.index_select(0, index),
+            solimp=self.solimp.index_select(0, index), margin=self.margin.index_select(0, index),
+            pyramid_index=of(3), normal_index=of(1), torsional_index=of(4), rolling_index=of(6),
+            spin_friction=self.spin_friction.index_select(0, index), pair_solref=self.pair_solref, cone=self.cone)
+
 
 def unsupported_pairs(model: ArticulatedModel) -> list[tuple[str, str]]:
     """The colliding geom pairs (names) whose types have no primitive here (empty: MuJoCo's
@@ -226,6 +241,10 @@ class Contacts(NamedTuple):
     frame: torch.Tensor  # [N, C, 3, 3] rows: the normal (from geom 1 to geom 2), then two tangents
     active: torch.Tensor  # [N, C] bool: MuJoCo has this contact (found, and dist < includemargin)
     found: torch.Tensor  # [N, C] bool: the slot's points exist at any distance (capsule-capsule's second: parallel axes)
+
+    def subset(self, index: torch.Tensor) -> Contacts:
+        """The contacts of the slots ``index [K]`` (see `ContactSlots.subset`)."""
+        return Contacts(*(x.index_select(1, index) for x in self))
 
 
 def _posed(kin, geoms: _Geoms) -> PosedGeoms:

@@ -11,8 +11,9 @@ per condim-6 slot (and rolling friction: about the two tangents), then one row p
 ``condim`` rows per frictional contact instead, its frame's Jacobian as it is (the normal, the
 tangents, the spin and the rolls). A row MuJoCo would not create (a limit not
 within its margin, a contact slot without a contact) is kept with ``exists = False`` and no force:
-the shapes never depend on the state (on the CPU the solve with pyramidal cones drops the rows
-that exist in no env of the batch, a host read that costs nothing there).
+the shapes never depend on the state (on the CPU, where a host read costs nothing, the pipeline
+builds the rows of the contact slots some env of the batch uses only, and the solve with
+pyramidal cones drops the rows that exist in no env).
 
 The solve minimises MuJoCo's convex primal over ``qacc``,
 ``1/2 (qacc - qacc_smooth)' M (qacc - qacc_smooth) + sum_i 1/2 D_i min(0, J_i qacc - aref_i)^2``,
