@@ -20,9 +20,11 @@ SCRIPT = ROOT / "sota_scripts" / "train.py"
 train_script = load_script("train_script", SCRIPT)
 results_table = load_script("results_table", ROOT / "sota_scripts" / "results_table.py")
 
-# Tiny runs: 4 envs, 12-step episodes (so episodes finish inside the run), small networks.
+# Tiny runs: 4 envs, 12-step episodes (so episodes finish inside the run), small networks, no figures (drawing the
+# learning curve cost a quarter of a tiny run; the tests of the run's outputs turn it on).
 COMMON = [
-    "logger=none", "train.progress_bar=false", "eval.gif=false", "env.num_envs=4", "env.max_episode_steps=12",
+    "logger=none", "train.progress_bar=false", "eval.gif=false", "eval.learning_curve=false", "env.num_envs=4",
+    "env.max_episode_steps=12",
     "eval.num_envs=2", "eval.interval=1000000",
 ]
 TINY = {

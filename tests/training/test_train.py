@@ -343,7 +343,7 @@ def _parse_wandb_log(data: bytes) -> tuple[dict[str, list], bool]:
 
 
 def test_offline_wandb_run_writes_its_run_directory_with_the_metrics(tmp_path):
-    cfg = tiny_cfg("pendulum", "bptt", 2, "logger=wandb", "eval.gif=true", "eval.gif_size=32")
+    cfg = tiny_cfg("pendulum", "bptt", 2, "logger=wandb", "eval.gif=true", "eval.learning_curve=true", "eval.gif_size=32")
     result = train_script.run(cfg, tmp_path)
     wandb_dir = Path(result["wandb_dir"])
     assert wandb_dir.parent == tmp_path / "wandb" and wandb_dir.name.startswith("offline-run-")
@@ -366,7 +366,7 @@ def test_csv_logger_and_run_directory_outputs(tmp_path):
     pytest.importorskip("PIL")
     from PIL import Image
 
-    cfg = tiny_cfg("swimmer", "ppo", 2, "logger=csv", "eval.gif=true", "eval.gif_size=32", "eval.interval=16")
+    cfg = tiny_cfg("swimmer", "ppo", 2, "logger=csv", "eval.gif=true", "eval.learning_curve=true", "eval.gif_size=32", "eval.interval=16")
     result = train_script.run(cfg, tmp_path)
     scalars = tmp_path / "csv" / "swimmer_ppo_seed0" / "scalars"
     eval_rows = (scalars / "eval" / "return.csv").read_text().splitlines()

@@ -364,8 +364,10 @@ class Trainer:
         if run.eval.gif:
             files["final_gif"] = write_video(run.eval, self.eval_env, self.learner.policy, self.eval_steps,
                                              self.run_dir / "final")
-        curve = plot_learning_curve(self.logger.rows, self.run_dir / "learning_curve.png",
-                                    title=f"{run.env_name} - {run.loss_name} - seed {run.seed}")
+        curve = None
+        if run.eval.learning_curve:
+            curve = plot_learning_curve(self.logger.rows, self.run_dir / "learning_curve.png",
+                                        title=f"{run.env_name} - {run.loss_name} - seed {run.seed}")
         self.logger.log_files(images={"learning_curve": curve} if curve else {},
                               gifs={"final_gif": files["final_gif"]} if files.get("final_gif") else {})
         result = {

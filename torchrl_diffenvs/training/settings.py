@@ -68,6 +68,8 @@ class EvalSettings(Settings):
     seed: int = checked(1_000_003, checks.nonnegative_int)  # the eval envs restart from this seed at every evaluation
     gif: bool = checked(True, checks.boolean)  # write <run dir>/final.gif (or .mp4); mode=eval: eval.gif
     video_format: str = checked("gif", checks.one_of(("gif", "mp4")))  # mp4 needs the video extra (imageio-ffmpeg)
+    # write <run dir>/learning_curve.png at the end of the run, and log it (false: e.g. a sweep of many short runs)
+    learning_curve: bool = checked(True, checks.boolean)
     deterministic: bool = checked(True, checks.boolean)  # evaluate the mean action (true) or sampled actions
     # also play each evaluation in Gymnasium's own env (a MuJoCo task: MuJoCo itself; the mujoco extra):
     # eval/gymnasium_return beside eval/return, on eval.num_envs episodes from seeds eval.seed + i
