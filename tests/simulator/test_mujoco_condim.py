@@ -493,3 +493,49 @@ def test_elliptic_contact_step_compiles_into_one_graph(tmp_path):
     traced = torch.compile(one, fullgraph=True, backend="aot_eager")(qpos, qvel)
     torch.testing.assert_close(traced.qvel, eager.qvel, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(traced.qpos, eager.qpos, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("cone", ["pyramidal", "elliptic"])
+def test_leaving_out_the_slots_no_env_uses_changes_nothing(tmp_path, monkeypatch, cone):
+    """Eagerly on the CPU the constraint stage builds the rows of the contact slots some env uses
+    only; on a GPU and under torch.compile it builds them all. With contacts of every condim and
+    both cones, the implicit integrator's acceleration, the largest contact force, ``cfrc_ext`` and
+    the gradients (state and friction) must not depend on it; a batch entirely in the air keeps
+    the friction's gradient (zeros)."""
+    from torchrl_diffenvs.articulated import convergence, pipeline
+
+    # 15 solver iterations: every slot and row as on a GPU runs all of them (no early stop on the CPU)
+    option = '<option iterations="15"/>' if cone == "pyramidal" else '<option cone="elliptic" impratio="3" iterations="15"/>'
+    _, tree, _, _ = _load(tmp_path, MIXED.replace("<worldbody>", option + "<worldbody>", 1))
+    assert tree.contact_slots.cone == cone
+    n = 4
+    start = tree.qpos0.expand(n, -1).clone()
+    qvel = torch.randn(n, tree.nv, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 0.5
+    start[1, 2::7] += 0.0005  # every body lifted a little
+    start[2, 0] += 0.003
+    start[3, 2::7] += 0.5  # every body in the air
+    airborne = start.clone()  # every body in the air, apart from the others
+    airborne[:, 2::7] += 0.5
+    airborne[:, 0::7] += 2.0 * torch.arange(4, dtype=torch.float64)
+    weights = torch.randn(n, tree.nv + tree.nbody * 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    used = []
+    slots_in_use = pipeline._slots_in_use
+    monkeypatch.setattr(pipeline, "_slots_in_use", lambda *a: (lambda r: used.append(r[0].count) or r)(slots_in_use(*a)))
+    for qpos in (start, airborne):
+        out = []
+        for reads_data in (True, False):  # the CPU's compacted problem, then every slot and row (a GPU's)
+            monkeypatch.setattr(convergence, "reads_data_freely", lambda device, reads_data=reads_data: reads_data)
+            params = _params(tree, n)
+            friction = params["contact_friction"] = params["contact_friction"].clone().requires_grad_(True)
+            q, v = qpos.clone().requires_grad_(True), qvel.clone().requires_grad_(True)
+            qacc, report = accelerations(tree, q, v, torch.zeros(n, tree.model.nu, dtype=torch.float64), params,
+                                         implicit_damping_dt=0.01, implicit_bias=True,
+                                         invweight0=invweight0(tree, params), with_contact_force=True)
+            wrench = body_contact_wrenches(tree, q, v, torch.zeros(n, tree.model.nu, dtype=torch.float64), params,
+                                           about=q.new_zeros(n, 3))
+            loss = (torch.cat([qacc, wrench.flatten(1)], 1) * weights).sum()
+            out.append((qacc.detach(), report.contact_force, wrench.detach(), *torch.autograd.grad(loss, (q, v, friction))))
+        for compacted, every_slot in zip(*out):
+            torch.testing.assert_close(compacted, every_slot, rtol=1e-9, atol=1e-9)
+    assert 1 <= used[0] < tree.contact_slots.count and used[2] == 1  # in the air: one slot, for the graph
+    assert out[0][0].abs().sum() > 0 and torch.equal(out[0][-1], torch.zeros_like(out[0][-1]))

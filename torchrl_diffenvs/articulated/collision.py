@@ -160,7 +160,8 @@ class ContactSlots:
     def subset(self, index: torch.Tensor) -> ContactSlots:
         """The slots ``index [K]`` (ascending), as a model of their own for the constraint stage:
         their rows keep their order, so a problem built on them is the full one without the rows
-        of the other slots. No ``groups``: collision runs on every slot."""
+        of the other slots. For the eager CPU step (it reads ``index`` on the host); without
+        ``groups``: not for `collide`, which runs on every slot of the model."""
         keep = index.tolist()
         condim = [self.condim[i] for i in keep]
         of = lambda d: torch.as_tensor([j for j, c in enumerate(condim) if c == d], dtype=torch.long,  # noqa: E731

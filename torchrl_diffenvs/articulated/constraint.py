@@ -11,9 +11,10 @@ per condim-6 slot (and rolling friction: about the two tangents), then one row p
 ``condim`` rows per frictional contact instead, its frame's Jacobian as it is (the normal, the
 tangents, the spin and the rolls). A row MuJoCo would not create (a limit not
 within its margin, a contact slot without a contact) is kept with ``exists = False`` and no force:
-the shapes never depend on the state (on the CPU, where a host read costs nothing, the pipeline
-builds the rows of the contact slots some env of the batch uses only, and the solve with
-pyramidal cones drops the rows that exist in no env).
+the shapes never depend on the state, on a GPU and under ``torch.compile``. Eagerly on the CPU,
+where a host read costs nothing, the pipeline builds the rows of the contact slots some env of
+the batch uses only (the rows keep their order: the others' rows carry no force), and the solve
+with pyramidal cones drops the rows that exist in no env.
 
 The solve minimises MuJoCo's convex primal over ``qacc``,
 ``1/2 (qacc - qacc_smooth)' M (qacc - qacc_smooth) + sum_i 1/2 D_i min(0, J_i qacc - aref_i)^2``,
@@ -41,6 +42,7 @@ import torch
 
 from .collision import MIN_FRICTION, Contacts, ContactSlots
 from .contact_gradient import ContactGradient
+from . import convergence
 from .convergence import ConvergenceWatch
 from .elliptic import EllipticCones, _cone_curvature, _cone_state, _elliptic_round, _elliptic_rows
 from .kinematics import Kinematics
@@ -53,7 +55,8 @@ __all__ = ["ConstraintRows", "constraint_rows", "contact_frame_forces", "contact
 
 
 class ConstraintRows(NamedTuple):
-    """MuJoCo's ``efc_*`` arrays at fixed row positions ``[N, R]`` (see the module docstring)."""
+    """MuJoCo's ``efc_*`` arrays ``[N, R]`` at fixed row positions of the slots they were built for
+    (see the module docstring)."""
 
     jacobian: torch.Tensor  # [N, R, nv] efc_J
     pos: torch.Tensor  # [N, R] efc_pos: the distance (a limit's, or the contact's for all its edges)
@@ -256,13 +259,6 @@ def _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance: float):
     return torch.where(finite.unsqueeze(-1), new, qacc), settled
 
 
-def _reads_data_freely(device: torch.device) -> bool:
-    """Whether the solve may look at the data to skip work (converged envs, rows no env needs):
-    eagerly on the CPU, where it costs nothing; not on a GPU (a host-device synchronisation) nor
-    under ``torch.compile`` (a graph break)."""
-    return device.type == "cpu" and not torch.compiler.is_compiling()
-
-
 def _masked_rounds(round_, start, iterations: int):
     """Newton rounds ``round_(qacc) -> (new qacc, settled)`` from ``start`` (no autograd), at most
     ``iterations``, with converged envs held (a mask: no host-device synchronisation): ``(qacc
@@ -273,7 +269,7 @@ def _masked_rounds(round_, start, iterations: int):
     converged = torch.zeros(qacc.shape[0], dtype=torch.bool, device=qacc.device)
     used = torch.zeros(qacc.shape[0], dtype=torch.long, device=qacc.device)
     watch = ConvergenceWatch.for_device(qacc.device)
-    reads_data = _reads_data_freely(qacc.device)
+    reads_data = convergence.reads_data_freely(qacc.device)
     for _ in range(iterations):
         new, settled = round_(qacc)
         qacc = torch.where(converged.unsqueeze(-1), qacc, new)
@@ -356,7 +352,7 @@ def _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations: i
     the CPU on the compacted rows and envs (`_newton_compacted`), elsewhere the rounds of
     `_rounds_driver`."""
     m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
-    if _reads_data_freely(smooth.device):
+    if convergence.reads_data_freely(smooth.device):
         qacc, used, converged = _newton_compacted(m, smooth, j, w, ar, exists, iterations, tolerance)
     else:
         qacc, used, converged = _rounds_driver(smooth.device)(
@@ -371,7 +367,7 @@ def _surrogate_share(gradient: ContactGradient, jacobian, aref, exists, found, p
     with torch.no_grad():
         if gradient.mode == "cfd":
             beyond = (pos - margin) / gradient.distance
-            near = found & ~exists & (beyond < 1)
+            near = gradient.holds_near(found, pos - margin) & ~exists
             fade = torch.where(exists, torch.ones_like(beyond), (1 - beyond).clamp(0, 1))
             return fade * (active | near)
         residual = (jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - aref  # J qacc - aref at the solution
@@ -454,7 +450,7 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
             raise ValueError(f"contact_gradient={gradient.mode!r} shapes the solve of pyramidal friction cones only; "
                              "with elliptic cones valid: 'exact', 'penalty'")
         return _solve_elliptic(mass, qacc_smooth, rows, iterations, tolerance)
-    compact = _reads_data_freely(qacc_smooth.device)
+    compact = convergence.reads_data_freely(qacc_smooth.device)
 
     def rows_where(needed, *arrays):
         """``arrays`` (per row), on the CPU without the rows needed in no env of the batch (a host
@@ -479,9 +475,7 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
         qacc, force = _solve_with(mass, qacc_smooth, jacobian, aref, aw)
     force, active = full(force, keep), full(active, keep)
     # the surrogate, on the rows its mode needs: the exact solve's value with its gradient (straight through)
-    needed = rows.exists
-    if gradient.mode == "cfd":
-        needed = rows.exists | (rows.found & (rows.pos - rows.margin < gradient.distance))
+    needed = rows.exists | gradient.holds_near(rows.found, rows.pos - rows.margin)
     (jacobian, aref, exists, found, pos, margin, reg), keep = rows_where(
         needed, rows.jacobian, rows.aref, rows.exists, rows.found, rows.pos, rows.margin.expand_as(rows.pos),
         rows.regulariser)
@@ -507,7 +501,7 @@ def contact_row_blocks(slots: ContactSlots, rows: ConstraintRows) -> list[tuple[
 
 def contact_normal_forces(slots: ContactSlots, rows: ConstraintRows, force: torch.Tensor) -> torch.Tensor:
     """``[N, C]`` each contact slot's normal force (the sum of its pyramid's edge forces, an
-    elliptic cone's normal row)."""
+    elliptic cone's normal row); ``slots``: those the rows were built for."""
     out = force.new_zeros(force.shape[0], slots.count)
     for condim, index, start in contact_row_blocks(slots, rows):
         edges = _rows_per_contact(condim, slots.cone)
@@ -520,7 +514,7 @@ def contact_frame_forces(slots: ContactSlots, rows: ConstraintRows, force: torch
     """``[N, C, 6]`` each contact slot's force and torque in its frame, MuJoCo's
     ``mj_contactForce``: the force along the normal and the two tangents, then the torque about
     the normal (torsional friction, condim 4 and 6) and the two tangents (rolling friction, condim
-    6). A pyramid's normal force is the sum of its edges', its friction in direction ``d`` is
+    6), for the ``slots`` the rows were built for. A pyramid's normal force is the sum of its edges', its friction in direction ``d`` is
     ``mu_d (f_{+d} - f_{-d})``; an elliptic cone's rows are these forces. ``friction [N, C]``: each
     slot's sliding ``mu`` (the torsional and rolling ones are the model's, ``slots.spin_friction``)."""
     out = force.new_zeros(force.shape[0], slots.count, 6)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import torch
+
 __all__ = ["ContactGradient", "GRADIENT_MODES"]
 
 GRADIENT_MODES = ("exact", "cfd", "smooth", "penalty")
@@ -48,6 +50,13 @@ class ContactGradient(NamedTuple):
         """Whether the mode is a surrogate of the constraint solve itself (``"penalty"`` replaces
         the whole contact gradient, outside the solve)."""
         return self.mode != "penalty"
+
+    def holds_near(self, found: torch.Tensor, gap: torch.Tensor) -> torch.Tensor:
+        """Where the ``cfd`` surrogate holds a contact that MuJoCo's solve does not have: found, its
+        distance beyond the margin ``gap`` under ``distance`` (all False in the other modes)."""
+        if self.mode != "cfd":
+            return torch.zeros_like(found)
+        return found & (gap < self.distance)
 
     @classmethod
     def parse(cls, value) -> "ContactGradient":

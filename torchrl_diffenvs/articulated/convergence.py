@@ -12,7 +12,14 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["ConvergenceWatch"]
+__all__ = ["ConvergenceWatch", "reads_data_freely"]
+
+
+def reads_data_freely(device: torch.device) -> bool:
+    """Whether the step may look at the data to skip work (converged envs, contact slots and rows
+    no env needs): eagerly on the CPU, where it costs nothing; not on a GPU (a host-device
+    synchronisation) nor under ``torch.compile`` (a graph break)."""
+    return device.type == "cpu" and not torch.compiler.is_compiling()
 
 
 class ConvergenceWatch:

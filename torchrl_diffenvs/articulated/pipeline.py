@@ -13,7 +13,8 @@ from typing import NamedTuple
 import torch
 
 from .collision import Contacts, ContactSlots, collide
-from .constraint import _reads_data_freely, constraint_rows, contact_frame_forces, contact_normal_forces, solve
+from . import convergence
+from .constraint import constraint_rows, contact_frame_forces, contact_normal_forces, solve
 from .contact_gradient import ContactGradient
 from .contact import _contact_points_and_forces, _pair_forces, body_contact_forces, contact_force, pair_contact_force
 from .forces import actuator_force, passive_force
@@ -194,7 +195,7 @@ class _MuJoCoForward(NamedTuple):
     mass: torch.Tensor
     smooth_force: torch.Tensor
     slots: ContactSlots  # the slots of ``contacts`` and of the rows: the model's, or those the batch needs
-    contacts: object
+    contacts: Contacts | None
     rows: object
     solution: object
     bias_jacobian: torch.Tensor | None
@@ -214,7 +215,7 @@ def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weigh
     qacc_smooth = _solve(mass, smooth_force)
     contacts = collide(slots, kin) if slots.count else None
     gradient = tree.contact_gradient if tree.contact_gradient.shapes_solve else ContactGradient()
-    if contacts is not None and _reads_data_freely(qpos.device):
+    if contacts is not None and convergence.reads_data_freely(qpos.device):
         slots, contacts = _slots_in_use(slots, contacts, gradient)
     rows = constraint_rows(tree, slots, kin, contacts, qpos, qvel, params, weights.dof, weights.body)
     solution = solve(mass, qacc_smooth, rows, tree.model.iterations, tree.model.tolerance, gradient)
@@ -223,15 +224,17 @@ def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weigh
 
 
 def _slots_in_use(slots: ContactSlots, contacts: Contacts, gradient: ContactGradient):
-    """The slots whose rows some env of the batch has (a contact, or with ``cfd`` a contact within
-    its distance), and their contacts: on the CPU, where reading the data is free, the rows of the
-    others (no force in any env) are not built. Most slots touch nothing: 4-13 of the Ant's 25."""
+    """The slots whose rows some env of the batch has (a contact, or one the ``cfd`` surrogate
+    holds), and their contacts: eagerly on the CPU, where reading the data is free, the rows of
+    the others (no force in any env) are not built; usually most slots touch nothing."""
     used = contacts.active
-    if gradient.mode == "cfd" and torch.is_grad_enabled():
-        used = used | (contacts.found & (contacts.dist - slots.margin < gradient.distance))
+    if torch.is_grad_enabled():
+        used = used | gradient.holds_near(contacts.found, contacts.dist - slots.margin)
     index = used.any(0).nonzero().squeeze(-1)
     if index.numel() == slots.count:
         return slots, contacts
+    if index.numel() == 0:  # one slot (without a contact) keeps the contact params in the graph: zero gradients
+        index = index.new_zeros(1)
     return slots.subset(index), contacts.subset(index)
 
 
@@ -252,11 +255,10 @@ def body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params,
 
 def _mujoco_body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, about, weights):
     out = qvel.new_zeros(qvel.shape[0], tree.nbody, 6)
-    slots = tree.contact_slots
-    if not slots.count:
+    if not tree.contact_slots.count:
         return out
     f = _mujoco_forward(tree, qpos, qvel, ctrl, params, weights)
-    slots = f.slots
+    slots = f.slots  # the contact slots the rows were built for
     local = contact_frame_forces(slots, f.rows, f.solution.force, params["contact_friction"][:, slots.friction_slot])
     # world frame: sum_k f_k frame_k, and the torsional and rolling friction's torque likewise
     force = (local[..., :3].unsqueeze(-2) @ f.contacts.frame).squeeze(-2)
@@ -293,9 +295,8 @@ def _constrained_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Pa
     if not with_contact_force:
         return qacc
     largest = None
-    if tree.contact_slots.count:  # the slots left out carry no force
-        normal = contact_normal_forces(slots, rows, solution.force).detach()
-        largest = normal.amax(-1) if slots.count else normal.new_zeros(normal.shape[0])
+    if slots.count:  # the slots left out carry no force
+        largest = contact_normal_forces(slots, rows, solution.force).detach().amax(-1)
     return qacc, ForwardReport(largest, solution.converged)
 
 
