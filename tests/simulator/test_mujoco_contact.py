@@ -872,3 +872,27 @@ def test_env_flags_the_envs_whose_solve_did_not_converge():
 
     assert window_solver_unconverged(td) == pytest.approx(flags.sum().item() / flags.numel())  # what the learners log
     assert "solver_unconverged" not in make_env("HalfCheetah-v5", contact="smooth").reset()["state"].keys()
+
+
+def test_regulariser_scales_follow_params_changed_between_steps():
+    """An env keeps MuJoCo's invweight0 (the regularisers' scales, constants of the params) from
+    step to step: a param changed in place, or replaced, must reach the next step as it reaches a
+    fresh env's (which computes them anew)."""
+    env = make_env("HalfCheetah-v5", num_envs=2, seed=0, dtype=torch.float64)
+    td = env.reset()
+    for _ in range(20):  # into contact, where the scales matter
+        td["action"] = torch.full((2, 6), 0.5, dtype=torch.float64)
+        td = env.step_mdp(env.step(td))
+    for change in ("in place", "replaced"):
+        if change == "in place":
+            td["params", "body_mass"].mul_(3.0)
+        else:
+            td["params", "body_inertia"] = td["params", "body_inertia"] * 3.0
+        td["action"] = torch.full((2, 6), 0.5, dtype=torch.float64)
+        fresh = make_env("HalfCheetah-v5", num_envs=2, seed=0, dtype=torch.float64).step(td.clone())
+        stepped = env.step(td)
+        assert torch.equal(stepped["next", "observation"], fresh["next", "observation"]), change
+        td = env.step_mdp(stepped)
+    with torch.inference_mode():  # params made there are inference tensors, without a version counter
+        inferred = make_env("HalfCheetah-v5", num_envs=2, seed=0, dtype=torch.float64).rollout(3)
+    assert torch.isfinite(inferred["next", "observation"]).all()

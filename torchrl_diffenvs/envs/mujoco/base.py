@@ -196,6 +196,26 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         """MuJoCo's ``qpos0`` (Gymnasium's ``init_qpos``) for ``n`` envs."""
         return self.tree.qpos0.expand(n, -1)
 
+    def _regulariser_scales(self, params):
+        """MuJoCo's ``dof_invweight0`` and ``body_invweight0`` for these params, the scales of the
+        constraints' regularisers: constants of the model (MuJoCo computes them once, in
+        ``mj_setConst``), computed again only when a param tensor is replaced or changed in place,
+        and at every step while a param carries a graph (its gradient flows through them), is an
+        inference tensor (which has no version to watch) or under ``torch.compile`` (traced with
+        the step)."""
+        if torch.compiler.is_compiling() or any(value.requires_grad or value.is_inference()
+                                                for value in params.values()):
+            return invweight0(self.tree, params)
+        # the tensors themselves are kept (an id could be reused once one is freed) with their versions
+        key = [(self.tree, None), *((value, value._version) for value in params.values())]
+        cached = self.__dict__.get("_cached_regulariser_scales")
+        if cached is not None and len(cached[0]) == len(key) and all(
+                a is b and va == vb for (a, va), (b, vb) in zip(cached[0], key)):
+            return cached[1]
+        weights = invweight0(self.tree, params)
+        self.__dict__["_cached_regulariser_scales"] = (key, weights)  # not nn.Module state: never in a state_dict
+        return weights
+
     def simulate(self, state, action, params) -> StepResult:
         """``frame_skip`` physics steps with ``ctrl = action`` (Gymnasium's ``do_simulation``), each
         as ``substeps`` steps of the chosen ``integrator``.
@@ -218,8 +238,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         return self._simulate(state["qpos"], state["qvel"], action, params)
 
     def _simulate(self, qpos, qvel, action, params) -> StepResult:
-        # the constraints' regulariser scales depend on the params only: once per env step, not per physics step
-        weights = invweight0(self.tree, params)
+        weights = self._regulariser_scales(params)
         largest = converged = None
         for _ in range(self.frame_skip * self.substeps):
             result = step(self.tree, qpos, qvel, action, params, self.model.timestep / self.substeps,
