@@ -104,17 +104,32 @@ def portable_args(args: Sequence[str]) -> list[str]:
     """The arguments of a command as anyone can rerun them from the repository root: paths inside
     the repository relative to it, ``data=`` the data file's name (``docs/data/<name>.json``),
     ``out=`` and ``resume=`` dropped when they name a scratch file outside the repository (the data
-    file holds the tables the docs show)."""
+    file holds the tables the docs show), and ``keep_runs=`` with its ``resume=true`` dropped when it
+    names a scratch directory there (a kept run continued across sittings reads as one run)."""
     root = str(REPO_ROOT) + os.sep
+    scratch = lambda value: os.path.isabs(value) and not value.startswith(root)  # noqa: E731
+    keeps_scratch = any(w.startswith("keep_runs=") and scratch(w.partition("=")[2]) for w in args)
     words = []
     for word in args:
         key, eq, value = word.partition("=")
         if eq and key == "data" and (value.endswith(".json") or "/" in value):
             word = f"data={Path(value).stem}"
-        elif eq and key in ("out", "resume") and os.path.isabs(value) and not value.startswith(root):
+        elif eq and key in ("out", "resume", "keep_runs") and scratch(value):
+            continue
+        elif eq and key == "resume" and keeps_scratch:
             continue
         words.append(word.replace(root, ""))
     return words
+
+
+def portable_run(result: dict, runs_root: Path) -> dict:
+    """A training run's record (``train.py``'s ``run``) with its run directory and checkpoint
+    relative to the directory that holds the runs (a scratch directory of this machine)."""
+    for key in ("run_dir", "checkpoint"):
+        if result.get(key):
+            path = Path(result[key])
+            result[key] = str(path.relative_to(runs_root)) if path.is_relative_to(runs_root) else path.name
+    return result
 
 
 def print_header(title: str, info: dict) -> None:

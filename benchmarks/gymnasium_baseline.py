@@ -84,8 +84,8 @@ def train(s: BaselineSettings) -> dict:
                 run_dir = root / f"{env}_{backend}_seed{seed}"
                 cfg, results = C.compose(overrides), []
                 wall, cpu = C.timed(lambda: results.append(train_script.run(cfg, run_dir, overrides)))
-                result = results[0]
                 history = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+                result = C.portable_run(results[0], root)
                 rates = [row["time/steps_per_s"] for row in history if "time/steps_per_s" in row]
                 result.update(backend=backend, overrides=overrides, process_wall_s=wall, process_cpu_s=cpu,
                               train_steps_per_s=statistics.median(rates) if rates else None,

@@ -449,7 +449,7 @@ def main(argv=None) -> dict:
         if resumed_at is not None:
             print(f"# {run_dir.name}: resuming {cfg.resume} at env step {resumed_at:,}")
         wall, cpu = C.timed(lambda: runs.append(train_script.run(cfg, run_dir, overrides)))
-        result = runs[-1]
+        result = C.portable_run(runs[-1], runs_root)
         # process_*_s: this process's part of the run (wall_time_s, the run's, counts on across resumes)
         result.update({"overrides": overrides, "variant": variant, "curve": eval_curve(run_dir),
                        "process_wall_s": wall, "process_cpu_s": cpu,

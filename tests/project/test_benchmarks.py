@@ -297,6 +297,8 @@ def test_time_to_solve_resumes_kept_runs_from_their_checkpoints(tmp_path):
     resumed = tts.main([*common, f"keep_runs={tmp_path / 'stopped'}", "resume=true",
                         f"out={tmp_path / 'b.json'}"])["runs"][0]
     assert whole["resumed_from_env_steps"] is None and resumed["resumed_from_env_steps"] == 32
+    # the records name the run by its place among the kept runs, not by this machine's path
+    assert (resumed["run_dir"], resumed["checkpoint"]) == ("pendulum_bptt_seed0", "pendulum_bptt_seed0/checkpoints/last.pt")
     assert [(steps, value) for steps, _, value in resumed["curve"]] == [(steps, value) for steps, _, value in whole["curve"]]
     assert resumed["eval/return"] == whole["eval/return"] and resumed["env_steps"] == whole["env_steps"] == 64
     # before the checkpoint: the stopped run's rows as they were (a fresh run would measure other times)
@@ -309,6 +311,27 @@ def test_time_to_solve_resumes_kept_runs_from_their_checkpoints(tmp_path):
                   "resume=true", f"out={tmp_path / 'c.json'}"])
     with pytest.raises(SystemExit, match="resume=true continues the runs kept in keep_runs=DIR"):
         tts.main(["quick=true", "losses=[bptt]", "resume=true", f"out={tmp_path / 'c.json'}"])
+
+
+def test_recorded_commands_hold_no_local_paths(tmp_path):
+    """A command as the data files record it: scratch files and directories outside the repository
+    dropped (with the ``resume=true`` of a scratch ``keep_runs``), paths inside it relative."""
+    common = load("_common")
+    inside = common.REPO_ROOT / "docs" / "data" / "runs" / "x.json"
+    args = ["envs=[Hopper-v5]", f"keep_runs={tmp_path}", "resume=true", f"out={tmp_path / 'a.json'}",
+            f"data={tmp_path / 'race.json'}"]
+    assert common.portable_args(args) == ["envs=[Hopper-v5]", "data=race"]
+    assert common.portable_args(["keep_runs=runs/ant", "resume=true", f"out={inside}"]) == [
+        "keep_runs=runs/ant", "resume=true", "out=docs/data/runs/x.json"]
+
+
+def test_the_data_files_hold_no_local_paths():
+    """What the docs render and link (docs/data) names no directory of the machine that measured it."""
+    data = Path(__file__).resolve().parents[2] / "docs" / "data"
+    local = ("/tmp/", "/home/", "/root/", "/work/", str(data.parents[1]))
+    found = [f"{path.relative_to(data)}: {prefix}" for path in sorted(data.rglob("*.json"))
+             for prefix in local if prefix in path.read_text()]
+    assert not found, found
 
 
 def test_time_to_solve_variants_and_fixed_levels(tmp_path):
