@@ -194,6 +194,16 @@ def fmt_return(x: float | None) -> str:
     return f"{x:.0f}" if math.isfinite(x) and abs(x) >= 100 else f"{x:.3g}"
 
 
+def fmt_error(x: float | None) -> str:
+    """An error or distance as people read it: ``0``, two significant digits from 0.01 to 1000
+    (``3.3``), a power of ten outside (``1.2e-07``)."""
+    if x is None:
+        return "-"
+    if x == 0:
+        return "0"
+    return f"{x:.2g}" if 0.01 <= abs(x) < 1000 else f"{x:.1e}"
+
+
 def fmt_ratio(x: float | None) -> str:
     return "-" if x is None else (f"{x:.3g}x" if x < 100 else f"{x:.0f}x")
 

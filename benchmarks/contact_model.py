@@ -236,7 +236,7 @@ def main(argv=None) -> dict:
     rounds = args.repeats or (2 if args.quick else 3)
     info = C.versions()
     C.print_header("MuJoCo's contact model against the smooth model", info)
-    g = lambda x: f"{x:.1e}"  # noqa: E731
+    g = C.fmt_error
     parity_rows, parities = [], []
     for task in args.parity_tasks:
         p = parity(task, steps)

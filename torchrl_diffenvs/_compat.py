@@ -59,7 +59,7 @@ def unchecked_tensordict(source: dict, batch_size: torch.Size, device) -> Tensor
     return TensorDict._new_unsafe(source, batch_size=batch_size, device=device)
 
 
-# ---------------------------------------------------------------------- the actor shortcut (modules.py)
+# ---------------------------------------------------------------------- the actor shortcut (modules/actors.py)
 def current_interaction_type():
     """The exploration/interaction mode set by ``set_exploration_type`` / ``set_interaction_type``
     (``None`` when none is set)."""

@@ -214,14 +214,16 @@ class DiffWindowCollector:
         windows: windows collected so far.
         frames: env steps collected so far (``windows * N * H``).
 
-    Example::
+    For example:
 
-        env = make_env("pendulum", num_envs=64, seed=0)
-        actor = make_actor(env)
-        collector = DiffWindowCollector(env, actor, horizon=32, total_windows=100)
-        for window in collector:          # TensorDict [64, 32], graph on
-            loss = BPTTLoss(actor)(window)["loss_actor"]
-            ...
+    ```python
+    env = make_env("pendulum", num_envs=64, seed=0)
+    actor = make_actor(env)
+    collector = DiffWindowCollector(env, actor, horizon=32, total_windows=100)
+    for window in collector:          # TensorDict [64, 32], graph on
+        loss = BPTTLoss(actor)(window)["loss_actor"]
+        ...
+    ```
     """
 
     def __init__(

@@ -356,9 +356,20 @@ def _settings_rows(cls, prefix: str, instance=None) -> list[list[str]]:
         if isinstance(default, tuple):
             default = list(default)
         doc = _plain(field.metadata.get("doc") or comments.get(field.name, ""))
-        rows.append([f"`{prefix}{field.name}`", f"`{default!r}`".replace("'", ""), _cell(_type_name(field)),
+        rows.append([f"`{prefix}{field.name}`", f"`{_yaml_value(default)}`", _cell(_type_name(field)),
                      _cell(_accepted(field)), _cell(doc)])
     return rows
+
+
+def _yaml_value(value) -> str:
+    """A default as a Hydra command line or a YAML file writes it: ``true``, ``null``, ``1e6``."""
+    if value is None or isinstance(value, bool):
+        return {None: "null", True: "true", False: "false"}[value]
+    if isinstance(value, float) and abs(value) >= 1e5:
+        return f"{value:g}".replace("e+0", "e").replace("e+", "e")
+    if isinstance(value, list):
+        return "[" + ", ".join(_yaml_value(v) for v in value) + "]"
+    return repr(value).replace("'", "")
 
 
 def _learners() -> dict:

@@ -435,7 +435,8 @@ def parity_report():
         recs = side_by_side(name, policy, steps, num_envs=n, seed=0, resync=resync, **kwargs)
         errs = {k: max(r["max_err"][k] for r in recs) for k in ("state", "obs", "reward")}
         mode = "resync" if resync else "free"
-        print(f"| {name} | {what} | {mode} | {len(recs)} | {errs['state']:.1e} | {errs['obs']:.1e} | {errs['reward']:.1e} |")
+        cells = ["0" if errs[k] == 0 else f"{errs[k]:.1e}" for k in ("state", "obs", "reward")]
+        print(f"| {name} | {what} | {mode} | {len(recs)} | {' | '.join(cells)} |")
 
 
 if __name__ == "__main__":

@@ -201,6 +201,8 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
 
 
 class SolverResult(NamedTuple):
+    """What the constraint solve returns for a batch of envs with ``R`` rows."""
+
     qacc: torch.Tensor  # [N, nv]
     force: torch.Tensor  # [N, R] efc_force
     active: torch.Tensor  # [N, R] bool: the rows pushing at the solution

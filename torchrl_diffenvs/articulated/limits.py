@@ -1,5 +1,5 @@
 """MuJoCo's soft constraints: the impedance and reference acceleration of a row (shared by the
-constraint rows of :mod:`.constraint`), and the smooth contact model's joint limits: their
+constraint rows of `constraint`), and the smooth contact model's joint limits: their
 regulariser and the exact complementarity solve of the rows that are active together."""
 from __future__ import annotations
 

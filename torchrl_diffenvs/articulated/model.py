@@ -109,34 +109,43 @@ class ArticulatedModel:
 
     @property
     def nbody(self) -> int:
+        """The number of bodies, the world (body 0) included."""
         return len(self.body_names)
 
     @property
     def nq(self) -> int:
+        """The number of position coordinates (``qpos``)."""
         return len(self.qpos0)
 
     @property
     def nv(self) -> int:
+        """The number of degrees of freedom (``qvel``)."""
         return len(self.damping)
 
     @property
     def njnt(self) -> int:
+        """The number of joints."""
         return len(self.joint_names)
 
     @property
     def nu(self) -> int:
+        """The number of actuators (``ctrl``)."""
         return len(self.actuator_names)
 
     def joint_index(self, name: str) -> int:
+        """The index of the joint named ``name`` (a ``KeyError`` lists the valid names)."""
         return self._index(self.joint_names, name, "joint")
 
     def body_index(self, name: str) -> int:
+        """The index of the body named ``name`` (a ``KeyError`` lists the valid names)."""
         return self._index(self.body_names, name, "body")
 
     def site_index(self, name: str) -> int:
+        """The index of the site named ``name`` (a ``KeyError`` lists the valid names)."""
         return self._index(self.site_names, name, "site")
 
     def geom_index(self, name: str) -> int:
+        """The index of the geom named ``name`` (a ``KeyError`` lists the valid names)."""
         return self._index(self.geom_names, name, "geom")
 
     def _index(self, names, name, what):

@@ -34,6 +34,8 @@ class PairContacts(NamedTuple):
 
 
 class Primitive(NamedTuple):
+    """One geom-pair type's collision function and the contacts it gives a pair at most."""
+
     contacts: int  # K, the contacts each pair gives at most
     collide: Callable[[PosedGeoms, PosedGeoms, torch.Tensor], PairContacts]  # (geom1, geom2, margin [P])
 

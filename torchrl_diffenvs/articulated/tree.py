@@ -171,18 +171,22 @@ class RigidBodyTree:
 
     @property
     def has_fluid(self) -> bool:
+        """Whether the model's medium (density or viscosity) exerts fluid forces."""
         return self.model.density > 0 or self.model.viscosity > 0
 
     @property
     def nv(self) -> int:
+        """The number of degrees of freedom (the model's)."""
         return self.model.nv
 
     @property
     def nq(self) -> int:
+        """The number of position coordinates (the model's)."""
         return self.model.nq
 
     @property
     def nbody(self) -> int:
+        """The number of bodies, the world included (the model's)."""
         return self.model.nbody
 
     @classmethod

@@ -3,16 +3,18 @@
 A task subclass only supplies physics (see [`DiffEnv`][torchrl_diffenvs.DiffEnv]); everything TorchRL needs (specs,
 batch size, device, dtype, seeding, partial resets, truncation, input validation) lives here.
 
-TensorDict layout (``N = num_envs``)::
+TensorDict layout (``N = num_envs``):
 
-    "observation"            [N, obs_dim]   what a policy sees (computed from the state)
-    ("state", <name>)        [N, ...]       the physical state; never the same tensor as "observation"
-    ("params", <name>)       [N, ...]       physical parameters, per env (randomise or differentiate)
-    "episode_step"           [N] int64      steps since the last reset (drives truncation)
-    "action"                 [N, act_dim]
-    ("next", "reward")       [N, 1]
-    ("next", "terminated" | "truncated" | "done")   [N, 1] bool
-    "nonfinite"              [N, 1] bool    the step left this env's state or reward NaN/inf
+```text
+"observation"            [N, obs_dim]   what a policy sees (computed from the state)
+("state", <name>)        [N, ...]       the physical state; never the same tensor as "observation"
+("params", <name>)       [N, ...]       physical parameters, per env (randomise or differentiate)
+"episode_step"           [N] int64      steps since the last reset (drives truncation)
+"action"                 [N, act_dim]
+("next", "reward")       [N, 1]
+("next", "terminated" | "truncated" | "done")   [N, 1] bool
+"nonfinite"              [N, 1] bool    the step left this env's state or reward NaN/inf
+```
 
 Keeping the state apart from the observation matters: an ObservationNorm (or any transform) on
 "observation" can never feed its output back into the dynamics. A multi-agent task
@@ -100,6 +102,11 @@ class DiffEnv(EnvBase):
     #: state entries that are readings of the last step (as a MuJoCo task's contact force), not
     #: inputs of the next: ``reset(td, set_state=True)`` starts a missing one at 0
     reading_state_keys: tuple[str, ...] = ()
+    #: the compiled chunks of this env's lean rollouts, set by `compile_physics` (None: eager)
+    _compiled_physics = None
+    #: whether a lean rollout that deferred its finiteness checks met a non-finite value: this
+    #: env's lean rollouts check every step from then on
+    _nonfinite_seen: bool = False
 
     def derived_state(self, state, params) -> dict:
         """State entries that follow from others (e.g. positions MuJoCo derives from ``qpos``):
@@ -109,12 +116,43 @@ class DiffEnv(EnvBase):
 
     # ------------------------------------------------------------------ physics (subclasses)
     def initial_state(self, params: Mapping[str, torch.Tensor], n: int) -> dict[str, torch.Tensor]:
+        """Start states of ``n`` envs (a task writes this).
+
+        Args:
+            params: the physical parameters of these envs, each ``[n, ...]``.
+            n: how many start states to sample.
+
+        Returns:
+            The state entries, each ``[n, ...]``; random draws come from each env's own stream
+            (see the class docstring), so that a reset of some envs leaves the others' draws as they were.
+        """
         raise NotImplementedError
 
     def transition(self, state, action, params):
+        """One step of the task's physics, pure tensor code that autograd differentiates (a task
+        writes this).
+
+        Args:
+            state: the state entries, each ``[N, ...]``.
+            action: ``[N, action_dim]``, clamped to the action bounds when ``clip_actions`` is set.
+            params: the physical parameters, each ``[N, ...]``.
+
+        Returns:
+            ``(next_state, reward, terminated)``: a dict like ``state``, the reward ``[N]`` and a
+            ``[N]`` bool tensor, or ``None`` for a task that never terminates.
+        """
         raise NotImplementedError
 
     def observation(self, state, params) -> torch.Tensor:
+        """What the policy sees of ``state`` (a task writes this).
+
+        Args:
+            state: the state entries, each ``[N, ...]``.
+            params: the physical parameters, each ``[N, ...]``.
+
+        Returns:
+            ``[N, obs_dim]``.
+        """
         raise NotImplementedError
 
     # ------------------------------------------------------------------ construction
@@ -261,12 +299,14 @@ class DiffEnv(EnvBase):
     def redraws(self):
         """Wraps a rejection-sampling loop in ``initial_state``: its draws come from numbers of
         their own, so the draws after the loop are the same whatever number of rounds the batch
-        needed (an env's own rounds use its own stream)::
+        needed (an env's own rounds use its own stream):
 
-            goal = self.uniform(-0.2, 0.2, n, 2)
-            with self.redraws():
-                while (reject := goal.norm(dim=-1) >= 0.2).any():
-                    goal = torch.where(reject.unsqueeze(-1), self.uniform(-0.2, 0.2, n, 2), goal)
+        ```python
+        goal = self.uniform(-0.2, 0.2, n, 2)
+        with self.redraws():
+            while (reject := goal.norm(dim=-1) >= 0.2).any():
+                goal = torch.where(reject.unsqueeze(-1), self.uniform(-0.2, 0.2, n, 2), goal)
+        ```
         """
         draw = self.__dict__.get("_start_draw")
         if draw is None:

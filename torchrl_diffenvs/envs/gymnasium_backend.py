@@ -3,7 +3,7 @@
 ``python sota_scripts/train.py env=HalfCheetah-v5 loss=ppo env.backend=gymnasium`` trains on
 Gymnasium's env itself (for a MuJoCo task: MuJoCo's forward, no gradients): the baseline a user
 would otherwise run, on the same machine, with the same learner, networks and settings.
-:class:`GymnasiumBackedEnv` is the one adapter that makes it fit the loop:
+`GymnasiumBackedEnv` is the one adapter that makes it fit the loop:
 
 * the batch is Gymnasium's ``SyncVectorEnv`` of ``num_envs`` envs, each exactly
   ``gymnasium.make(env_id)``, wrapped by TorchRL's ``GymWrapper`` (``torchrl.envs.libs.gym``) with
@@ -14,18 +14,18 @@ would otherwise run, on the same machine, with the same learner, networks and se
   than the in-process vector env (numbers in ``docs/training/index.md``);
 * observations (Gymnasium's float64) and actions are cast to the run's ``dtype``; the reward is
   Gymnasium's, as TorchRL's float32;
-* :meth:`set_seed` seeds the *next* full reset: env ``i`` then starts as
+* `set_seed` seeds the *next* full reset: env ``i`` then starts as
   ``gymnasium.make(env_id).reset(seed=seed + i)`` does, and later episodes continue its own
   random stream (as Gymnasium's vector env does); ``rng`` is a torch generator for the loop's
   random-action baseline;
 * ``max_episode_steps`` is the Gymnasium registration's (or the override);
-* :meth:`simulator_state` / :meth:`load_simulator_state` capture the simulator state the
+* `simulator_state` / `load_simulator_state` capture the simulator state the
   TensorDicts do not hold (MuJoCo's integration state, the time limits' counters, each env's
   random stream), so that a resumed run continues exactly;
-* :meth:`record_video` films an episode with Gymnasium's own renderer (MuJoCo needs an OpenGL
+* `record_video` films an episode with Gymnasium's own renderer (MuJoCo needs an OpenGL
   backend: ``MUJOCO_GL=egl`` on a headless machine).
 
-Only gradient-free learners can train on it (:data:`GRADIENT_FREE_LOSSES`): the others
+Only gradient-free learners can train on it (`GRADIENT_FREE_LOSSES`): the others
 differentiate through the simulation, which Gymnasium's env cannot.
 """
 from __future__ import annotations
@@ -103,15 +103,15 @@ class GymnasiumBackedEnv(TransformedEnv):
         num_envs: envs in the batch (Gymnasium's ``SyncVectorEnv``, in this process).
         device: where the TensorDicts live (the simulation runs on the CPU).
         dtype: ``torch.float32`` or ``torch.float64``: of the observations and actions the policy sees.
-        seed: seeds the first reset (env ``i`` with ``seed + i``) and :attr:`rng`; ``None`` draws one
+        seed: seeds the first reset (env ``i`` with ``seed + i``) and `rng`; ``None`` draws one
             from torch's global generator.
         max_episode_steps: Gymnasium's time limit; ``None``: its registration's.
         options: this library's task options (``env.options``); those Gymnasium's env takes are
             passed to ``gymnasium.make``, the simulator's and the backward's are dropped
-            (:func:`~torchrl_diffenvs.evaluation.gymnasium_kwargs`).
+            (`gymnasium_kwargs`).
 
     Raises:
-        ValueError: ``env_id`` cannot be trained in Gymnasium (:func:`gymnasium_env_problems`).
+        ValueError: ``env_id`` cannot be trained in Gymnasium (`gymnasium_env_problems`).
     """
 
     def __init__(self, env_id: str, num_envs: int = 1, *, device: torch.device | str = "cpu",
@@ -162,7 +162,7 @@ class GymnasiumBackedEnv(TransformedEnv):
     def set_seed(self, seed: int | None = None, static_seed: bool = False) -> int | None:
         """The next full reset starts env ``i`` from ``seed + i`` (not at once: TorchRL's
         ``GymWrapper`` would reset now, and the rollout's own reset would then start other
-        episodes); :attr:`rng` restarts from ``seed``. Torch's global generator is untouched.
+        episodes); `rng` restarts from ``seed``. Torch's global generator is untouched.
 
         Args:
             seed: the seed; ``None`` changes nothing.
@@ -189,8 +189,8 @@ class GymnasiumBackedEnv(TransformedEnv):
         """What a checkpoint needs beyond the TensorDicts to continue these envs exactly: each
         env's simulator state (MuJoCo's integration state: positions, velocities, activations,
         warm start, time), its time limit's step count, its reset flag and its random stream,
-        plus :attr:`rng` and a pending seed. For an env that is not a MuJoCo env, ``"envs"`` is
-        ``None`` and ``"unsupported"`` says why (:meth:`load_simulator_state` then refuses)."""
+        plus `rng` and a pending seed. For an env that is not a MuJoCo env, ``"envs"`` is
+        ``None`` and ``"unsupported"`` says why (`load_simulator_state` then refuses)."""
         import mujoco
         from gymnasium.envs.mujoco import MujocoEnv
         from gymnasium.wrappers import OrderEnforcing, TimeLimit
@@ -214,10 +214,10 @@ class GymnasiumBackedEnv(TransformedEnv):
         return out
 
     def load_simulator_state(self, state: Mapping) -> None:
-        """Restores :meth:`simulator_state` into envs built with the same ``env_id`` and ``num_envs``.
+        """Restores `simulator_state` into envs built with the same ``env_id`` and ``num_envs``.
 
         Args:
-            state: what :meth:`simulator_state` returned.
+            state: what `simulator_state` returned.
 
         Raises:
             ValueError: ``state`` holds no simulator state (a non-MuJoCo env, or a checkpoint

@@ -1,13 +1,15 @@
 """The base class of multi-agent tasks: TorchRL's multi-agent layout over a [`DiffEnv`][torchrl_diffenvs.DiffEnv].
 
 What a policy reads and writes moves into an ``"agents"`` group of shape ``[N, A]``
-(``A = num_agents``), as in TorchRL's VMAS and PettingZoo wrappers::
+(``A = num_agents``), as in TorchRL's VMAS and PettingZoo wrappers:
 
-    ("agents", "observation")    [N, A, obs_dim]   each agent's own view
-    ("agents", "action")         [N, A, action_dim]
-    ("next", "agents", "reward") [N, A, 1]         each agent's own reward
-    "done" | "terminated" | "truncated"   [N, 1]   shared: the agents live in one episode
-    ("state", ...), ("params", ...), "episode_step"  [N, ...]  as for every DiffEnv
+```text
+("agents", "observation")    [N, A, obs_dim]   each agent's own view
+("agents", "action")         [N, A, action_dim]
+("next", "agents", "reward") [N, A, 1]         each agent's own reward
+"done" | "terminated" | "truncated"   [N, 1]   shared: the agents live in one episode
+("state", ...), ("params", ...), "episode_step"  [N, ...]  as for every DiffEnv
+```
 
 So TorchRL's multi-agent parts apply unchanged (``MultiAgentMLP``, ``MAPPOLoss`` /
 ``IPPOLoss`` with ``MultiAgentGAE``, which broadcasts the shared done flags over the agents),

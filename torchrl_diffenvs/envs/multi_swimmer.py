@@ -19,10 +19,12 @@ class MultiSwimmerEnv(MultiAgentDiffEnv):
     """``num_agents`` swimmers (Ivy Gym's fish) share a pond with ``num_urchins`` urchins.
 
     Each fish ``i`` is a 2-D point mass: ``v_i += dt * max_accel * a_i``, ``p_i += dt * v_i``.
-    Its reward is the single swimmer's, times a collision factor for every other fish::
+    Its reward is the single swimmer's, times a collision factor for every other fish:
 
-        r_i = exp(-0.5 |p_i - g_i|^2) * prod_k (1 - exp(-urchin_sharpness |p_i - u_k|^2))
-                                      * prod_{j != i} (1 - exp(-fish_sharpness |p_i - p_j|^2))
+    ```text
+    r_i = exp(-0.5 |p_i - g_i|^2) * prod_k (1 - exp(-urchin_sharpness |p_i - u_k|^2))
+                                  * prod_{j != i} (1 - exp(-fish_sharpness |p_i - p_j|^2))
+    ```
 
     so it falls to zero on an urchin or on another fish; no termination. Observation of fish
     ``i`` (``2K + 6 + 4(A - 1)``): ``[urchins (2K, if observe_urchins), p_i, v_i, g_i,

@@ -30,15 +30,13 @@ class _FrozenActor(nn.Module):
         actor = copy.deepcopy(actor)
         for parameter in actor.parameters():
             parameter.requires_grad_(False)
-        # make_actor's TanhNormalActor: head (observation -> loc, scale), then squash(loc);
-        # its deterministic variant: a LeanModule (observation -> action)
-        self.stochastic = hasattr(actor, "squash")
         self.actor = actor
-        self.net = actor.module[0].module if self.stochastic else actor.module
+        # make_actor's TanhNormalActor plays its mean action; its deterministic variant is a
+        # LeanModule, whose module maps the observation to the action
+        self.act = actor.mean_action if hasattr(actor, "mean_action") else actor.module
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        out = self.net(observation)
-        return self.actor.squash(out[0]) if self.stochastic else out
+        return self.act(observation)
 
 
 def opponent_from_actor(actor: nn.Module) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -62,12 +60,17 @@ class TwoPlayerDiffEnv(DiffEnv):
     """
 
     def observe(self, state, params, player: int) -> torch.Tensor:
+        """What ``player`` (0 or 1) sees: ``[N, obs_dim]``, the same layout for both players, so
+        that one policy can play either side (a task writes this)."""
         raise NotImplementedError
 
     def play(self, state, actions, params):
+        """One step from both players' actions ``[N, 2, action_dim]`` (player 0's first):
+        ``(next_state, reward, terminated)``, ``reward`` ``[N]`` being player 0's (a task writes this)."""
         raise NotImplementedError
 
     def scripted_action(self, state, params) -> torch.Tensor:
+        """The default opponent's action ``[N, action_dim]`` for player 1 (a task writes this)."""
         raise NotImplementedError
 
     _opponent_policy = None  # None: the scripted opponent
@@ -88,6 +91,8 @@ class TwoPlayerDiffEnv(DiffEnv):
         return self._opponent_policy
 
     def opponent_action(self, state, params) -> torch.Tensor:
+        """Player 1's action ``[N, action_dim]``: the scripted one, or the opponent policy's on
+        player 1's observation, clamped to the action bounds."""
         if self._opponent_policy is None:
             return self.scripted_action(state, params)
         return self._opponent_policy(self.observe(state, params, 1)).clamp(self.action_low, self.action_high)

@@ -1,12 +1,14 @@
 """The task registry behind [`make_env`][torchrl_diffenvs.make_env] and [`list_envs`][torchrl_diffenvs.list_envs].
 
 A task is one file: its physics (a [`DiffEnv`][torchrl_diffenvs.DiffEnv] subclass) and, above the
-class, one registration that names it, says how it is drawn and gives its training config::
+class, one registration that names it, says how it is drawn and gives its training config:
 
-    @register_env(drawer="torchrl_diffenvs.rendering.tasks:PENDULUM")
-    class PendulumEnv(DiffEnv):
-        name = "pendulum"
-        ...
+```python
+@register_env(drawer="torchrl_diffenvs.rendering.tasks:PENDULUM")
+class PendulumEnv(DiffEnv):
+    name = "pendulum"
+    ...
+```
 
 The drawer is a ``"module:attribute"`` path, imported only when the task is first drawn (so
 Pillow stays optional); the training script's ``env=<name>`` config is generated from the

@@ -2,11 +2,13 @@
 
 ``bptt``, ``shac``, ``ahac`` and ``sapo`` backpropagate through the differentiable env; ``ppo``
 and ``sac`` are TorchRL's own losses and collectors. All share [`Learner`][torchrl_diffenvs.learners.Learner]'s interface, used alike by
-the training loop (`torchrl_diffenvs.training`), the demos, the benchmarks and the tests::
+the training loop (`torchrl_diffenvs.training`), the demos, the benchmarks and the tests:
 
-    learner = SHACLearner(env, make_actor(env), make_critic(env), SHACConfig(horizon=8))
-    for _ in range(100):
-        metrics = learner.train_iteration()
+```python
+learner = SHACLearner(env, make_actor(env), make_critic(env), SHACConfig(horizon=8))
+for _ in range(100):
+    metrics = learner.train_iteration()
+```
 
 Adding a learner
 ----------------
@@ -49,6 +51,7 @@ from .sapo import SAPOConfig, SAPOLearner
 from .shac import SHACConfig, SHACLearner
 from .short_horizon import ShortHorizonLearner, TwinCriticLearner
 
+#: every learner by its ``loss=`` name (filled by `register_learner`)
 LEARNERS: dict[str, type[Learner]] = {}
 
 

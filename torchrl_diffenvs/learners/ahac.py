@@ -29,11 +29,11 @@ import torch
 
 from .. import checks
 from ..distributed import SINGLE_PROCESS, World
-from ..modules import ObservationNormalizer, actor_from_config, critic_from_config
+from ..modules import ObservationNormalizer, actor_from_config
 from ..objectives import AHACLoss, AdaptiveHorizon, TwinCritic
 from ..objectives.windows import window_contact_force
 from .base import LR_SCHEDULES, ActorNetworkConfig, LearnerConfig, NetworkConfig, checked
-from .short_horizon import CRITIC_SHUFFLES, TwinCriticLearner
+from .short_horizon import CRITIC_SHUFFLES, TwinCriticLearner, twin_critic_from_config
 
 __all__ = ["AHACConfig", "AHACLearner"]
 
@@ -76,11 +76,6 @@ class AHACConfig(LearnerConfig):
         if values["min_horizon"] >= values["max_horizon"]:
             return [f"{where}min_horizon={values['min_horizon']!r} must be < {where}max_horizon={values['max_horizon']!r}"]
         return []
-
-
-def twin_critic_from_config(section: Mapping, env, normalizer: ObservationNormalizer | None) -> TwinCritic:
-    """Two critics from one ``loss.critic`` section (separate weights, the actor's normaliser shared)."""
-    return TwinCritic(critic_from_config(section, env, normalizer), critic_from_config(section, env, normalizer))
 
 
 class AHACLearner(TwinCriticLearner):
@@ -140,9 +135,7 @@ class AHACLearner(TwinCriticLearner):
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> AHACLearner:
         actor, normalizer = cls._policy_and_normalizer(loss_cfg, env)
         critic = twin_critic_from_config(loss_cfg.critic, env, normalizer)
-        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
-        return cls(env, actor, critic, AHACConfig.from_mapping(settings), total_env_steps, normalizer=normalizer,
-                   world=world)
+        return cls(env, actor, critic, cls.settings_from(loss_cfg), total_env_steps, normalizer=normalizer, world=world)
 
     @property
     def horizon_lr(self) -> float:

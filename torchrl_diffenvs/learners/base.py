@@ -22,6 +22,7 @@ __all__ = [  # checked: re-exported for the learner files
     "load_lr_scheduler", "lr_scheduler",
 ]
 
+#: the valid ``loss.lr_schedule`` values
 LR_SCHEDULES = ("linear", "exponential", "constant")
 
 

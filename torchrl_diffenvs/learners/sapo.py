@@ -33,20 +33,12 @@ import torch
 from .. import checks
 from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
-from ..modules import (
-    ObservationNormalizer,
-    SquashedNormalActor,
-    critic_from_config,
-    env_dims,
-    make_sapo_actor,
-    network_kwargs,
-    orthogonal_init_,
-)
+from ..modules import ObservationNormalizer, SquashedNormalActor, env_dims, make_sapo_actor, network_kwargs
 from ..objectives import GradientGuard, SAPOLoss, TwinCritic
 from .base import LR_SCHEDULES, LearnerConfig, NetworkConfig, checked
-from .short_horizon import CRITIC_SHUFFLES, TwinCriticLearner
+from .short_horizon import CRITIC_SHUFFLES, TwinCriticLearner, twin_critic_from_config
 
-# the policy (SquashedNormalActor, make_sapo_actor) lives with the other networks in modules.py
+# the policy (SquashedNormalActor, make_sapo_actor) lives with the other networks in modules/actors.py
 __all__ = ["SAPOConfig", "SAPOLearner"]
 
 
@@ -134,14 +126,13 @@ class SAPOLearner(TwinCriticLearner):
 
     @classmethod
     def policy_from_config(cls, loss_cfg: Mapping, env) -> SquashedNormalActor:
-        return cls._policy_and_normalizer(loss_cfg, env)[0]
+        return cls._policy_and_normalizer(loss_cfg, env, cls.settings_from(loss_cfg))[0]
 
     @staticmethod
-    def _policy_and_normalizer(loss_cfg: Mapping, env) -> tuple[SquashedNormalActor, ObservationNormalizer | None]:
+    def _policy_and_normalizer(loss_cfg: Mapping, env, config: SAPOConfig
+                               ) -> tuple[SquashedNormalActor, ObservationNormalizer | None]:
         """The policy of a ``loss=sapo`` section (and its observation normaliser): what a
         checkpoint's ``"policy"`` state loads into (evaluation)."""
-        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
-        config = SAPOConfig.from_mapping(settings)
         normalizer = None
         if config.obs_norm:
             observation_dim, _, dtype = env_dims(env, policy_keys(env).observation)
@@ -155,14 +146,10 @@ class SAPOLearner(TwinCriticLearner):
 
     @classmethod
     def from_config(cls, loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> SAPOLearner:
-        settings = {k: v for k, v in loss_cfg.items() if k not in ("name", "actor", "critic")}
-        config = SAPOConfig.from_mapping(settings)
-        actor, normalizer = cls._policy_and_normalizer(loss_cfg, env)
-        critics = [critic_from_config(loss_cfg.critic, env, normalizer) for _ in range(2)]
-        if loss_cfg.critic.get("init") == "orthogonal":
-            for critic in critics:  # make_critic's orthogonal init has gain sqrt(2)
-                orthogonal_init_(critic, config.orthogonal_gain)
-        return cls(env, actor, TwinCritic(*critics), config, total_env_steps, normalizer=normalizer, world=world)
+        config = cls.settings_from(loss_cfg)
+        actor, normalizer = cls._policy_and_normalizer(loss_cfg, env, config)
+        critic = twin_critic_from_config(loss_cfg.critic, env, normalizer, orthogonal_gain=config.orthogonal_gain)
+        return cls(env, actor, critic, config, total_env_steps, normalizer=normalizer, world=world)
 
     def update_temperature(self, entropy: torch.Tensor | float) -> dict[str, float]:
         """One guarded AdamW step of ``log_alpha`` on the loss's ``alpha_loss(entropy)``

@@ -29,12 +29,18 @@ import torch
 from ..collectors import DiffWindowCollector
 from ..distributed import SINGLE_PROCESS, World
 from ..envs.multi_agent import policy_keys
-from ..modules import ObservationNormalizer, observation_key_of, update_privileged_statistics
-from ..objectives import GradientGuard, NonFiniteEnvMonitor
+from ..modules import (
+    ObservationNormalizer,
+    critic_from_config,
+    observation_key_of,
+    orthogonal_init_,
+    update_privileged_statistics,
+)
+from ..objectives import GradientGuard, NonFiniteEnvMonitor, TwinCritic
 from ..objectives.windows import window_contact_force, window_solver_unconverged
 from .base import ActorCriticCheckpoint, Learner, LearnerConfig, lr_scheduler
 
-__all__ = ["CRITIC_SHUFFLES", "ShortHorizonLearner", "TwinCriticLearner"]
+__all__ = ["CRITIC_SHUFFLES", "ShortHorizonLearner", "TwinCriticLearner", "twin_critic_from_config"]
 
 # how the critic's minibatches are drawn from the window: in_order: contiguous blocks of the window in
 # time order, [t0, t1) x all envs (the references: DiffRL and mineral build their critic datasets unshuffled);
@@ -227,6 +233,18 @@ class ShortHorizonLearner(ActorCriticCheckpoint, Learner):
         self.critic_guard.step(self.critic_optim, self.critic_params, loss=critic_loss,
                                context=self.nonfinite.describe)
         return critic_loss.item()
+
+
+def twin_critic_from_config(section: Mapping, env, normalizer: ObservationNormalizer | None,
+                            orthogonal_gain: float | None = None) -> TwinCritic:
+    """Two critics from one ``loss.critic`` section (separate weights, the actor's normaliser
+    shared); ``orthogonal_gain``: the gain of an ``init: orthogonal`` section (the builder's own
+    is ``sqrt(2)``)."""
+    critics = [critic_from_config(section, env, normalizer) for _ in range(2)]
+    if orthogonal_gain is not None and section.get("init") == "orthogonal":
+        for critic in critics:
+            orthogonal_init_(critic, orthogonal_gain)
+    return TwinCritic(*critics)
 
 
 class TwinCriticLearner(ShortHorizonLearner):

@@ -106,6 +106,11 @@ class TanhNormalActor(ProbabilisticActor):
         tensordict.set(self.module[-1].out_keys[0], self.squash(pre_tanh))  # "action"
         return tensordict
 
+    def mean_action(self, observation: torch.Tensor) -> torch.Tensor:
+        """The deterministic action ``squash(loc)`` for an observation tensor (no TensorDict):
+        what a frozen copy of this actor plays as an opponent."""
+        return self.squash(self.module[0].module(observation)[0])
+
     def squash(self, pre_tanh: torch.Tensor) -> torch.Tensor:
         """TanhNormal's map into the action bounds; ``squash(loc)`` is the deterministic action."""
         action = self._tanh(pre_tanh)
@@ -192,9 +197,11 @@ class SquashedNormalActor(TanhNormalActor):
     which loses the pre-tanh value once ``tanh`` rounds to +-1 (in float32 from about
     ``|u| > 9``). When it samples (``ExplorationType.RANDOM``) this actor draws
     ``u = loc + eps * scale`` (``rsample``: the same random stream as ``Normal.rsample``) and
-    writes ``action = squash(u)`` and its log-probability from ``u``::
+    writes ``action = squash(u)`` and its log-probability from ``u``:
 
-        sum_i [ -eps_i^2 / 2 - log scale_i - log(2 pi) / 2 - log(1 - tanh(u_i)^2) - log((high - low) / 2) ]
+    ```text
+    sum_i [ -eps_i^2 / 2 - log scale_i - log(2 pi) / 2 - log(1 - tanh(u_i)^2) - log((high - low) / 2) ]
+    ```
 
     with ``log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u))`` (finite for every ``u``). In
     ``DETERMINISTIC`` mode it writes ``squash(loc)``. Every other call, and ``get_dist``, is

@@ -14,6 +14,7 @@ from torchrl.modules import MLP, MultiAgentMLP
 __all__ = ["ACTIVATIONS", "NETWORK_INITS", "LeanModule", "env_dims", "make_agent_mlp", "make_mlp", "observation_key_of",
            "orthogonal_init_"]
 
+#: the valid ``activation`` names of the networks and their modules
 ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "elu": nn.ELU, "relu": nn.ReLU, "silu": nn.SiLU}
 NETWORK_INITS = ("default", "orthogonal")
 

@@ -95,11 +95,13 @@ class AdaptiveHorizon:
     a dual vector $\lambda$ with one entry per step of the current window. After a window
     whose mean (over the envs) contact force at step $i$ is $f_i$
     ([`update`][torchrl_diffenvs.objectives.AdaptiveHorizon.update]), exactly as the reference (``ahac.py``, ``train()``: "Train horizon", and
-    ``init_buffers``)::
+    ``init_buffers``):
 
-        lambda_i <- lambda_i - lr * (C - f_i)        # every step i of the window
-        H        <- clip(H + lr * sum_i lambda_i, min_horizon, max_horizon)
-        lambda   <- [lambda_0] * round(H)            # one entry per step of the next window
+    ```text
+    lambda_i <- lambda_i - lr * (C - f_i)        # every step i of the window
+    H        <- clip(H + lr * sum_i lambda_i, min_horizon, max_horizon)
+    lambda   <- [lambda_0] * round(H)            # one entry per step of the next window
+    ```
 
     with ``lr`` the dual learning rate of this iteration (the reference decays it linearly to
     1e-5 with the actor's schedule) and ``C = contact_threshold``. $\lambda$ is not

@@ -41,12 +41,14 @@ class GradientGuard:
             or gradient (steps skipped for a finite norm above ``skip_above`` do not count);
             ``None`` never raises.
 
-    Example::
+    For example:
 
-        guard = GradientGuard(max_norm=1.0, skip_above=1e6)
-        optimizer.zero_grad()
-        loss.backward()
-        info = guard.step(optimizer, actor.parameters(), loss=loss)  # {"grad_norm": ..., "skipped": False}
+    ```python
+    guard = GradientGuard(max_norm=1.0, skip_above=1e6)
+    optimizer.zero_grad()
+    loss.backward()
+    info = guard.step(optimizer, actor.parameters(), loss=loss)  # {"grad_norm": ..., "skipped": False}
+    ```
     """
 
     def __init__(self, max_norm: float | None = 1.0, skip_above: float | None = 1e6, clip: str = "norm",

@@ -105,11 +105,15 @@ class Canvas:
         return list(zip(x.tolist(), y.tolist()))
 
     def polygon(self, points, fill: RGB, outline: RGB | None = None) -> None:
+        """Fills the polygon through ``points`` (``[k, 2]``, world metres); nothing where a point
+        is not finite (the frame is flagged ``non_finite``)."""
         px = self.pixels(points)
         if px is not None:
             self.draw.polygon(px, fill=fill, outline=outline)
 
     def circle(self, center, radius: float, fill: RGB, outline: RGB | None = None) -> None:
+        """Fills the circle of ``radius`` metres about ``center`` (``[2]`` or ``[1, 2]``, world
+        metres); nothing where the centre or the radius is not finite."""
         px = self.pixels(center)
         if px is None or not math.isfinite(radius):
             return
@@ -177,11 +181,13 @@ def register_drawer(
 ):
     """Registers how to draw the task ``name`` (an env's ``name``); usable as a decorator.
 
-    Example::
+    For example:
 
-        @register_drawer("mytask", bounds=(-2, 2, -2, 2))
-        def draw_mytask(canvas, state, params, color):
-            canvas.circle((state["x"], 0.0), 0.2, fill=color)
+    ```python
+    @register_drawer("mytask", bounds=(-2, 2, -2, 2))
+    def draw_mytask(canvas, state, params, color):
+        canvas.circle((state["x"], 0.0), 0.2, fill=color)
+    ```
     """
     low, high = reward_range
     if not high > low:

@@ -13,6 +13,7 @@ from PIL import Image
 
 __all__ = ["VIDEO_FORMATS", "mp4_available", "save_gif", "save_mp4", "save_video"]
 
+#: the formats `save_video` writes (mp4 needs imageio's ffmpeg plugin)
 VIDEO_FORMATS = ("gif", "mp4")
 
 

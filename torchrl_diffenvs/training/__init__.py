@@ -1,12 +1,12 @@
 """The training loop and its pieces: configuration checks, logging, checkpoints, self-play.
 
-:func:`run` is what ``sota_scripts/train.py`` (a thin Hydra entry point) calls with the composed
-configuration; :class:`Trainer` is the loop (:mod:`.loop`), :func:`evaluate_checkpoint` the
-``mode=eval`` player (:mod:`.eval_mode`). The configuration's defaults live in dataclasses: the
-run's sections in :mod:`.settings` (``train``, ``eval``, ``selfplay``, ``distributed``), each
-learner's in its settings class (:mod:`torchrl_diffenvs.learners`); :func:`validate_config` checks
+`run` is what ``sota_scripts/train.py`` (a thin Hydra entry point) calls with the composed
+configuration; `Trainer` is the loop (`loop`), `evaluate_checkpoint` the
+``mode=eval`` player (`eval_mode`). The configuration's defaults live in dataclasses: the
+run's sections in `settings` (``train``, ``eval``, ``selfplay``, ``distributed``), each
+learner's in its settings class (`torchrl_diffenvs.learners`); `validate_config` checks
 a composed configuration with them and lists every problem at once. Evaluation rollouts are
-:mod:`torchrl_diffenvs.evaluation`.
+`torchrl_diffenvs.evaluation`.
 """
 from .checkpoint import (
     CheckpointError,

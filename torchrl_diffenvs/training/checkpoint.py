@@ -8,11 +8,11 @@ Writes are atomic: the file is written to a temporary name in the same directory
 and only then renamed over the destination (``os.replace``). A crash, a full disk or an exception
 half-way through a write leaves the previous checkpoint untouched; the temporary file a killed
 process leaves behind is removed by the next run that starts in (or resumes from) that directory
-(:func:`remove_stale_temp_files`).
+(`remove_stale_temp_files`).
 
 Every checkpoint carries a SHA-256 checksum of its content (each tensor's bytes, dtype and shape,
 and every other value), verified on load: a file altered after it was written (a flipped bit on
-disk, a copy cut short inside a tensor) is refused with :class:`CheckpointError` instead of
+disk, a copy cut short inside a tensor) is refused with `CheckpointError` instead of
 resuming or evaluating altered weights.
 """
 from __future__ import annotations
@@ -144,7 +144,7 @@ def save_checkpoint(state: Mapping, path: str | os.PathLike) -> Path:
 
 
 def atomic_copy(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
-    """Copies ``src`` to ``dst`` with the same all-or-nothing guarantee as :func:`save_checkpoint`."""
+    """Copies ``src`` to ``dst`` with the same all-or-nothing guarantee as `save_checkpoint`."""
     dst = Path(dst)
     tmp = _tmp_name(dst)
     try:
@@ -158,7 +158,7 @@ def atomic_copy(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
-    """Reads a checkpoint written by :func:`save_checkpoint`.
+    """Reads a checkpoint written by `save_checkpoint`.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
@@ -208,7 +208,7 @@ def capture_rng_state(generators: Mapping[str, torch.Generator] | None = None) -
 
 
 def restore_rng_state(state: Mapping, generators: Mapping[str, torch.Generator] | None = None) -> None:
-    """Restores a :func:`capture_rng_state` snapshot (the named ``generators`` in place)."""
+    """Restores a `capture_rng_state` snapshot (the named ``generators`` in place)."""
     # generator states are CPU byte tensors, whatever map_location the checkpoint was loaded with
     torch.set_rng_state(state["torch"].cpu())
     name, keys, pos, has_gauss, cached = state["numpy"]

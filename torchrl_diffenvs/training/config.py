@@ -1,7 +1,7 @@
 """Checks a composed training configuration before anything is built, and turns it into objects.
 
-:func:`validate_config` collects *every* problem of a configuration and raises one
-:class:`ConfigError` that lists them, each naming the key, the value found and what is valid, so a
+`validate_config` collects *every* problem of a configuration and raises one
+`ConfigError` that lists them, each naming the key, the value found and what is valid, so a
 typo costs one run, not one run per typo. It runs before any env, network or logger is created.
 """
 from __future__ import annotations
@@ -53,7 +53,7 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 def register_env_configs() -> None:
     """Makes ``env=<name>`` of the training script's configuration (a Hydra config group) know
     every registered task: its section is generated from the task's registration
-    (:func:`~torchrl_diffenvs.envs.registry.env_config`), so a new task needs no config file.
+    (`env_config`), so a new task needs no config file.
     Runs on import; call it again after registering a task of your own."""
     from hydra.core.config_store import ConfigStore
 
@@ -103,7 +103,7 @@ def resolve_dtype(name: str) -> torch.dtype:
 
 
 def env_kwargs(env_cfg: Mapping) -> dict:
-    """The keyword arguments of :func:`~torchrl_diffenvs.make_env` that an ``env`` config section sets
+    """The keyword arguments of `make_env` that an ``env`` config section sets
     (everything except ``name``, ``num_envs``, device, dtype and seed)."""
     def plain(value) -> dict:
         return OmegaConf.to_container(value, resolve=True) if isinstance(value, DictConfig) else dict(value or {})
@@ -138,7 +138,7 @@ def env_backend(env_cfg: Mapping) -> str:
 def make_env_from_config(cfg: DictConfig, num_envs: int, seed: int):
     """Builds the env named by ``cfg.env`` with ``num_envs`` envs on ``cfg.device`` in ``cfg.dtype``:
     this library's, or with ``env.backend=gymnasium`` Gymnasium's own
-    (:class:`~torchrl_diffenvs.envs.gymnasium_backend.GymnasiumBackedEnv`)."""
+    (`GymnasiumBackedEnv`)."""
     if env_backend(cfg.env) == "gymnasium":
         return GymnasiumBackedEnv(cfg.env.name, num_envs, device=resolve_device(cfg.device),
                                   dtype=resolve_dtype(cfg.dtype), seed=seed,
@@ -160,7 +160,7 @@ def make_env_from_config(cfg: DictConfig, num_envs: int, seed: int):
 
 def _check_loss(loss, problems: list[str]) -> None:
     """The learner's own checks: its settings dataclass, its network sections, what it refuses
-    (:meth:`~torchrl_diffenvs.learners.Learner.config_problems`)."""
+    (`config_problems`)."""
     problems.extend(LEARNERS[loss.name].config_problems(loss, "loss."))
 
 
@@ -255,8 +255,8 @@ def check_gymnasium_eval(env: DictConfig, problems: list[str]) -> None:
 
 
 def check_gymnasium_backend(cfg: DictConfig, problems: list[str]) -> None:
-    """``env.backend``: one of :data:`ENV_BACKENDS`; with ``gymnasium``, a gradient-free learner
-    (:data:`GRADIENT_FREE_LOSSES`) on one of Gymnasium's envs with continuous actions, its own
+    """``env.backend``: one of `ENV_BACKENDS`; with ``gymnasium``, a gradient-free learner
+    (`GRADIENT_FREE_LOSSES`) on one of Gymnasium's envs with continuous actions, its own
     physics (no ``env.params`` / ``env.randomize``) and no ``compile=true``."""
     backend = cfg.env.get("backend", "torchrl_diffenvs")
     if backend not in ENV_BACKENDS:
@@ -281,12 +281,12 @@ def check_gymnasium_backend(cfg: DictConfig, problems: list[str]) -> None:
 
 
 def validate_config(cfg: DictConfig) -> None:
-    """Raises :class:`ConfigError` listing every problem of ``cfg``; returns ``None`` when it can run.
+    """Raises `ConfigError` listing every problem of ``cfg``; returns ``None`` when it can run.
 
     Checked: mode, env name and its options/params (by building one env; physical parameters must
-    be finite), the loss section by its learner (:meth:`~torchrl_diffenvs.learners.Learner.config_problems`:
+    be finite), the loss section by its learner (`config_problems`:
     its settings dataclass, network sections and what it refuses), the ``train`` / ``eval`` /
-    ``selfplay`` / ``distributed`` sections by their dataclasses (:mod:`.settings`), logger,
+    ``selfplay`` / ``distributed`` sections by their dataclasses (`settings`), logger,
     device, dtype, and the ``resume`` / ``checkpoint`` files.
     """
     problems: list[str] = []
@@ -415,7 +415,7 @@ def _override_key(override: str) -> str:
 
 
 def check_checkpoint_path(value, key: str = "resume") -> None:
-    """Raises :class:`ConfigError` unless ``value`` is a checkpoint file (missing, or a directory:
+    """Raises `ConfigError` unless ``value`` is a checkpoint file (missing, or a directory:
     the message names what is valid)."""
     problems: list[str] = []
     _check_file(value, key, problems)
@@ -424,7 +424,7 @@ def check_checkpoint_path(value, key: str = "resume") -> None:
 
 
 def check_group_choice(group: str, overrides: list[str], options: list[str]) -> None:
-    """Raises :class:`ConfigError` when the command line chooses ``<group>=<name>`` and no such
+    """Raises `ConfigError` when the command line chooses ``<group>=<name>`` and no such
     config exists. For an optional group (``tuned``) Hydra would skip the missing file and train
     without it."""
     for override in overrides:
@@ -452,7 +452,7 @@ def merge_overrides(saved: list[str], current: list[str]) -> list[str]:
 
 
 def check_resume_compatible(trained: DictConfig, cfg: DictConfig) -> None:
-    """Raises :class:`ConfigError` unless ``cfg`` trains the same env and learner as the
+    """Raises `ConfigError` unless ``cfg`` trains the same env and learner as the
     checkpointed config ``trained`` (budget, evaluation, logging and device may change)."""
     problems = []
     for section in ("env", "loss"):

@@ -112,15 +112,16 @@ def _override_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
 
 
-def _env_of_checkpoint(cfg: DictConfig, trained: DictConfig, overrides: Sequence[str]) -> DictConfig:
+def _env_of_checkpoint(cfg: DictConfig, asked: RunSettings, trained: DictConfig, overrides: Sequence[str]) -> DictConfig:
     """The checkpoint's ``env`` section, with the command line's ``env.<key>=...`` on top (e.g.
     ``env.params.mass=2``: the trained policy under other physics). An ``env=<name>`` /
-    ``env.name=<name>`` must name the checkpoint's env: the policy's networks are shaped for it."""
+    ``env.name=<name>`` (``asked``: the command line's settings) must name the checkpoint's env:
+    the policy's networks are shaped for it."""
     keys = [_override_key(o) for o in overrides if _override_key(o) == "env" or _override_key(o).startswith("env.")]
-    if any(key in ("env", "env.name") for key in keys) and cfg.env.name != trained.env.name:
-        raise ConfigError(f"checkpoint={str(cfg.checkpoint)!r} holds a policy trained on env={trained.env.name}, "
-                          f"not env={cfg.env.name}; drop env= (mode=eval takes the env from the checkpoint) or "
-                          f"evaluate a checkpoint of an env={cfg.env.name} run")
+    if any(key in ("env", "env.name") for key in keys) and asked.env_name != trained.env.name:
+        raise ConfigError(f"checkpoint={asked.checkpoint!r} holds a policy trained on env={trained.env.name}, "
+                          f"not env={asked.env_name}; drop env= (mode=eval takes the env from the checkpoint) or "
+                          f"evaluate a checkpoint of an env={asked.env_name} run")
     env = trained.env.copy()
     with open_dict(env):
         for key in keys:
@@ -141,9 +142,10 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
     """
     from .. import compile_physics
 
-    ckpt = load_checkpoint(cfg.checkpoint)
+    asked = RunSettings.from_config(cfg)
+    ckpt = load_checkpoint(asked.checkpoint)
     trained = OmegaConf.create(ckpt["config"])
-    env_section = _env_of_checkpoint(cfg, trained, overrides)
+    env_section = _env_of_checkpoint(cfg, asked, trained, overrides)
     changed = {key: OmegaConf.to_container(value) if isinstance(value, (DictConfig, ListConfig)) else value
                for key, value in _diff(trained.env, env_section).items()}
     cfg = cfg.copy()
@@ -192,9 +194,7 @@ def evaluate_checkpoint(cfg: DictConfig, run_dir: Path, overrides: Sequence[str]
     if evaluation.gymnasium and in_gymnasium:  # the scores above are Gymnasium's own env's
         result.update({f"eval/gymnasium_{k}": v for k, v in scores.items()})
     elif evaluation.gymnasium:
-        options = cfg.env.get("options")
-        options = OmegaConf.to_container(options, resolve=True) if options else {}
-        result.update(gymnasium_scores(run, options, policy, steps, games))
+        result.update(gymnasium_scores(run, run.env_options, policy, steps, games))
     run_dir.mkdir(parents=True, exist_ok=True)
     if evaluation.gif:
         video = write_video(evaluation, env, policy, steps, run_dir / "eval")

@@ -1,8 +1,8 @@
 """Stopping a run cleanly on SIGTERM (a cluster's preemption, e.g. Slurm's) or Ctrl-C (SIGINT).
 
-While training, :class:`StopRequests` replaces the two signals' handlers: the first signal only
+While training, `StopRequests` replaces the two signals' handlers: the first signal only
 records the request, so the current iteration finishes, the loop writes a checkpoint and raises
-:class:`TrainingInterrupted`, whose message is the ``resume=`` command. A second Ctrl-C raises
+`TrainingInterrupted`, whose message is the ``resume=`` command. A second Ctrl-C raises
 ``KeyboardInterrupt`` at once, as Python's default does (the last checkpoint written stays the
 resume point). The previous handlers come back when training ends.
 """
@@ -36,7 +36,7 @@ class TrainingInterrupted(KeyboardInterrupt):
 
 
 class StopRequests:
-    """A context manager that turns SIGINT / SIGTERM into a request (:attr:`requested`, the
+    """A context manager that turns SIGINT / SIGTERM into a request (`requested`, the
     signal's name) that the loop acts on between iterations. Outside the main thread (where
     Python cannot install handlers) it does nothing."""
 

@@ -1,8 +1,8 @@
 """The training loop: build the run, then evaluate, checkpoint and train until the budget is spent.
 
-:func:`run` is what ``sota_scripts/train.py`` calls with a composed configuration; it trains
-(:func:`train`) or evaluates a checkpoint (``mode=eval``, :func:`~.eval_mode.evaluate_checkpoint`).
-The loop itself is :meth:`Trainer.fit`, readable top to bottom:
+`run` is what ``sota_scripts/train.py`` calls with a composed configuration; it trains
+(`train`) or evaluates a checkpoint (``mode=eval``, `evaluate_checkpoint`).
+The loop itself is `Trainer.fit`, readable top to bottom:
 
 1. at every ``eval.interval`` env steps (and at step 0): evaluate the deterministic policy on
    separate envs (rank 0), keep ``best.pt`` and stop early at ``train.score_to_win``;
@@ -12,15 +12,15 @@ The loop itself is :meth:`Trainer.fit`, readable top to bottom:
    ``final_metrics.json``.
 
 What differs between learners (their settings, networks, how they collect data) is the
-learner's business (:mod:`torchrl_diffenvs.learners`); this loop only drives
-:class:`~torchrl_diffenvs.learners.Learner`'s interface.
+learner's business (`torchrl_diffenvs.learners`); this loop only drives
+`Learner`'s interface.
 
 Under ``torchrun`` every rank runs the same loop: each simulates ``env.num_envs`` envs of its own,
 the learners average gradients over the ranks, and rank 0 alone evaluates, logs and writes the run
 directory and its checkpoints.
 
 Stopping: SIGTERM (a cluster's preemption) or Ctrl-C (SIGINT) lets the current iteration finish,
-writes a checkpoint and raises :class:`TrainingInterrupted` with the ``resume=`` command in its
+writes a checkpoint and raises `TrainingInterrupted` with the ``resume=`` command in its
 message; a second Ctrl-C stops at once (the last checkpoint written stays the one to resume).
 """
 from __future__ import annotations
@@ -143,10 +143,10 @@ def train(cfg: DictConfig, run_dir: str | Path, overrides: Sequence[str] = (), w
 
 
 class Trainer:
-    """One training run: its envs, learner, logger and counters, and the loop (:meth:`fit`).
+    """One training run: its envs, learner, logger and counters, and the loop (`fit`).
 
     Args:
-        cfg: the composed configuration (already checked by :func:`validate_config`).
+        cfg: the composed configuration (already checked by `validate_config`).
         run_dir: where rank 0 writes metrics, checkpoints, the video and the learning curve.
         overrides: the command line's overrides (kept in checkpoints for ``resume=``).
         world: the ranks training together.
@@ -162,15 +162,14 @@ class Trainer:
             cfg.distributed.world_size, cfg.distributed.backend = world.size, world.backend
             cfg.device = run.device
         self.cfg, self.run_dir, self.world = cfg, Path(run_dir), world
-        options = cfg.env.get("options")
-        self.env_options = OmegaConf.to_container(options, resolve=True) if options else {}  # eval.gymnasium
+        self.env_options = run.env_options  # eval.gymnasium
         self.overrides = [o for o in overrides if not o.startswith(_PER_INVOCATION)]
         self.ckpt_dir = self.run_dir / "checkpoints"
         self.logger: RunLogger | None = None
 
         # ------------------------------------------------------------ envs, learner, opponents
         seed_everything(run.seed)  # the same networks on every rank
-        self.env = make_env_from_config(cfg, cfg.env.num_envs, seed=rank_seed(run.seed, world.rank))
+        self.env = make_env_from_config(cfg, run.env_num_envs, seed=rank_seed(run.seed, world.rank))
         self.learner = make_learner(cfg.loss, self.env, run.train.total_env_steps, world)
         world.check_same(parameters_checksum(self.learner.policy.state_dict().values()), "initial policy")
         if not world.is_main:  # its own exploration noise and minibatch order (rank 0 goes on as one process would)
@@ -185,8 +184,8 @@ class Trainer:
             self._compile()
         self.total = run.train.total_env_steps
         if world.size > 1:
-            log.info(f"data parallel: {world.size} ranks ({world.backend}), env.num_envs={cfg.env.num_envs} per rank "
-                     f"({cfg.env.num_envs * world.size} in all), "
+            log.info(f"data parallel: {world.size} ranks ({world.backend}), env.num_envs={run.env_num_envs} per rank "
+                     f"({run.env_num_envs * world.size} in all), "
                      f"{self.learner.env_steps_per_iteration:,} env steps per iteration")
 
         # ------------------------------------------------------------ counters (saved in checkpoints)
@@ -438,7 +437,7 @@ class Trainer:
 
     def _stop(self, reason: str) -> None:
         """A stop request between iterations: writes a checkpoint, then raises
-        :class:`TrainingInterrupted` with the command that continues the run."""
+        `TrainingInterrupted` with the command that continues the run."""
         self.checkpoint()
         last = self.ckpt_dir / "last.pt"
         message = (f"stopped by {reason} at env step {self.progress['env_steps']:,}; checkpoint written: continue "

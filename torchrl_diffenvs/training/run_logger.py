@@ -6,7 +6,7 @@ Whatever the logger, the run directory gets:
 * ``metrics.csv``: the same rows as a table (one column per metric, blank where a row lacks it);
 * ``learning_curve.png``: evaluation and training returns against env steps.
 
-The external logger comes from :func:`torchrl.record.loggers.get_logger`: ``"wandb"`` (offline by
+The external logger comes from `torchrl.record.loggers.get_logger`: ``"wandb"`` (offline by
 default: the run lives in ``<run dir>/wandb`` and needs no network), ``"csv"`` (TorchRL's CSV logger
 under ``<run dir>/csv``) or ``"none"``. Metrics are logged against the number of env steps.
 """
@@ -37,7 +37,7 @@ class RunLogger:
     Args:
         settings: the run's ``logger`` section (its backend, name and W&B keys).
         run_dir: the Hydra run directory.
-        history: rows logged before a resume (:func:`read_history`); they are written again so
+        history: rows logged before a resume (`read_history`); they are written again so
             the run directory always holds the whole run.
         wandb_run_id: the W&B run id to continue (resume), or ``None`` for a new run.
         hyperparameters: logged once to the backend (the training loop passes the whole

@@ -2,9 +2,11 @@
 a schedule, drawn from a pool of the latest snapshots.
 
 The training script's ``selfplay`` section drives it on a two-player env
-(:class:`~torchrl_diffenvs.envs.TwoPlayerDiffEnv`, e.g. ``swimmer_race``)::
+(`TwoPlayerDiffEnv`, e.g. ``swimmer_race``):
 
-    python sota_scripts/train.py env=swimmer_race loss=shac selfplay.refresh_interval=20000 selfplay.pool_size=4
+```text
+python sota_scripts/train.py env=swimmer_race loss=shac selfplay.refresh_interval=20000 selfplay.pool_size=4
+```
 
 Every ``refresh_interval`` env steps (from step 0) the current policy is copied into the pool
 (the oldest snapshot leaves when it holds ``pool_size``) and the training envs' opponent becomes a
@@ -25,7 +27,7 @@ class SelfPlay:
     """The snapshot pool and its schedule for one training env.
 
     Args:
-        env: the training env (a :class:`~torchrl_diffenvs.envs.TwoPlayerDiffEnv`).
+        env: the training env (a `TwoPlayerDiffEnv`).
         policy: the learner's policy (``learner.policy``); snapshots are copies of it.
         refresh_interval: env steps between refreshes (all ranks' steps, like every interval).
         pool_size: snapshots kept.

@@ -1,11 +1,11 @@
 """The run's own sections of the training configuration (``train``, ``eval``, ``selfplay``,
 ``distributed``): frozen dataclasses whose fields carry their default and their check, as the
-learners' settings do (:class:`~torchrl_diffenvs.checks.Settings`).
+learners' settings do (`Settings`).
 
-They are the only place these defaults are written: :func:`register_run_configs` stores them in
+They are the only place these defaults are written: `register_run_configs` stores them in
 Hydra's ConfigStore as ``run_settings``, which ``configs/config.yaml`` lists first in its defaults;
 a learner's ``run_defaults`` (its budget) and ``configs/tuned/`` files then change some of them.
-:func:`~torchrl_diffenvs.training.config.validate_config` checks each section with its class
+`validate_config` checks each section with its class
 (unknown keys and bad values, each named with what is valid).
 """
 from __future__ import annotations
@@ -101,7 +101,7 @@ class SelfPlaySettings(Settings):
     """``selfplay.*``: rl_games' self-play on a two-player env (``env=swimmer_race``): every
     ``refresh_interval`` env steps the policy is copied into a pool of the last ``pool_size``
     snapshots and the training envs' opponent becomes one of them, drawn uniformly. Evaluations
-    play the task's fixed scripted opponent (:mod:`torchrl_diffenvs.training.selfplay`)."""
+    play the task's fixed scripted opponent (`torchrl_diffenvs.training.selfplay`)."""
 
     # env steps between refreshes; null: no self-play (the opponent stays the scripted one)
     refresh_interval: int | None = checked(None, _optional(checks.positive_int, "(env steps) for no self-play"))
@@ -155,7 +155,7 @@ def run_defaults() -> dict:
 
 
 def register_run_configs() -> None:
-    """Stores :func:`run_defaults` in Hydra's ConfigStore as ``run_settings`` (the first entry of
+    """Stores `run_defaults` in Hydra's ConfigStore as ``run_settings`` (the first entry of
     ``configs/config.yaml``'s defaults list)."""
     from hydra.core.config_store import ConfigStore
 
@@ -173,9 +173,9 @@ class RunSettings:
     """The typed view of a composed (and checked) training configuration that the training loop,
     ``mode=eval`` and the logger read: the run's sections as their settings classes, plus the
     top-level keys. The env and loss sections stay configuration: they are handed whole to the
-    env and learner builders, which check them (:func:`~torchrl_diffenvs.training.config.validate_config`).
+    env and learner builders, which check them (`validate_config`).
 
-    Built with :meth:`from_config`; every value is checked again on the way (a configuration
+    Built with `from_config`; every value is checked again on the way (a configuration
     that skipped ``validate_config`` fails here with the key and what is valid).
     """
 
@@ -188,6 +188,8 @@ class RunSettings:
     checkpoint: str | None
     env_name: str
     loss_name: str
+    env_num_envs: int  # envs in one training batch (per rank)
+    env_options: dict  # the env's options (resolved), e.g. the contact model; {} when it sets none
     train: TrainSettings
     eval: EvalSettings
     selfplay: SelfPlaySettings
@@ -204,6 +206,7 @@ class RunSettings:
             resume=None if cfg.get("resume") is None else str(cfg.get("resume")),
             checkpoint=None if cfg.get("checkpoint") is None else str(cfg.get("checkpoint")),
             env_name=str(cfg["env"]["name"]), loss_name=str(cfg["loss"]["name"]),
+            env_num_envs=int(cfg["env"].get("num_envs", 1)), env_options=_section(cfg["env"].get("options")),
             logger=LoggerSettings.from_mapping(_section(cfg.get("logger"))), **sections,
         )
 

@@ -138,7 +138,7 @@ class _Loop:
         # value is not finite are the same actions stepped again from the start, with checks (an
         # env that did that once checks every step from then on).
         deferred = (self.policy is None and not break_when_any_done and self.compiled is None
-                    and not getattr(self.env, "_nonfinite_seen", False))
+                    and not self.env._nonfinite_seen)
         episodes = self.env.episodes
         roots, nexts = self.steps(td0, root, extras, max_steps, break_when_any_done, check=not deferred)
         out_td = build_output(roots, nexts, return_contiguous, self.bs, self.device)
