@@ -25,6 +25,7 @@ Runs side by side (one process per core, e.g. one per task and seed, each with `
 summarised together afterwards, PPO-relative levels across all of them::
 
     python benchmarks/time_to_solve.py summarise=[hc_s0.json,hc_s1.json,hc_s2.json] data=race_halfcheetah
+    python benchmarks/time_to_solve.py "summarise=[docs/data/runs/race_mujoco/*.json]" data=race_mujoco  # a pattern
 
 Arguments are ``key=value`` (lists as ``[a,b]``), as for the training script. A variant
 (``variant=["LABEL=OVERRIDES", ...]``) runs every loss again with those Hydra overrides and is
@@ -48,12 +49,13 @@ only repeats its final evaluation). Without ``resume=true`` a kept run is never 
 """
 from __future__ import annotations
 
+import glob
 import itertools
+import json
 import math
 import shutil
 import statistics
 import sys
-import json
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -303,13 +305,36 @@ def seed_counts(runs: list[dict]) -> str:
     return "seeds: " + ", ".join(f"{label} {n}" for label, n in counts.items())
 
 
+def overview_table(summary: list[dict]) -> dict:
+    """One row per env and learner: the final return here and in Gymnasium's own env, and the time
+    to PPO's final median with its speed-up: the race at a glance."""
+    def rng(d):
+        return f"{C.fmt_return(d['median'])} [{C.fmt_return(d['min'])}, {C.fmt_return(d['max'])}]"
+
+    def to_ppo(row):
+        cell = row["levels"].get(1.0)
+        if cell is None:
+            return "-"
+        if not math.isfinite(cell["time_s"]):
+            return f"never ({cell['reached']})"
+        t = cell["time_s"]
+        when = f"{t:.0f} s" if t < 120 else f"{t / 60:.0f} min"
+        return f"{when} ({cell['reached']}, {C.fmt_ratio(cell['speedup_vs_ppo'])})"
+
+    rows = [[r["env"], f"{r['loss']} ({len(r['seeds'])})", rng(r["final_return"]),
+             rng(r["mujoco_return"]) if "mujoco_return" in r else "-", to_ppo(r)] for r in summary]
+    return C.data_table("The race at a glance: median [min, max] over seeds (their count in brackets); time to PPO's "
+                        "final median (seeds that reached it, speed-up against PPO)",
+                        ["task", "learner (seeds)", "final return", "in Gymnasium's env", "time to PPO's final"], rows)
+
+
 def write_summary_data(args, envs, runs, table, per_env_tables=None, threads: int | None = None,
-                       cpu_models: Sequence[str] = ()) -> None:
+                       cpu_models: Sequence[str] = (), summary: list[dict] | None = None) -> None:
     """The docs' data file of a summary table (``data=``; see ``_common.write_data``): the table
     under ``levels``, and with several envs one table per env too (under the env's name), whose
-    PPO-relative columns name that env's own levels. Each title counts the seeds of its rows;
-    ``threads``: the torch threads of the runs, ``cpu_models`` their CPUs (summarising earlier result
-    files)."""
+    PPO-relative columns name that env's own levels, and (``summary``) the `overview_table`
+    under ``overview``. Each title counts the seeds of its rows; ``threads``: the torch threads
+    of the runs, ``cpu_models`` their CPUs (summarising earlier result files)."""
     cells = "t, env steps (seeds that reached it, speed-up against PPO)"
     tables = {"levels": C.data_table(
         f"Time to solve: {', '.join(envs)} ({seed_counts(runs)}; median [min, max]; {cells})", *C.table_cells(table))}
@@ -317,6 +342,8 @@ def write_summary_data(args, envs, runs, table, per_env_tables=None, threads: in
         env_runs = [r for r in runs if r["env"] == env]
         tables[env] = C.data_table(f"{env} ({seed_counts(env_runs)}; median [min, max]; {cells})",
                                    *C.table_cells(env_table))
+    if summary is not None:
+        tables["overview"] = overview_table(summary)
     measured = {"machine": C.machine_name(threads=threads, models=cpu_models)} if threads is not None else None
     C.write_data(args, "time_to_solve_" + "_".join(envs), tables, source="time_to_solve", measured=measured)
 
@@ -336,13 +363,28 @@ def env_levels(items: list[str], envs: list[str]) -> dict[str, list[float]]:
     return levels
 
 
+def summarised_files(patterns: Sequence[str]) -> list[str]:
+    """The result files of ``summarise=[...]``: each item a file, or a pattern with ``*`` that
+    stands for the files it matches (sorted), e.g. ``docs/data/runs/race_mujoco/*.json``."""
+    files = []
+    for pattern in patterns:
+        if "*" not in pattern:
+            files.append(pattern)
+            continue
+        matched = sorted(glob.glob(pattern))
+        if not matched:
+            raise SystemExit(f"time_to_solve: summarise: no result file matches {pattern!r}")
+        files += matched
+    return files
+
+
 def summarise_files(args) -> dict:
     """``summarise=[a.json, ...]``: the runs of earlier result files merged and summarised again.
 
     Runs of the same env, loss, variant and seed in two files are refused (one would silently
     replace the other); PPO-relative levels need PPO's runs of each env among the files."""
     runs, infos = [], []
-    for name in args.summarise:
+    for name in summarised_files(args.summarise):
         path = Path(name)
         if not path.is_file():
             raise SystemExit(f"time_to_solve: summarise: no result file {name!r}")
@@ -359,18 +401,19 @@ def summarise_files(args) -> dict:
     losses = list(dict.fromkeys(r["loss"] for r in runs))
     own_levels = env_levels(args.env_levels, envs)
     summary, table = summarise(runs, envs, losses, [*args.levels, *(own_levels[envs[0]] if len(envs) == 1 else [])])
+    files = summarised_files(args.summarise)
     payload = {"benchmark": "time_to_solve", "info": infos[0], "summary": summary, "runs": runs, "table": table,
-               "merged_from": [str(n) for n in args.summarise]}
-    C.write_json("time_to_solve", payload, args.out or (args.summarise[0] if len(args.summarise) == 1 else None))
+               "merged_from": files}
+    C.write_json("time_to_solve", payload, args.out or (files[0] if len(files) == 1 else None))
     if args.data:  # re-summarising alone never replaces a page's data
         per_env = {env: summarise([r for r in runs if r["env"] == env], [env], losses,
                                   [*args.levels, *own_levels[env]])[1]
                    for env in envs} if len(envs) > 1 else None
         threads = {(info or {}).get("torch_threads") for info in infos}
-        # result files written before benchmarks recorded the CPU model say so
-        models = [(info or {}).get("cpu_model") or "CPU not recorded" for info in infos]
+        # the CPU models the runs recorded (result files written before benchmarks recorded it have none)
+        models = [(info or {}).get("cpu_model") for info in infos]
         write_summary_data(args, envs, runs, table, per_env, threads=threads.pop() if len(threads) == 1 else None,
-                           cpu_models=models)
+                           cpu_models=[m for m in models if m] or ["CPU not recorded"], summary=summary)
     return payload
 
 
@@ -463,7 +506,7 @@ def main(argv=None) -> dict:
         r["curve"] = [list(p) for p in r["curve"]]
     payload = {"benchmark": "time_to_solve", "info": info, "summary": summary, "runs": runs, "table": table}
     C.write_json("time_to_solve" + ("_quick" if quick else ""), payload, args.out)
-    write_summary_data(args, envs, runs, table)
+    write_summary_data(args, envs, runs, table, summary=summary)
     if args.keep_runs is None:
         shutil.rmtree(runs_root, ignore_errors=True)
     return payload

@@ -144,6 +144,23 @@ def load_runs(directory: str, only: str | None) -> list[dict]:
     return runs
 
 
+def _run_label(run: dict) -> str:
+    """A run's learner as the tables name it: ``loss`` or ``loss:variant``."""
+    return f"{run['loss']}:{run['variant']}" if run.get("variant") else run["loss"]
+
+
+def _seed_counts(runs: list[dict]) -> str:
+    """``3 seeds per learner``, or per learner where they differ: ``seeds: ppo 3, shac 2``."""
+    seeds: dict[str, set] = {}
+    for run in runs:
+        seeds.setdefault(_run_label(run), set()).add(run["seed"])
+    counts = {label: len(s) for label, s in seeds.items()}
+    if len(set(counts.values())) == 1:
+        n = next(iter(counts.values()))
+        return f"{n} seed{'s' if n > 1 else ''} per learner"
+    return "seeds: " + ", ".join(f"{label} {n}" for label, n in counts.items())
+
+
 def _ticks(low: float, high: float, count: int = 5) -> list[float]:
     """About ``count`` round values spanning ``[low, high]``."""
     raw = (high - low) / max(count - 1, 1) or 1.0
@@ -163,7 +180,7 @@ def render_curves(directory: str, only: str | None) -> str:
     figures = []
     for env in dict.fromkeys(r["env"] for r in runs):
         group = [r for r in runs if r["env"] == env]
-        labels = list(dict.fromkeys(f"{r['loss']}:{r['variant']}" if r.get("variant") else r["loss"] for r in group))
+        labels = list(dict.fromkeys(_run_label(r) for r in group))
         colour = {label: COLOURS[i % len(COLOURS)] for i, label in enumerate(labels)}
         xs = [p[0] for r in group for p in r["curve"]]
         ys = [p[2] for r in group for p in r["curve"]]
@@ -191,7 +208,7 @@ def render_curves(directory: str, only: str | None) -> str:
         parts.append(f'<text transform="translate(14 {TOP + height / 2}) rotate(-90)" text-anchor="middle">'
                      'evaluation return</text>')
         for run in group:
-            label = f"{run['loss']}:{run['variant']}" if run.get("variant") else run["loss"]
+            label = _run_label(run)
             points = " ".join(f"{x(p[0]):.1f},{y(p[2]):.1f}" for p in run["curve"])
             parts.append(f'<polyline points="{points}" fill="none" stroke="{colour[label]}" stroke-width="1.5" '
                          f'stroke-opacity="0.8"><title>{label}, seed {run["seed"]}</title></polyline>')
@@ -201,9 +218,8 @@ def render_curves(directory: str, only: str | None) -> str:
                          f'stroke="{colour[label]}" stroke-width="2"/>'
                          f'<text x="{LEFT + width + 34}" y="{top + 10}">{label}</text>')
         parts.append("</svg>")
-        seeds = len({r["seed"] for r in group})
         figures.append("".join(parts) + f"\n\n*{env}: the evaluation return of every run against its env steps "
-                       f"({seeds} seed{'s' if seeds > 1 else ''} per learner; one line per run).*\n")
+                       f"(one line per run; {_seed_counts(group)}).*\n")
     return "\n".join(figures)
 
 

@@ -403,6 +403,14 @@ def test_time_to_solve_merges_result_files(tmp_path):
     assert "45 s, 100k steps (2/3, 2.67x)" in json.dumps(data["tables"]["levels"]["rows"])
     # the caption names the runs' threads (not the summarising process's) and the title their seeds
     assert data["machine"].endswith("1 torch thread") and "(3 seeds;" in data["tables"]["levels"]["title"]
+    # the race at a glance: one row per learner, its seeds counted, the time to PPO's final (minutes from 2)
+    assert data["tables"]["overview"]["rows"] == [["task", "ppo (3)", "100 [90, 110]", "-", "2 min (2/3, 1x)"],
+                                                  ["task", "shac (3)", "60 [20, 120]", "-", "45 s (2/3, 2.67x)"]]
+    # a pattern stands for the files it matches
+    pattern = tts.main([f"summarise=[{tmp_path / 'seed*.json'}]", f"out={tmp_path / 'p.json'}"])
+    assert pattern["summary"] == payload["summary"]
+    with pytest.raises(SystemExit, match="no result file matches"):
+        tts.main([f"summarise=[{tmp_path / 'none*.json'}]"])
     extra = tmp_path / "sapo.json"
     extra.write_text(json.dumps({"benchmark": "time_to_solve", "info": {"torch_threads": 1},
                                  "runs": [_run("task", "sapo", 0, shac[0])]}))
@@ -441,8 +449,9 @@ def test_time_to_solve_takes_ppo_on_gymnasiums_env_where_an_env_has_no_ppo_run_h
 
 
 def test_time_to_solve_summary_names_the_cpus_its_runs_recorded(tmp_path):
-    """A summary of result files from two machines names both CPU models, and says so where a
-    file (written before benchmarks recorded the model) has none; every benchmark records it."""
+    """A summary of result files from two machines names both CPU models (a file written before
+    benchmarks recorded the model adds none; files that all lack it say so); every benchmark
+    records it."""
     tts = load("time_to_solve")
     infos = [{"torch_threads": 1, "cpu_model": "Model A"}, {"torch_threads": 1, "cpu_model": "Model B"},
              {"torch_threads": 1}]
@@ -454,7 +463,9 @@ def test_time_to_solve_summary_names_the_cpus_its_runs_recorded(tmp_path):
     tts.main([f"summarise=[{','.join(map(str, paths))}]", f"out={tmp_path / 'out.json'}",
               f"data={tmp_path / 'data.json'}"])
     machine = json.loads((tmp_path / "data.json").read_text())["machine"]
-    assert "Model A / Model B / CPU not recorded" in machine and machine.endswith("1 torch thread")
+    assert "Model A / Model B (" in machine and machine.endswith("1 torch thread")
+    tts.main([f"summarise=[{paths[2]}]", f"out={tmp_path / 'out.json'}", f"data={tmp_path / 'data.json'}"])
+    assert "CPU not recorded" in json.loads((tmp_path / "data.json").read_text())["machine"]
     assert load("_common").versions()["cpu_model"]
 
 
