@@ -105,30 +105,51 @@ def portable_args(args: Sequence[str]) -> list[str]:
     the repository relative to it, ``data=`` the data file's name (``docs/data/<name>.json``),
     ``out=`` and ``resume=`` dropped when they name a scratch file outside the repository (the data
     file holds the tables the docs show), and ``keep_runs=`` with its ``resume=true`` dropped when it
-    names a scratch directory there (a kept run continued across sittings reads as one run)."""
+    names a scratch directory there (a kept run continued across sittings reads as one run). In a
+    list value (``summarise=[a.json,b.json]``) a scratch file is named by its file name alone; a
+    word with a ``*`` pattern is quoted, as a shell needs it."""
     root = str(REPO_ROOT) + os.sep
-    scratch = lambda value: os.path.isabs(value) and not value.startswith(root)  # noqa: E731
-    keeps_scratch = any(w.startswith("keep_runs=") and scratch(w.partition("=")[2]) for w in args)
+    keeps_scratch = any(w.startswith("keep_runs=") and _scratch(w.partition("=")[2]) for w in args)
     words = []
     for word in args:
         key, eq, value = word.partition("=")
         if eq and key == "data" and (value.endswith(".json") or "/" in value):
             word = f"data={Path(value).stem}"
-        elif eq and key in ("out", "resume", "keep_runs") and scratch(value):
+        elif eq and key in ("out", "resume", "keep_runs") and _scratch(value):
             continue
         elif eq and key == "resume" and keeps_scratch:
             continue
-        words.append(word.replace(root, ""))
+        elif eq and value.startswith("[") and value.endswith("]"):
+            items = [portable_path(item) for item in value[1:-1].split(",")]
+            word = f"{key}=[{','.join(items)}]"
+        word = word.replace(root, "")
+        words.append(f'"{word}"' if "*" in word else word)
     return words
+
+
+def _scratch(value: str) -> bool:
+    """Whether ``value`` names a path outside the repository (this machine's own)."""
+    return os.path.isabs(value) and not value.startswith(str(REPO_ROOT) + os.sep)
+
+
+def portable_path(value: str) -> str:
+    """A path as a data file records it: inside the repository relative to its root, elsewhere
+    (a scratch file of this machine) its file name alone; other values as they are."""
+    if _scratch(value):
+        return Path(value).name
+    return value.replace(str(REPO_ROOT) + os.sep, "")
 
 
 def portable_run(result: dict, runs_root: Path) -> dict:
     """A training run's record (``train.py``'s ``run``) with its run directory and checkpoint
-    relative to the directory that holds the runs (a scratch directory of this machine)."""
+    relative to the directory that holds the runs (a scratch directory of this machine), or to
+    the run directory's parent where it lies elsewhere."""
+    run_dir = Path(result["run_dir"]) if result.get("run_dir") else None
+    root = runs_root if run_dir is None or run_dir.is_relative_to(runs_root) else run_dir.parent
     for key in ("run_dir", "checkpoint"):
         if result.get(key):
             path = Path(result[key])
-            result[key] = str(path.relative_to(runs_root)) if path.is_relative_to(runs_root) else path.name
+            result[key] = str(path.relative_to(root)) if path.is_relative_to(root) else path.name
     return result
 
 
@@ -201,7 +222,8 @@ def fmt_error(x: float | None) -> str:
         return "-"
     if x == 0:
         return "0"
-    return f"{x:.2g}" if 0.01 <= abs(x) < 1000 else f"{x:.1e}"
+    # .2g would write 150 as 1.5e+02: round to two digits, then print without an exponent
+    return f"{float(f'{x:.2g}'):g}" if 0.01 <= abs(x) < 1000 else f"{x:.1e}"
 
 
 def fmt_ratio(x: float | None) -> str:

@@ -403,7 +403,7 @@ def summarise_files(args) -> dict:
     summary, table = summarise(runs, envs, losses, [*args.levels, *(own_levels[envs[0]] if len(envs) == 1 else [])])
     files = summarised_files(args.summarise)
     payload = {"benchmark": "time_to_solve", "info": infos[0], "summary": summary, "runs": runs, "table": table,
-               "merged_from": files}
+               "merged_from": [C.portable_path(f) for f in files]}
     C.write_json("time_to_solve", payload, args.out or (files[0] if len(files) == 1 else None))
     if args.data:  # re-summarising alone never replaces a page's data
         per_env = {env: summarise([r for r in runs if r["env"] == env], [env], losses,

@@ -378,11 +378,17 @@ def _settings_rows(cls, prefix: str, instance=None) -> list[list[str]]:
 
 
 def _yaml_value(value) -> str:
-    """A default as a Hydra command line or a YAML file writes it: ``true``, ``null``, ``1e6``."""
+    """A default as a Hydra command line or a YAML file writes it: ``true``, ``null``, ``1e6``,
+    ``.inf``."""
     if value is None or isinstance(value, bool):
         return {None: "null", True: "true", False: "false"}[value]
-    if isinstance(value, float) and abs(value) >= 1e5:
-        return f"{value:g}".replace("e+0", "e").replace("e+", "e")
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return ".nan" if math.isnan(value) else (".inf" if value > 0 else "-.inf")
+        if value.is_integer() and abs(value) >= 1e5:  # 1e6, not 1000000.0 (an int to the reader)
+            mantissa, exponent = f"{value:.15e}".split("e")
+            return f"{mantissa.rstrip('0').rstrip('.')}e{int(exponent)}"
+        return repr(value).replace("e+", "e")
     if isinstance(value, list):
         return "[" + ", ".join(_yaml_value(v) for v in value) + "]"
     return repr(value).replace("'", "")

@@ -323,14 +323,21 @@ def test_recorded_commands_hold_no_local_paths(tmp_path):
     assert common.portable_args(args) == ["envs=[Hopper-v5]", "data=race"]
     assert common.portable_args(["keep_runs=runs/ant", "resume=true", f"out={inside}"]) == [
         "keep_runs=runs/ant", "resume=true", "out=docs/data/runs/x.json"]
+    # list items: scratch files by name, files inside relative; a pattern quoted for the shell
+    assert common.portable_args([f"summarise=[{tmp_path / 'a.json'},{inside}]", f"summarise=[{inside.parent}/*.json]"]) == [
+        "summarise=[a.json,docs/data/runs/x.json]", '"summarise=[docs/data/runs/*.json]"']
+    run = {"run_dir": str(tmp_path / "elsewhere" / "r"), "checkpoint": str(tmp_path / "elsewhere" / "r" / "checkpoints" / "last.pt")}
+    assert common.portable_run(run, tmp_path / "runs") == {"run_dir": "r", "checkpoint": "r/checkpoints/last.pt"}
 
 
 def test_the_data_files_hold_no_local_paths():
-    """What the docs render and link (docs/data) names no directory of the machine that measured it."""
+    """What the docs render and link (docs/data: results, raw run files, logs) names no directory of
+    the machine that measured it."""
     data = Path(__file__).resolve().parents[2] / "docs" / "data"
     local = ("/tmp/", "/home/", "/root/", "/work/", str(data.parents[1]))
-    found = [f"{path.relative_to(data)}: {prefix}" for path in sorted(data.rglob("*.json"))
-             for prefix in local if prefix in path.read_text()]
+    texts = [path for path in sorted(data.rglob("*")) if path.suffix in (".json", ".jsonl", ".txt", ".csv", ".md")]
+    assert len(texts) > 100
+    found = [f"{path.relative_to(data)}: {prefix}" for path in texts for prefix in local if prefix in path.read_text()]
     assert not found, found
 
 
@@ -398,7 +405,7 @@ def test_time_to_solve_merges_result_files(tmp_path):
     assert shac_level["return"] == 100 and shac_level["reached"] == "2/3" and shac_level["seeds_reached"] == [0, 1]
     assert shac_level["time_s"] == 45 and shac_level["env_steps"] == 100_000  # medians of (20, 45, inf), (50k, 100k, inf)
     assert shac_level["speedup_vs_ppo"] == pytest.approx(120 / 45)
-    assert json.loads(out.read_text())["merged_from"] == files
+    assert json.loads(out.read_text())["merged_from"] == [Path(f).name for f in files]  # scratch files: names
     data = json.loads((tmp_path / "data.json").read_text())
     assert "45 s, 100k steps (2/3, 2.67x)" in json.dumps(data["tables"]["levels"]["rows"])
     # the caption names the runs' threads (not the summarising process's) and the title their seeds

@@ -99,13 +99,13 @@ class DiffEnv(EnvBase):
 
     batch_locked = True
     _supports_set_state = True
-    #: state entries that are readings of the last step (as a MuJoCo task's contact force), not
-    #: inputs of the next: ``reset(td, set_state=True)`` starts a missing one at 0
     reading_state_keys: tuple[str, ...] = ()
-    #: the compiled chunks of this env's lean rollouts, set by `compile_physics` (None: eager)
+    """State entries that are readings of the last step (as a MuJoCo task's contact force), not
+    inputs of the next: ``reset(td, set_state=True)`` starts a missing one at 0."""
+    # the compiled chunks of this env's lean rollouts, set by compile_physics (None: eager)
     _compiled_physics = None
-    #: whether a lean rollout that deferred its finiteness checks met a non-finite value: this
-    #: env's lean rollouts check every step from then on
+    # whether a lean rollout that deferred its finiteness checks met a non-finite value: this
+    # env's lean rollouts check every step from then on
     _nonfinite_seen: bool = False
 
     def derived_state(self, state, params) -> dict:
@@ -124,7 +124,7 @@ class DiffEnv(EnvBase):
 
         Returns:
             The state entries, each ``[n, ...]``; random draws come from each env's own stream
-            (see the class docstring), so that a reset of some envs leaves the others' draws as they were.
+                (see the class docstring), so that a reset of some envs leaves the others' draws as they were.
         """
         raise NotImplementedError
 
@@ -139,7 +139,7 @@ class DiffEnv(EnvBase):
 
         Returns:
             ``(next_state, reward, terminated)``: a dict like ``state``, the reward ``[N]`` and a
-            ``[N]`` bool tensor, or ``None`` for a task that never terminates.
+                ``[N]`` bool tensor, or ``None`` for a task that never terminates.
         """
         raise NotImplementedError
 

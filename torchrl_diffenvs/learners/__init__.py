@@ -51,8 +51,8 @@ from .sapo import SAPOConfig, SAPOLearner
 from .shac import SHACConfig, SHACLearner
 from .short_horizon import ShortHorizonLearner, TwinCriticLearner
 
-#: every learner by its ``loss=`` name (filled by `register_learner`)
 LEARNERS: dict[str, type[Learner]] = {}
+"""Every learner class by its ``loss=`` name (filled by `register_learner`)."""
 
 
 def register_learner(learner: type[Learner]) -> type[Learner]:

@@ -22,8 +22,8 @@ __all__ = [  # checked: re-exported for the learner files
     "load_lr_scheduler", "lr_scheduler",
 ]
 
-#: the valid ``loss.lr_schedule`` values
 LR_SCHEDULES = ("linear", "exponential", "constant")
+"""The valid ``loss.lr_schedule`` values."""
 
 
 class LearnerConfig(Settings):

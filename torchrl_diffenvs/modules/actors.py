@@ -21,6 +21,7 @@ from .networks import LeanModule, env_dims, make_agent_mlp, make_mlp, orthogonal
 __all__ = ["DISTRIBUTIONS", "SquashedNormalActor", "TanhNormalActor", "make_actor", "make_sapo_actor"]
 
 DISTRIBUTIONS = ("tanh_normal", "deterministic")
+"""The valid ``distribution`` names of `make_actor`."""
 
 
 def _action_bounds(env, who: str = "make_actor") -> tuple[float, float]:

@@ -17,6 +17,7 @@ from .networks import LeanModule, env_dims, make_agent_mlp, make_mlp
 __all__ = ["CRITIC_INPUTS", "make_critic", "make_qvalue", "privileged_inputs", "update_privileged_statistics"]
 
 CRITIC_INPUTS = ("observation", "state")
+"""What a critic may read: the policy's observation, or the env's privileged state."""
 
 
 def privileged_inputs(env) -> list[tuple[tuple[str, str], int]]:

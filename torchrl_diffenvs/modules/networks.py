@@ -14,9 +14,10 @@ from torchrl.modules import MLP, MultiAgentMLP
 __all__ = ["ACTIVATIONS", "NETWORK_INITS", "LeanModule", "env_dims", "make_agent_mlp", "make_mlp", "observation_key_of",
            "orthogonal_init_"]
 
-#: the valid ``activation`` names of the networks and their modules
 ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "elu": nn.ELU, "relu": nn.ReLU, "silu": nn.SiLU}
+"""The valid ``activation`` names of the networks and their modules."""
 NETWORK_INITS = ("default", "orthogonal")
+"""The valid ``init`` names of the networks: the layers' own initialisation, or orthogonal."""
 
 
 class LeanModule(TensorDictModuleBase):

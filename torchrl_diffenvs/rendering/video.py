@@ -13,8 +13,8 @@ from PIL import Image
 
 __all__ = ["VIDEO_FORMATS", "mp4_available", "save_gif", "save_mp4", "save_video"]
 
-#: the formats `save_video` writes (mp4 needs imageio's ffmpeg plugin)
 VIDEO_FORMATS = ("gif", "mp4")
+"""The formats `save_video` writes (mp4 needs imageio's ffmpeg plugin)."""
 
 
 def _as_uint8_frame(frame, index: int) -> np.ndarray:

@@ -168,6 +168,15 @@ def _section(values) -> dict:
     return OmegaConf.to_container(values, resolve=True) if isinstance(values, DictConfig) else dict(values or {})
 
 
+def _env_num_envs(env) -> int:
+    """``env.num_envs``, checked as the other run settings are."""
+    value = env.get("num_envs")
+    problem = checks.positive_int(value)
+    if problem:
+        raise ValueError(f"RunSettings: env.num_envs={value!r}: {problem}")
+    return value
+
+
 @dataclasses.dataclass(frozen=True)
 class RunSettings:
     """The typed view of a composed (and checked) training configuration that the training loop,
@@ -206,7 +215,7 @@ class RunSettings:
             resume=None if cfg.get("resume") is None else str(cfg.get("resume")),
             checkpoint=None if cfg.get("checkpoint") is None else str(cfg.get("checkpoint")),
             env_name=str(cfg["env"]["name"]), loss_name=str(cfg["loss"]["name"]),
-            env_num_envs=int(cfg["env"].get("num_envs", 1)), env_options=_section(cfg["env"].get("options")),
+            env_num_envs=_env_num_envs(cfg["env"]), env_options=_section(cfg["env"].get("options")),
             logger=LoggerSettings.from_mapping(_section(cfg.get("logger"))), **sections,
         )
 

@@ -11,10 +11,10 @@ from .reacher import ReacherV5Env
 from .swimmer import SwimmerV5Env
 from .walker2d import Walker2dV5Env
 
-#: the eleven Gymnasium MuJoCo v5 task classes, in the order the docs list them
 MUJOCO_TASKS = (
     InvertedPendulumV5Env, InvertedDoublePendulumV5Env, ReacherV5Env, SwimmerV5Env, HalfCheetahV5Env, HopperV5Env,
     Walker2dV5Env, AntV5Env, HumanoidV5Env, HumanoidStandupV5Env, PusherV5Env,
 )
+"""The eleven Gymnasium MuJoCo v5 task classes, in the order the docs list them."""
 
 __all__ = ["MuJoCoModelEnv", "MUJOCO_TASKS", *(cls.__name__ for cls in MUJOCO_TASKS)]
