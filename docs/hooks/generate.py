@@ -3,7 +3,9 @@
 * ``{{ table NAME }}`` becomes the Markdown table of ``docs/data/NAME.json`` (written by the
   benchmark that measured it), followed by its date, machine and command. Numbers are never
   pasted into the pages: re-running the benchmark rewrites the data file and the next build
-  shows the new measurement.
+  shows the new measurement. ``{{ table NAME:KEY without=PREFIX,PREFIX }}`` leaves out the
+  columns of those names, or whose names start with them (a page-wide table; the data file keeps
+  them all).
 * ``{{ curves DIR }}`` (or ``{{ curves DIR:FILTER }}``, only the result files whose name holds
   ``FILTER``) becomes a figure per env of the evaluation returns against env steps of every run
   in the result files of ``docs/data/runs/DIR/`` (``time_to_solve.py out=``), one line per run,
@@ -28,7 +30,7 @@ import warnings
 from pathlib import Path
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
-TABLE = re.compile(r"\{\{\s*table\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?\s*\}\}")
+TABLE = re.compile(r"\{\{\s*table\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?(?:\s+without=([^}]+?))?\s*\}\}")
 CURVES = re.compile(r"\{\{\s*curves\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?\s*\}\}")
 SCALING = re.compile(r"\{\{\s*scaling\s+([A-Za-z0-9_.-]+):([A-Za-z0-9_.-]+):([^}]+?)\s*\}\}")
 CONFIG_REFERENCE = re.compile(r"\{\{\s*config_reference\s*\}\}")
@@ -92,8 +94,24 @@ def load_data(name: str) -> dict:
     return data
 
 
-def render_table(name: str, key: str | None, data_link: str) -> str:
-    """``{{ table name }}`` (a data file with one table) or ``{{ table name:key }}``, as Markdown."""
+def _kept_columns(table: dict, without: str | None, tag: str) -> list[int]:
+    """The columns' positions without those ``without`` names (comma-separated): a column of that
+    name, or else the columns whose names start with it."""
+    columns = [str(c) for c in table["columns"]]
+    if not without:
+        return list(range(len(columns)))
+    dropped: set[int] = set()
+    for name in (p.strip() for p in without.split(",") if p.strip()):
+        named = [i for i, c in enumerate(columns) if c == name] or [i for i, c in enumerate(columns) if c.startswith(name)]
+        if not named:
+            raise ValueError(f"{tag}: without= {name} names no column; valid columns: {', '.join(columns)}")
+        dropped.update(named)
+    return [i for i in range(len(columns)) if i not in dropped]
+
+
+def render_table(name: str, key: str | None, data_link: str, without: str | None = None) -> str:
+    """``{{ table name }}`` (a data file with one table) or ``{{ table name:key }}``, as Markdown;
+    ``without``: comma-separated prefixes of the names of columns to leave out."""
     data = load_data(name)
     tables = data["tables"]
     if key is None and len(tables) != 1:
@@ -102,10 +120,10 @@ def render_table(name: str, key: str | None, data_link: str) -> str:
     if key is not None and key not in tables:
         raise ValueError(f"{{{{ table {name}:{key} }}}}: no table {key!r}; valid: {', '.join(tables)}")
     table = tables[key] if key is not None else next(iter(tables.values()))
-    lines = ["| " + " | ".join(_cell(c) for c in table["columns"]) + " |",
-             "|" + "|".join("---" for _ in table["columns"]) + "|"]
+    kept = _kept_columns(table, without, f"{{{{ table {name}{':' + key if key else ''} }}}}")
+    lines = ["| " + " | ".join(_cell(table["columns"][i]) for i in kept) + " |", "|" + "|".join("---" for _ in kept) + "|"]
     rows = [row for row in table["rows"] if not _skipped(row)]
-    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
+    lines += ["| " + " | ".join(_cell(row[i]) for i in kept) + " |" for row in rows]
     skipped: dict[str, list[str]] = {}
     for row in table["rows"]:
         if _skipped(row):
@@ -116,8 +134,10 @@ def render_table(name: str, key: str | None, data_link: str) -> str:
                 + "; ".join(f"{key} ({table['columns'][1]} = {', '.join(values)})" for key, values in skipped.items())
                 + ".\n\n")
     command = data["command"]
+    left_out = [_cell(c) for i, c in enumerate(table["columns"]) if i not in kept]
     caption = (f"*{table['title']}. Measured {data['measured']} on {data['machine']}"
-               + (f" with `{command}`" if command else "") + f" ([data]({data_link}{name}.json)).*")
+               + (f" with `{command}`" if command else "") + f" ([data]({data_link}{name}.json)"
+               + (f"; also there: {', '.join(left_out)}" if left_out else "") + ").*")
     return note + "\n".join(lines) + "\n\n" + caption + "\n"
 
 
@@ -424,7 +444,7 @@ def render_config_reference() -> str:
 
 def on_page_markdown(markdown: str, page, config, files) -> str:
     data_link = "../" * page.file.src_uri.count("/") + "data/"
-    markdown = TABLE.sub(lambda m: render_table(m.group(1), m.group(2), data_link), markdown)
+    markdown = TABLE.sub(lambda m: render_table(m.group(1), m.group(2), data_link, m.group(3)), markdown)
     markdown = CURVES.sub(lambda m: render_curves(m.group(1), m.group(2)), markdown)
     markdown = SCALING.sub(lambda m: render_scaling(m.group(1), m.group(2), m.group(3), data_link), markdown)
     if CONFIG_REFERENCE.search(markdown):

@@ -79,3 +79,27 @@ def test_scaling_figure_of_one_task_names_its_lines_by_column(hook, tmp_path):
     assert ">ours</text>" in svg and ">theirs</text>" in svg and "(ours, theirs; Hopper-v5; log-log)" in svg
     with pytest.raises(ValueError, match="no measured rates"):
         hook.render_scaling("rates", "rates", "ours:Ant-v5", "")
+
+
+def test_a_table_leaves_out_the_columns_named_by_prefix_and_says_so(hook):
+    (hook.DATA_DIR / "wide.json").write_text(json.dumps({
+        "measured": "2026-01-01", "machine": "m", "command": "c",
+        "tables": {"t": {"title": "T", "columns": ["env", "loss", "env steps", "PPO final = 612", "95% of PPO = 582"],
+                         "rows": [["Hopper-v5", "shac", "200,704", "1964 s", "1900 s"]]}}}))
+    page = hook.on_page_markdown("{{ table wide:t without=env,95% }}", _page("results.md"), None, None)
+    # a column's own name leaves out that column only ("env", not "env steps"); else a prefix
+    assert page.splitlines()[:3] == ["| loss | env steps | PPO final = 612 |", "|---|---|---|",
+                                     "| shac | 200,704 | 1964 s |"]
+    assert "also there: env, 95% of PPO = 582" in page
+    with pytest.raises(ValueError, match=r"without= 80% names no column; valid columns: env, loss"):
+        hook.render_table("wide", "t", "data/", "loss,80%")
+
+
+def _page(src_uri: str):
+    class File:
+        pass
+
+    class Page:
+        file = File()
+    Page.file.src_uri = src_uri
+    return Page()
