@@ -37,9 +37,10 @@ def _rollout(task, mode, steps=12, seed=3):
 
 @pytest.mark.parametrize("task", ["Hopper-v5", "HalfCheetah-v5"])
 def test_every_mode_keeps_mujocos_forward_values(task):
-    exact_obs, exact_rew, exact_grad = _rollout(task, "exact")
+    steps = 8 if task == "Hopper-v5" else 12  # the Hopper (4 RK4 stages a physics step) lands in its 7th env step
+    exact_obs, exact_rew, exact_grad = _rollout(task, "exact", steps)
     for mode in ("cfd", "smooth", "penalty"):
-        obs, rew, grad = _rollout(task, mode)
+        obs, rew, grad = _rollout(task, mode, steps)
         assert torch.equal(obs, exact_obs) and torch.equal(rew, exact_rew), mode
         assert torch.isfinite(grad).all()
         assert not torch.equal(grad, exact_grad), f"{mode}: the gradient should differ once feet touch"

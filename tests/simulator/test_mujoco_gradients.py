@@ -78,7 +78,9 @@ def step_fn(env, state_keys, param_key=None):
 # HumanoidStandup's model is the Humanoid's, lying down: its gradcheck adds time, not coverage
 @pytest.mark.parametrize("name", [t for t in MUJOCO_TASKS if t != "HumanoidStandup-v5"])
 def test_gradcheck_one_step(name):
-    n = 1 if name in ("Ant-v5", "Humanoid-v5", "HumanoidStandup-v5") else 2  # many contacts: the slowest, one env
+    # many contacts (the Ant, the Humanoid) or golden-section searches (the Pusher's capsule-cylinder
+    # pairs): the slowest, one env; the others check with two envs that no gradient crosses envs
+    n = 1 if name in ("Ant-v5", "Humanoid-v5", "HumanoidStandup-v5", "Pusher-v5") else 2
     env = make_env(name, num_envs=n, dtype=torch.float64, seed=0)
     # contact active; joints mid-range: a limit's active set (which rows push, jointly solved) has
     # kinks in the state (as MuJoCo's), see test_coupled_joint_limits_gradcheck for the limits
