@@ -14,7 +14,7 @@ mujoco = pytest.importorskip("mujoco")
 
 from torchrl_diffenvs.articulated import RigidBodyTree, default_params, forward_kinematics, gymnasium_asset, load_mjcf, step  # noqa: E402
 from torchrl_diffenvs.articulated.collision import collide  # noqa: E402
-from torchrl_diffenvs.articulated.constraint import constraint_rows, solve  # noqa: E402
+from torchrl_diffenvs.articulated.constraint import _line_search, constraint_rows, solve  # noqa: E402
 from torchrl_diffenvs.articulated.inertia import body_invweight0, mass_matrix_and_bias  # noqa: E402
 from torchrl_diffenvs.articulated.pipeline import accelerations, body_contact_wrenches, invweight0  # noqa: E402
 from torchrl_diffenvs.envs import make_env  # noqa: E402
@@ -827,6 +827,32 @@ def test_pusher_contacts_and_step_match_mujoco_while_pushing():
     assert qvel_gaps(shallow).max() < 3e-5  # measured 2e-7
     # the axis inside the object: EPA's residual (measured 2e-5)
     assert qvel_gaps(single[depth[single] < -0.02]).max() < 1e-4
+
+
+def test_line_search_returns_the_minimiser_along_the_direction():
+    """The exact line search against bisection on the slope ``f'(alpha) = s + alpha c + sum_i w_i
+    jd_i min(0, jar_i + alpha jd_i)`` (increasing), with rows on the boundary (``jar = 0``) that
+    move in, move out or stay, and rows that do not exist (``w = 0``)."""
+    g = torch.Generator().manual_seed(0)
+    n, r = 256, 12
+    jar = torch.randn(n, r, dtype=torch.float64, generator=g)
+    jar[torch.rand(n, r, generator=g) < 0.2] = 0.0  # on the boundary
+    jd = torch.randn(n, r, dtype=torch.float64, generator=g)
+    jd[torch.rand(n, r, generator=g) < 0.1] = 0.0
+    w = torch.rand(n, r, dtype=torch.float64, generator=g) * (torch.rand(n, r, generator=g) < 0.8)
+    s0, c0 = torch.randn(n, dtype=torch.float64, generator=g), torch.rand(n, dtype=torch.float64, generator=g) + 0.01
+
+    def slope(alpha):
+        return s0 + alpha * c0 + (w * jd * (jar + alpha.unsqueeze(-1) * jd).clamp_max(0)).sum(-1)
+
+    low, high = torch.zeros(n, dtype=torch.float64), torch.full((n,), 1e3, dtype=torch.float64)
+    assert (slope(high) > 0).all()
+    for _ in range(200):  # bisection to the root (or 0 where the cost rises from the start)
+        mid = (low + high) / 2
+        uphill = slope(mid) >= 0
+        low, high = torch.where(uphill, low, mid), torch.where(uphill, mid, high)
+    expected = torch.where(slope(torch.zeros(n, dtype=torch.float64)) >= 0, 0.0, high)
+    torch.testing.assert_close(_line_search(jar, jd, w, s0, c0), expected, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.filterwarnings("ignore")

@@ -215,11 +215,12 @@ def _line_search(jar, jd, weight, slope0, curvature0):
     alpha curvature0 + sum_i w_i jd_i min(0, jar_i + alpha jd_i)``, piecewise linear and
     increasing. Rows switch at ``t_i = -jar_i / jd_i``; sorted, their running sums give the
     slope's coefficients on each piece, and the root lies on the first piece whose end is uphill."""
-    inside = jar < 0
-    switching = (jar * jd < 0) | ((jar == 0) & (jd != 0))  # rows whose sign changes at some alpha > 0
-    t = torch.where(switching, -jar / torch.where(jd == 0, 1.0, jd), torch.full_like(jar, torch.inf))
+    # rows whose sign changes at some alpha > 0 (a row on the boundary, jar = 0, is inside from 0+
+    # on if it moves in and outside if not: it never switches)
+    switching = jar * jd < 0
+    t = torch.where(switching, -jar / jd, torch.inf)
     # at alpha = 0+: the rows inside, or on the boundary moving in
-    active0 = inside | ((jar == 0) & (jd < 0))
+    active0 = (jar < 0) | ((jar == 0) & (jd < 0))
     c1 = curvature0 + (weight * jd * jd * active0).sum(-1)  # f' = c0 + alpha c1 on the first piece
     c0 = slope0 + (weight * jd * jar * active0).sum(-1)
     t_sorted, order = t.sort(-1)  # argsort is this sort's indices: the same order, without a gather
