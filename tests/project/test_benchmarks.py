@@ -577,8 +577,9 @@ def test_jax_comparison_quick(tmp_path):
 def test_stress_quick(tmp_path):
     rows = load("stress").main(["quick=true", "tasks=[Ant-v5]", "integrator=implicit", "policies=[resonant,greedy]",
                                 f"out={tmp_path / 's.json'}", "data=none"])
-    assert [r[:3] for r in rows] == [["Ant-v5", "implicit", "resonant"], ["Ant-v5", "implicit", "greedy"]]
-    assert all(r[4] == "0" for r in rows)  # 8 envs x 20 steps: nothing diverges
+    assert [r[:4] for r in rows] == [["Ant-v5", "mujoco", "implicit", "resonant"], ["Ant-v5", "mujoco", "implicit", "greedy"]]
+    assert all(r[5] == "0" for r in rows)  # 8 envs x 20 steps: nothing diverges
+    assert all(r[6].isdigit() for r in rows)  # env steps with an unconverged solve, read from the env's flag
     with pytest.raises(SystemExit, match="integrator='verlet': valid: model, euler, implicit, rk4"):
         load("stress").main(["quick=true", "integrator=verlet"])
 
