@@ -213,95 +213,100 @@ class SolverResult(NamedTuple):
 def _line_search(jar, jd, weight, slope0, curvature0):
     """The exact minimiser ``alpha >= 0`` of the cost along a direction: ``f'(alpha) = slope0 +
     alpha curvature0 + sum_i w_i jd_i min(0, jar_i + alpha jd_i)``, piecewise linear and
-    increasing. Rows switch at ``t_i = -jar_i / jd_i``; sorted, their running sums give the
-    slope's coefficients on each piece, and the root lies on the first piece whose end is uphill."""
+    increasing. Rows switch at ``t_i = -jar_i / jd_i``; sorted, their running sums give ``f'`` at
+    each breakpoint, and the root lies on the piece after the last breakpoint where ``f' < 0``."""
     # rows whose sign changes at some alpha > 0 (a row on the boundary, jar = 0, is inside from 0+
     # on if it moves in and outside if not: it never switches)
     switching = jar * jd < 0
     t = torch.where(switching, -jar / jd, torch.inf)
-    # at alpha = 0+: the rows inside, or on the boundary moving in
-    active0 = (jar < 0) | ((jar == 0) & (jd < 0))
-    c1 = curvature0 + (weight * jd * jd * active0).sum(-1)  # f' = c0 + alpha c1 on the first piece
-    c0 = slope0 + (weight * jd * jar * active0).sum(-1)
-    t_sorted, order = t.sort(-1)  # argsort is this sort's indices: the same order, without a gather
-    # a switching row enters (moving in) or leaves (moving out) at its t
-    enter = torch.where(jd < 0, 1.0, -1.0) * switching
-    d1 = (enter * weight * jd * jd).gather(-1, order).cumsum(-1)
-    d0 = (enter * weight * jd * jar).gather(-1, order).cumsum(-1)
-    before1 = torch.cat([c1.unsqueeze(-1), c1.unsqueeze(-1) + d1[..., :-1]], -1)  # the piece ending at t_sorted[k]
-    before0 = torch.cat([c0.unsqueeze(-1), c0.unsqueeze(-1) + d0[..., :-1]], -1)
-    uphill = torch.isfinite(t_sorted) & (before0 + t_sorted * before1 >= 0)
-    k = torch.where(uphill.any(-1), uphill.long().argmax(-1), torch.isfinite(t_sorted).sum(-1))
-    last1 = torch.cat([before1, (c1 + d1[..., -1]).unsqueeze(-1)], -1) if jar.shape[-1] else c1.unsqueeze(-1)
-    last0 = torch.cat([before0, (c0 + d0[..., -1]).unsqueeze(-1)], -1) if jar.shape[-1] else c0.unsqueeze(-1)
-    a1, a0 = last1.gather(-1, k.unsqueeze(-1)).squeeze(-1), last0.gather(-1, k.unsqueeze(-1)).squeeze(-1)
+    active0 = (jar < 0) | ((jar == 0) & (jd < 0))  # the rows inside at alpha = 0+
+    wjd = weight * jd
+    c1 = curvature0 + (wjd * jd * active0).sum(-1)  # f' = c0 + alpha c1 on the first piece
+    c0 = slope0 + (wjd * jar * active0).sum(-1)
+    t_sorted, order = t.sort(-1)
+    # a switching row enters (moving in) or leaves (moving out) at its t: the coefficients' steps, sorted
+    enter = torch.where(jd < 0, wjd, -wjd) * switching
+    step1, step0 = (enter * jd).gather(-1, order), (enter * jar).gather(-1, order)
+    slope_at = c0.unsqueeze(-1) + step0.cumsum(-1) + t_sorted * (c1.unsqueeze(-1) + step1.cumsum(-1))  # f'(t_k)
+    passed = torch.isfinite(t_sorted) & (slope_at < 0)
+    a1, a0 = c1 + (step1 * passed).sum(-1), c0 + (step0 * passed).sum(-1)  # f' on the root's piece
     return (-a0 / a1.clamp_min(_MINVAL)).clamp_min(0.0)
 
 
-def _newton_round(qacc, m, smooth, j, w, aref, exists, tolerance: float):
-    """One Newton step with the exact line search on the primal: ``(new qacc, converged)``.
-    Converged: the cost's gradient at the new point is below ``tolerance`` relative to the size of
-    its two terms (MuJoCo's test is on a scaled gradient; float32 rounding sets a floor)."""
-    jt = j.transpose(-1, -2)
+def _newton_start(qacc, m, smooth, j, w, aref):
+    """Newton's state at ``qacc``: ``(qacc, jar = J qacc - aref, inertial = M (qacc - qacc_smooth),
+    the cost's gradient)`` (rows that do not exist have weight 0)."""
     jar = (j @ qacc.unsqueeze(-1)).squeeze(-1) - aref
-    aw = w * ((jar < 0) & exists)
-    gradient = (m @ (qacc - smooth).unsqueeze(-1)).squeeze(-1) + (jt @ (aw * jar).unsqueeze(-1)).squeeze(-1)
-    direction = -torch.linalg.solve_ex(m + jt @ (aw.unsqueeze(-1) * j), gradient)[0]
+    inertial = (m @ (qacc - smooth).unsqueeze(-1)).squeeze(-1)
+    gradient = inertial + (j.transpose(-1, -2) @ (w * (jar < 0) * jar).unsqueeze(-1)).squeeze(-1)
+    return qacc, jar, inertial, gradient
+
+
+def _newton_round(state, m, j, w, tolerance: float):
+    """One Newton step with the exact line search on the primal from ``state`` (`_newton_start`):
+    ``(new state, converged)``. Along the step ``jar`` and the inertial term move linearly and are
+    updated so, as MuJoCo's solver updates them. Converged: the cost's gradient at the new point is
+    below ``tolerance`` relative to the size of its two terms (MuJoCo's test is on a scaled
+    gradient; float32 rounding sets a floor)."""
+    qacc, jar, inertial, gradient = state
+    jt = j.transpose(-1, -2)
+    direction = -torch.linalg.solve_ex(m + jt @ ((w * (jar < 0)).unsqueeze(-1) * j), gradient)[0]
     jd = (j @ direction.unsqueeze(-1)).squeeze(-1)
     md = (m @ direction.unsqueeze(-1)).squeeze(-1)
-    alpha = _line_search(jar, jd, w, (md * (qacc - smooth)).sum(-1), (md * direction).sum(-1))
-    new = qacc + alpha.unsqueeze(-1) * direction
-    jar = (j @ new.unsqueeze(-1)).squeeze(-1) - aref
-    inertial = (m @ (new - smooth).unsqueeze(-1)).squeeze(-1)
-    constraint = (jt @ (w * ((jar < 0) & exists) * jar).unsqueeze(-1)).squeeze(-1)
+    alpha = _line_search(jar, jd, w, (direction * inertial).sum(-1), (md * direction).sum(-1)).unsqueeze(-1)
+    step = alpha * direction
+    jar, inertial = jar + alpha * jd, inertial + alpha * md
+    constraint = (jt @ (w * (jar < 0) * jar).unsqueeze(-1)).squeeze(-1)
+    new = (qacc + step, jar, inertial, inertial + constraint)
     size = inertial.norm(dim=-1) + constraint.norm(dim=-1) + _MINVAL
-    finite = torch.isfinite(new).all(-1)
+    finite = torch.isfinite(new[0]).all(-1)
     # or: the step is down to rounding (float32 can stall above the gradient test's floor)
-    stalled = (new - qacc).norm(dim=-1) <= 100 * torch.finfo(qacc.dtype).eps * (qacc.norm(dim=-1) + 1)
-    settled = ((inertial + constraint).norm(dim=-1) <= tolerance * size) | stalled | ~finite
-    return torch.where(finite.unsqueeze(-1), new, qacc), settled
+    stalled = step.norm(dim=-1) <= 100 * torch.finfo(qacc.dtype).eps * (qacc.norm(dim=-1) + 1)
+    settled = (new[3].norm(dim=-1) <= tolerance * size) | stalled | ~finite
+    return tuple(torch.where(finite.unsqueeze(-1), a, b) for a, b in zip(new, state)), settled
 
 
 def _masked_rounds(round_, start, iterations: int):
-    """Newton rounds ``round_(qacc) -> (new qacc, settled)`` from ``start`` (no autograd), at most
-    ``iterations``, with converged envs held (a mask: no host-device synchronisation): ``(qacc
-    [N, nv], iterations [N], converged [N])``. They stop once every env has converged: on the CPU
-    by reading the flags (free there), on CUDA once the host sees it without waiting
-    ([`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch])."""
-    qacc = start
-    converged = torch.zeros(qacc.shape[0], dtype=torch.bool, device=qacc.device)
-    used = torch.zeros(qacc.shape[0], dtype=torch.long, device=qacc.device)
-    watch = ConvergenceWatch.for_device(qacc.device)
-    reads_data = convergence.reads_data_freely(qacc.device)
+    """Newton rounds ``round_(state) -> (new state, settled)`` from the ``start`` state (a tuple of
+    ``[N, ..]`` tensors, no autograd), at most ``iterations``, with converged envs held (a mask: no
+    host-device synchronisation): ``(state, iterations [N], converged [N])``. They stop once every
+    env has converged: on the CPU by reading the flags (free there), on CUDA once the host sees it
+    without waiting ([`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch])."""
+    state = start
+    converged = torch.zeros(state[0].shape[0], dtype=torch.bool, device=state[0].device)
+    used = torch.zeros(state[0].shape[0], dtype=torch.long, device=state[0].device)
+    watch = ConvergenceWatch.for_device(state[0].device)
+    reads_data = convergence.reads_data_freely(state[0].device)
     for _ in range(iterations):
-        new, settled = round_(qacc)
-        qacc = torch.where(converged.unsqueeze(-1), qacc, new)
+        new, settled = round_(state)
+        state = tuple(torch.where(converged.unsqueeze(-1), a, b) for a, b in zip(state, new))
         used = used + (~converged).long()
         converged = converged | settled
         if (watch is not None and watch.all_done(converged)) or (reads_data and bool(converged.all())):
             break
-    return qacc, used, converged
+    return state, used, converged
 
 
 def _while_rounds(round_, start, iterations: int):
     """`_masked_rounds` as one ``torch.while_loop`` for ``torch.compile``: the round is traced once
     (an unrolled loop would make a step's graph hundreds of times larger) and the loop ends once
     every env has converged or ``iterations`` rounds have run."""
-    n = start.shape[0]
+    n, size = start[0].shape[0], len(start)
 
-    def unfinished(round_index, qacc, used, converged):
-        return (round_index < iterations) & ~converged.all()
+    def unfinished(round_index, *carried):
+        return (round_index < iterations) & ~carried[-1].all()
 
-    def one_round(round_index, qacc, used, converged):
-        new, settled = round_(qacc)
-        return (round_index + 1, torch.where(converged.unsqueeze(-1), qacc, new), used + (~converged).long(),
-                converged | settled)
+    def one_round(round_index, *carried):
+        state, used, converged = carried[:size], carried[size], carried[size + 1]
+        new, settled = round_(state)
+        held = tuple(torch.where(converged.unsqueeze(-1), a, b) for a, b in zip(state, new))
+        return (round_index + 1, *held, used + (~converged).long(), converged | settled)
 
-    begin = (torch.zeros((), dtype=torch.long, device=start.device), start.clone(),
-             torch.zeros(n, dtype=torch.long, device=start.device),
-             torch.zeros(n, dtype=torch.bool, device=start.device))
-    _, qacc, used, converged = torch.while_loop(unfinished, one_round, begin)
-    return qacc, used, converged
+    begin = (torch.zeros((), dtype=torch.long, device=start[0].device), *(x.clone() for x in start),
+             torch.zeros(n, dtype=torch.long, device=start[0].device),
+             torch.zeros(n, dtype=torch.bool, device=start[0].device))
+    carried = torch.while_loop(unfinished, one_round, begin)
+    return tuple(carried[1:size + 1]), carried[size + 1], carried[size + 2]
 
 
 _masked_rounds_outside_the_graph = torch.compiler.disable(_masked_rounds)
@@ -334,19 +339,22 @@ def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance:
     of_envs = lambda x: x.index_select(0, envs)  # noqa: E731
     order = torch.argsort((~of_envs(exists)).to(torch.int8), dim=-1, stable=True)[:, :int(count.max())]
     rows_of = lambda x: of_envs(x).gather(1, order)  # noqa: E731  (existing rows first)
-    args = (of_envs(m), of_envs(smooth), of_envs(j).gather(1, order.unsqueeze(-1).expand(-1, -1, j.shape[-1])),
-            rows_of(w), rows_of(aref), rows_of(exists))
-    q, left = args[1].clone(), torch.arange(envs.numel(), device=smooth.device)
+    args = (of_envs(m), of_envs(j).gather(1, order.unsqueeze(-1).expand(-1, -1, j.shape[-1])), rows_of(w))
+    smooth_c = of_envs(smooth)
+    state = _newton_start(smooth_c.clone(), args[0], smooth_c, args[1], args[2], rows_of(aref))
+    left = torch.arange(envs.numel(), device=smooth.device)
     used_c, converged_c = torch.zeros_like(left), torch.zeros_like(left, dtype=torch.bool)
     for _ in range(iterations):
-        new, settled = _newton_round(q.index_select(0, left), *(a.index_select(0, left) for a in args), tolerance)
-        q.index_copy_(0, left, new)
+        new, settled = _newton_round(tuple(x.index_select(0, left) for x in state),
+                                     *(a.index_select(0, left) for a in args), tolerance)
+        for x, y in zip(state, new):
+            x.index_copy_(0, left, y)
         used_c.index_add_(0, left, torch.ones_like(left))
         converged_c.index_copy_(0, left, settled)
         left = left[~settled]
         if not left.numel():
             break
-    return qacc.index_copy(0, envs, q), used.index_copy(0, envs, used_c), converged.index_copy(0, envs, converged_c)
+    return qacc.index_copy(0, envs, state[0]), used.index_copy(0, envs, used_c), converged.index_copy(0, envs, converged_c)
 
 
 @torch.no_grad()
@@ -358,8 +366,9 @@ def _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations: i
     if convergence.reads_data_freely(smooth.device):
         qacc, used, converged = _newton_compacted(m, smooth, j, w, ar, exists, iterations, tolerance)
     else:
-        qacc, used, converged = _rounds_driver(smooth.device)(
-            lambda q: _newton_round(q, m, smooth, j, w, ar, exists, tolerance), smooth, iterations)
+        state, used, converged = _rounds_driver(smooth.device)(
+            lambda state: _newton_round(state, m, j, w, tolerance), _newton_start(smooth, m, smooth, j, w, ar), iterations)
+        qacc = state[0]
     active = (((j @ qacc.unsqueeze(-1)).squeeze(-1) - ar) < 0) & exists
     return qacc, used, converged, active
 
@@ -401,9 +410,12 @@ def _elliptic_minimiser(mass, qacc_smooth, jacobian, weight, aref, exists, cones
     `_rounds_driver`: ``(qacc, iterations, converged)``."""
     m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
     cones = tuple(c._replace(mu=c.mu.detach(), friction=c.friction.detach()) for c in cones)
-    return _rounds_driver(smooth.device)(
-        lambda q: _elliptic_round(q, m, smooth, j, w, ar, exists, cones, tolerance, _ELLIPTIC_LINE_ITERATIONS),
-        smooth, iterations)
+    def one_round(state):
+        new, settled = _elliptic_round(state[0], m, smooth, j, w, ar, exists, cones, tolerance, _ELLIPTIC_LINE_ITERATIONS)
+        return (new,), settled
+
+    (qacc,), used, converged = _rounds_driver(smooth.device)(one_round, (smooth,), iterations)
+    return qacc, used, converged
 
 
 def _solve_elliptic(mass, qacc_smooth, rows: ConstraintRows, iterations: int, tolerance: float) -> SolverResult:
