@@ -281,6 +281,24 @@ def test_time_to_solve_reports_the_return_in_gymnasiums_env():
     assert "in Gymnasium's env" in table and "0.90 [0.50, 1.00]" in table
 
 
+def test_a_ppo_final_below_ppos_untrained_policy_gets_no_speed_up():
+    """PPO's runs end below their first evaluation (the untrained policy): their final level is met
+    at the start, so no learner gets a speed-up against it (a 0 s reference), and the cell says why."""
+    tts = load("time_to_solve")
+
+    def run(loss, seed, curve):
+        return {"env": "Ant-v5", "loss": loss, "seed": seed, "eval/return": curve[-1][2], "eval/random_return": -50.0,
+                "wall_time_s": curve[-1][1], "env_steps": curve[-1][0], "curve": curve}
+
+    runs = [run("ppo", s, [(0, 0.0, 940.0), (1000, 100.0, 420.0 + s)]) for s in range(3)]
+    runs += [run("shac", s, [(0, 0.0, 390.0), (1000, 80.0, 990.0)]) for s in range(3)]
+    summary, table = tts.summarise(runs, ["Ant-v5"], ["ppo", "shac"])
+    shac = summary[1]["levels"][1.0]
+    assert shac["time_s"] == 80.0 and shac["ppo_at_start"]
+    assert "80 s, 1k steps (3/3, PPO's start is above it)" in table
+    assert tts.overview_table(summary)["rows"][1][-1] == "80 s (3/3, PPO's start is above it)"
+
+
 def test_time_to_solve_resumes_kept_runs_from_their_checkpoints(tmp_path):
     """A race split across sittings: a kept run stopped at its 32-env-step checkpoint (the
     uninterrupted run's directory with that checkpoint as its last), continued with
