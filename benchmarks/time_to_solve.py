@@ -230,8 +230,8 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
                     "env_steps": statistics.median(first_steps_at(r["curve"], level) for r in group),
                     "reached": reached(times),
                     "seeds_reached": [r["seed"] for r, t in zip(group, times) if math.isfinite(t)],
-                    "speedup_vs_ppo": speedup(ppo_time, statistics.median(times)),
                     # PPO's median run met it at its first evaluation (the untrained policy): no race to it
+                    "speedup_vs_ppo": None if ppo_time == 0 else speedup(ppo_time, statistics.median(times)),
                     "ppo_at_start": ppo_time == 0,
                 }
             row["fixed_levels"] = {}
