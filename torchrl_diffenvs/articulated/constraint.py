@@ -228,7 +228,9 @@ def _line_search(jar, jd, weight, slope0, curvature0):
     enter = torch.where(jd < 0, wjd, -wjd) * switching
     step1, step0 = (enter * jd).gather(-1, order), (enter * jar).gather(-1, order)
     slope_at = c0.unsqueeze(-1) + step0.cumsum(-1) + t_sorted * (c1.unsqueeze(-1) + step1.cumsum(-1))  # f'(t_k)
-    passed = torch.isfinite(t_sorted) & (slope_at < 0)
+    # the breakpoints before the root: a prefix of the sorted ones (f' increases; the cumprod keeps
+    # it one where rounding would not)
+    passed = (torch.isfinite(t_sorted) & (slope_at < 0)).to(step1.dtype).cumprod(-1)
     a1, a0 = c1 + (step1 * passed).sum(-1), c0 + (step0 * passed).sum(-1)  # f' on the root's piece
     return (-a0 / a1.clamp_min(_MINVAL)).clamp_min(0.0)
 
