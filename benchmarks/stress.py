@@ -132,8 +132,9 @@ def main(argv=None):
     for task in settings.tasks:
         for kind in settings.policies:
             r = stress(task, kind, settings)
+            unconverged = "-" if r["unconverged"] is None else str(r["unconverged"])  # "-": no solve to count
             row = [task, r["contact"], r["integrator"], kind, f"{settings.num_envs} x {settings.steps}",
-                   str(r["nonfinite"]), "-" if r["unconverged"] is None else str(r["unconverged"]), f"{r['max_qvel']:.3g}", f"{r['travel']:.3g}"]
+                   str(r["nonfinite"]), unconverged, f"{r['max_qvel']:.3g}", f"{r['travel']:.3g}"]
             rows.append(row)
             print(" | ".join(row), flush=True)
             # rewritten after every row: a long run that is stopped still leaves what it measured

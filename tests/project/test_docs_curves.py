@@ -6,6 +6,7 @@ import importlib.util
 import json
 import re
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -96,10 +97,5 @@ def test_a_table_leaves_out_the_columns_named_by_prefix_and_says_so(hook):
 
 
 def _page(src_uri: str):
-    class File:
-        pass
-
-    class Page:
-        file = File()
-    Page.file.src_uri = src_uri
-    return Page()
+    """What the hook reads of an MkDocs page: its source path."""
+    return SimpleNamespace(file=SimpleNamespace(src_uri=src_uri))
