@@ -288,6 +288,14 @@ def measured_from_raw(raws: Sequence[dict], script: str) -> dict:
             "command": "; ".join(commands)}
 
 
+def data_path(settings: BenchmarkSettings, name: str) -> Path | None:
+    """The data file :func:`write_data` writes for these settings (``None``: it writes none)."""
+    target = getattr(settings, "data", None)
+    if target == "none" or (target is None and getattr(settings, "quick", False)):
+        return None
+    return Path(target) if target and (target.endswith(".json") or "/" in target) else DATA_DIR / f"{target or name}.json"
+
+
 def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], device: str = "cpu",
                source: str | None = None, measured: dict | None = None) -> Path | None:
     """Writes the tables the documentation shows (:func:`data_table` each, by key) to
@@ -295,10 +303,9 @@ def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], 
     so the next measurement replaces the one the docs show. Quick runs write nothing unless
     ``data=`` names a file; ``data=none`` writes nothing. ``measured``: ``{"date", "machine",
     "command"}`` of a measurement made earlier or elsewhere whose results these tables render."""
-    target = getattr(settings, "data", None)
-    if target == "none" or (target is None and getattr(settings, "quick", False)):
+    path = data_path(settings, name)
+    if path is None:
         return None
-    path = Path(target) if target and (target.endswith(".json") or "/" in target) else DATA_DIR / f"{target or name}.json"
     script = Path(sys.argv[0]).name if Path(sys.argv[0]).suffix == ".py" else f"{source or name}.py"
     measured = measured or {}
     payload = {

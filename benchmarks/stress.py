@@ -17,11 +17,15 @@ solve used all its iterations (MuJoCo's contact; the env flags them in ``("state
 "solver_unconverged")`` and steps on), the largest ``|qvel|`` and the torso's largest travel. A
 healthy simulator has 0 non-finite envs everywhere.
 
+A task and policy take minutes to hours at 1024 envs; the data file is rewritten after each row, and
+``resume=true`` keeps its rows and runs only the (task, policy, size) pairs it does not hold yet.
+
     OMP_NUM_THREADS=1 python benchmarks/stress.py
     OMP_NUM_THREADS=1 python benchmarks/stress.py tasks=[HalfCheetah-v5] num_envs=1024 steps=1000
 """
 from __future__ import annotations
 
+import json
 import sys
 import time
 import warnings
@@ -36,7 +40,7 @@ from _common import BenchmarkSettings, print_table  # noqa: E402
 
 from torchrl_diffenvs import make_env  # noqa: E402
 from torchrl_diffenvs.envs.mujoco.base import MuJoCoModelEnv  # noqa: E402
-from torchrl_diffenvs.checks import checked, each, one_of, parse_cli  # noqa: E402
+from torchrl_diffenvs.checks import boolean, checked, each, one_of, parse_cli  # noqa: E402
 
 CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5"]
 POLICIES = ["random", "bang-bang", "resonant", "greedy", "far"]
@@ -53,6 +57,7 @@ class StressSettings(BenchmarkSettings):
     num_envs: int = 1024
     steps: int = 1000
     seed: int = 0
+    resume: bool = checked(False, boolean)  # keep the data file's rows; run only the missing ones
     # None: each task's default
     integrator: str | None = checked(None, lambda v: None if v is None else one_of(MuJoCoModelEnv.INTEGRATORS)(v))
 
@@ -122,15 +127,33 @@ def stress(task: str, kind: str, s: StressSettings) -> dict:
             "env_steps_per_s": s.num_envs * s.steps / (time.perf_counter() - began)}
 
 
+def resumed_rows(settings: StressSettings) -> list[list[str]]:
+    """The rows of the data file this run rewrites, with ``resume=true`` (else none)."""
+    path = C.data_path(settings, "stress")
+    if not settings.resume:
+        return []
+    if path is None:
+        raise SystemExit("resume=true: no data file to resume (data=none, or a quick run without data=)")
+    if not path.exists():
+        return []
+    table = json.loads(path.read_text())["tables"]["stress"]
+    if table["columns"] != HEADERS:
+        raise SystemExit(f"resume=true: {path} has columns {table['columns']}, expected {HEADERS}")
+    return [list(row) for row in table["rows"]]
+
+
 def main(argv=None):
     settings = parse_cli(StressSettings, argv, __doc__)
     torch.set_num_threads(settings.threads)
     warnings.filterwarnings("ignore")
     if settings.quick:
         settings = StressSettings(**{**settings.__dict__, "num_envs": 8, "steps": 20})
-    rows = []
+    rows = resumed_rows(settings)
+    done = {(row[0], row[3], row[4]) for row in rows}
     for task in settings.tasks:
         for kind in settings.policies:
+            if (task, kind, f"{settings.num_envs} x {settings.steps}") in done:
+                continue
             r = stress(task, kind, settings)
             unconverged = "-" if r["unconverged"] is None else str(r["unconverged"])  # "-": no solve to count
             row = [task, r["contact"], r["integrator"], kind, f"{settings.num_envs} x {settings.steps}",

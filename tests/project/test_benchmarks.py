@@ -625,6 +625,30 @@ def test_stress_counts_the_env_steps_whose_solve_stopped_short(monkeypatch, tmp_
         load("stress").main(["quick=true", "integrator=verlet"])
 
 
+def test_stress_resume_keeps_the_data_files_rows_and_runs_only_the_missing_pairs(monkeypatch, tmp_path):
+    stress = load("stress")
+    ran = []
+
+    def fake(task, kind, settings):
+        ran.append((task, kind))
+        return {"nonfinite": 0, "unconverged": 0, "max_qvel": 1.0, "travel": 2.0, "contact": "mujoco",
+                "integrator": "euler"}
+
+    monkeypatch.setattr(stress, "stress", fake)
+    data = tmp_path / "stress_cheetah.json"
+    args = ["tasks=[HalfCheetah-v5]", "steps=20", f"out={tmp_path / 's.json'}", f"data={data}"]
+    first = stress.main([*args, "policies=[random]"])
+    assert ran == [("HalfCheetah-v5", "random")]
+    rows = stress.main([*args, "policies=[random,greedy]", "resume=true"])
+    assert ran == [("HalfCheetah-v5", "random"), ("HalfCheetah-v5", "greedy")]  # random was in the file
+    assert rows[0] == first[0] and [r[3] for r in rows] == ["random", "greedy"]
+    assert json.loads(data.read_text())["tables"]["stress"]["rows"] == rows
+    stress.main([*args, "policies=[random,greedy]", "resume=true", "num_envs=4"])  # another size: both run again
+    assert ran[2:] == [("HalfCheetah-v5", "random"), ("HalfCheetah-v5", "greedy")]
+    with pytest.raises(SystemExit, match="resume=true: no data file"):
+        stress.main(["quick=true", "resume=true", "data=none"])
+
+
 def test_gradient_health_quick(tmp_path):
     rows = load("gradient_health").main(["quick=true", "tasks=[Hopper-v5]", f"out={tmp_path / 'g.json'}", "data=none"])
     labels = [r[1] for r in rows]
