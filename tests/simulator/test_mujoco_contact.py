@@ -922,3 +922,26 @@ def test_regulariser_scales_follow_params_changed_between_steps():
     with torch.inference_mode():  # params made there are inference tensors, without a version counter
         inferred = make_env("HalfCheetah-v5", num_envs=2, seed=0, dtype=torch.float64).rollout(3)
     assert torch.isfinite(inferred["next", "observation"]).all()
+
+
+@pytest.mark.parametrize("mode", ["exact", "penalty"])
+def test_the_steps_solved_contacts_give_the_wrench_of_a_fresh_solve(mode):
+    """``cfrc_ext`` read from the contact problem the RK4 step solved at its last stage is the
+    wrench a fresh forward at that state gives: values and gradient w.r.t. the action."""
+    env = make_env("Ant-v5", num_envs=2, dtype=torch.float64, seed=0, contact_gradient=mode)
+    td = env.reset()
+    for _ in range(10):  # onto the floor
+        td["action"] = torch.zeros(2, 8, dtype=torch.float64)
+        td = env.step(td)["next"].clone()
+    state, params = dict(td["state"].items()), env.params
+    action = (0.3 * torch.ones(2, 8, dtype=torch.float64)).requires_grad_()
+    result = env.simulate(state, action, params)
+    assert result.solved_contacts is not None
+    reused = env.contact_wrenches(result.eval_qpos, result.eval_qvel, action, params, result.solved_contacts)
+    fresh = env.contact_wrenches(result.eval_qpos, result.eval_qvel, action, params)
+    assert fresh.abs().max() > 1.0  # the feet carry the Ant
+    torch.testing.assert_close(reused, fresh, rtol=0, atol=0)
+    weights = torch.randn_like(fresh)
+    grads = [torch.autograd.grad((w * weights).sum(), action, retain_graph=True)[0] for w in (reused, fresh)]
+    assert grads[1].abs().max() > 0
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-10, atol=1e-12)

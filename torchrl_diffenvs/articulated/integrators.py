@@ -10,7 +10,7 @@ from typing import NamedTuple
 import torch
 
 from .kinematics import integrate_position
-from .pipeline import accelerations, invweight0 as constraint_scales
+from .pipeline import SolvedContacts, accelerations, invweight0 as constraint_scales
 from .spatial import Params
 from .tree import RigidBodyTree
 
@@ -28,6 +28,9 @@ class StepResult(NamedTuple):
     # [N] bool: MuJoCo's constraint solve at the evaluated state converged within the model's iterations
     # (None: no iterative solve, the smooth contact model or no constraints)
     solver_converged: torch.Tensor | None = None
+    # MuJoCo's contact model: the contact problem solved at the evaluated state, which cfrc_ext reads
+    # (eager steps only: a compiled step returns tensors, and the task then solves that state again)
+    solved_contacts: SolvedContacts | None = None
 
 
 class stepping_with:  # noqa: N801 (a context manager, used as a function)

@@ -24,7 +24,8 @@ from .limits import limit_force
 from .spatial import Params, _cross, _inverse, _solve
 from .tree import RigidBodyTree
 
-__all__ = ['ForwardReport', 'accelerations', 'body_contact_wrenches', 'constraint_force', 'invweight0', 'InvWeight0']
+__all__ = ['ForwardReport', 'SolvedContacts', 'accelerations', 'body_contact_wrenches', 'constraint_force', 'invweight0',
+           'InvWeight0']
 
 class InvWeight0(NamedTuple):
     """MuJoCo's ``dof_invweight0 [N, nv]`` and ``body_invweight0 [N, nbody, 2]`` for a batch of
@@ -113,12 +114,25 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
                                  with_contact_force)
 
 
+class SolvedContacts(NamedTuple):
+    """The contact problem a MuJoCo-contact forward solved, as ``mjData`` keeps it (``contact``,
+    ``efc_J``, ``efc_force``): what ``cfrc_ext`` reads (see `body_contact_wrenches`), kept so that
+    a task reading it after ``mj_step`` does not solve the same state again."""
+
+    slots: ContactSlots  # the slots the rows were built for
+    contacts: Contacts
+    rows: object  # the constraint rows (ConstraintRows)
+    force: torch.Tensor  # [N, rows] efc_force
+
+
 class ForwardReport(NamedTuple):
     """What a forward reports besides ``qacc`` (``accelerations(..., with_contact_force=True)``),
     as ``mjData`` holds it after ``mj_forward``."""
 
     contact_force: torch.Tensor | None  # [N] the largest contact normal force (detached); None without contacts
     solver_converged: torch.Tensor | None  # [N] bool: the constraint solve converged; None without a solve
+    # MuJoCo's contact model: the solved contact problem (None without contacts, or for the smooth model)
+    solved_contacts: SolvedContacts | None = None
 
 
 class _Inertial(NamedTuple):
@@ -239,31 +253,36 @@ def _slots_in_use(slots: ContactSlots, contacts: Contacts, gradient: ContactGrad
 
 
 def body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, about: torch.Tensor,
-                          weights=None) -> torch.Tensor:
+                          weights=None, solved: SolvedContacts | None = None) -> torch.Tensor:
     """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` at a state: the contact wrench on every body
     (torque about ``about [N, 3]``, force; world frame), from the constraint solve's contact forces
-    (``"mujoco"``) or the smooth model's (``"smooth"``)."""
+    (``"mujoco"``) or the smooth model's (``"smooth"``). ``weights``: `invweight0` of ``params``
+    when the caller has it; ``solved``: the contact problem the step already solved at this state
+    (its [`StepResult`][torchrl_diffenvs.articulated.StepResult]'s ``solved_contacts``), else the
+    forward runs again."""
     if tree.contact_model != "mujoco":
         return body_contact_forces(tree, forward_kinematics(tree, qpos), qvel, params, about=about)
     if tree.contact_gradient.mode == "penalty" and torch.is_grad_enabled():  # MuJoCo's values, the penalty's gradient
         with torch.no_grad():
-            exact = _mujoco_body_contact_wrenches(tree, qpos, qvel, ctrl, params, about, weights)
+            exact = _mujoco_body_contact_wrenches(tree, qpos, qvel, ctrl, params, about, weights, solved)
         surrogate = body_contact_forces(tree, forward_kinematics(tree, qpos), qvel, params, about=about)
         return exact + (surrogate - surrogate.detach())
-    return _mujoco_body_contact_wrenches(tree, qpos, qvel, ctrl, params, about, weights)
+    return _mujoco_body_contact_wrenches(tree, qpos, qvel, ctrl, params, about, weights, solved)
 
 
-def _mujoco_body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, about, weights):
+def _mujoco_body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, about, weights, solved):
     out = qvel.new_zeros(qvel.shape[0], tree.nbody, 6)
     if not tree.contact_slots.count:
         return out
-    f = _mujoco_forward(tree, qpos, qvel, ctrl, params, weights)
-    slots = f.slots  # the contact slots the rows were built for
-    local = contact_frame_forces(slots, f.rows, f.solution.force, params["contact_friction"][:, slots.friction_slot])
+    if solved is None:
+        f = _mujoco_forward(tree, qpos, qvel, ctrl, params, weights)
+        solved = SolvedContacts(f.slots, f.contacts, f.rows, f.solution.force)
+    slots, contacts = solved.slots, solved.contacts
+    local = contact_frame_forces(slots, solved.rows, solved.force, params["contact_friction"][:, slots.friction_slot])
     # world frame: sum_k f_k frame_k, and the torsional and rolling friction's torque likewise
-    force = (local[..., :3].unsqueeze(-2) @ f.contacts.frame).squeeze(-2)
-    torque = (local[..., 3:].unsqueeze(-2) @ f.contacts.frame).squeeze(-2)
-    wrench = torch.cat([_cross(f.contacts.pos - about.unsqueeze(1), force) + torque, force], dim=-1)  # on geom 2's body
+    force = (local[..., :3].unsqueeze(-2) @ contacts.frame).squeeze(-2)
+    torque = (local[..., 3:].unsqueeze(-2) @ contacts.frame).squeeze(-2)
+    wrench = torch.cat([_cross(contacts.pos - about.unsqueeze(1), force) + torque, force], dim=-1)  # on geom 2's body
     out = out.index_add(1, slots.body[:, 1], wrench).index_add(1, slots.body[:, 0], -wrench)
     return torch.cat([torch.zeros_like(out[:, :1]), out[:, 1:]], dim=1)  # MuJoCo keeps none on the world
 
@@ -297,7 +316,8 @@ def _constrained_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Pa
     largest = None
     if slots.count:  # the slots left out carry no force
         largest = contact_normal_forces(slots, rows, solution.force).detach().amax(-1)
-    return qacc, ForwardReport(largest, solution.converged)
+    solved = SolvedContacts(slots, f.contacts, rows, solution.force) if slots.count else None
+    return qacc, ForwardReport(largest, solution.converged, solved)
 
 
 def constraint_force(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params) -> torch.Tensor:

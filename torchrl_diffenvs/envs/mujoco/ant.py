@@ -76,11 +76,13 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
         """``torso_xy`` of the given ``qpos`` (for a state reset)."""
         return {"torso_xy": state["qpos"][:, :2]}
 
-    def contact_wrenches(self, qpos, qvel, ctrl, params):
-        """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` at a state: about the centre of mass."""
+    def contact_wrenches(self, qpos, qvel, ctrl, params, solved=None):
+        """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` at a state: about the centre of mass. ``solved``:
+        the contact problem the step solved there (its ``solved_contacts``), else it is solved again."""
         kin = forward_kinematics(self.tree, qpos)  # once per env step, at the state mj_step leaves behind
         centre = root_subtree_com(self.tree, kin, params)[:, 1]  # every body's root is the torso
-        return body_contact_wrenches(self.tree, qpos, qvel, ctrl, params, about=centre)
+        return body_contact_wrenches(self.tree, qpos, qvel, ctrl, params, about=centre,
+                                     weights=self._regulariser_scales(params), solved=solved)
 
     def initial_state(self, params, n):
         noise = params["reset_noise_scale"].unsqueeze(-1)
@@ -97,7 +99,7 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
     def transition(self, state, action, params):
         result = self.simulate(state, action, params)
         torso_xy = result.eval_qpos[:, :2]  # the free joint's coordinates are the torso's world position
-        cfrc_ext = self.contact_wrenches(result.eval_qpos, result.eval_qvel, action, params)
+        cfrc_ext = self.contact_wrenches(result.eval_qpos, result.eval_qvel, action, params, result.solved_contacts)
         next_state = {"qpos": result.qpos, "qvel": result.qvel, "torso_xy": torso_xy, "cfrc_ext": cfrc_ext,
                       **self.contact_state(result, torso_xy.shape[0])}
         x_velocity = (torso_xy[:, 0] - state["torso_xy"][:, 0]) / self.dt

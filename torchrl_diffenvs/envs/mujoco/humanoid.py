@@ -49,14 +49,16 @@ class _HumanoidBase(MuJoCoModelEnv):
         derived = self.derived(state["qpos"], state["qvel"], params)
         return {key: derived[key] for key in ("mass_center_xy", "cinert", "cvel")}
 
-    def derived(self, qpos, qvel, params, ctrl=None) -> dict:
+    def derived(self, qpos, qvel, params, ctrl=None, solved=None) -> dict:
         """The quantities MuJoCo derives from a state that the task reads: ``mass_center_xy``,
         ``cinert``, ``cvel`` and, given the ``ctrl`` of the step, ``cfrc_ext`` (about the subtree
-        centre of mass; 0 without ``ctrl``, as after a reset)."""
+        centre of mass; 0 without ``ctrl``, as after a reset; ``solved``: the contact problem the
+        step solved at this state, else it is solved again)."""
         kin = forward_kinematics(self.tree, qpos)
         centre = root_subtree_com(self.tree, kin, params)[:, 1]  # the torso's subtree: the whole humanoid
         cfrc_ext = qpos.new_zeros(qpos.shape[0], self.model.nbody, 6) if ctrl is None else \
-            body_contact_wrenches(self.tree, qpos, qvel, ctrl, params, about=centre)
+            body_contact_wrenches(self.tree, qpos, qvel, ctrl, params, about=centre,
+                                  weights=self._regulariser_scales(params), solved=solved)
         return {"mass_center_xy": mass_center(self.tree, kin, params)[:, :2],
                 "cinert": com_inertia(self.tree, kin, params), "cvel": com_velocity(self.tree, kin, qvel, params),
                 "cfrc_ext": cfrc_ext}
@@ -75,7 +77,7 @@ class _HumanoidBase(MuJoCoModelEnv):
         result = self.simulate(state, action, params)
         qfrc_actuator = actuator_force(self.tree, action, self.model.nv)[:, 6:]
         next_state = {"qpos": result.qpos, "qvel": result.qvel, "qfrc_actuator": qfrc_actuator,
-                      **self.derived(result.eval_qpos, result.eval_qvel, params, action),
+                      **self.derived(result.eval_qpos, result.eval_qvel, params, action, result.solved_contacts),
                       **self.contact_state(result, action.shape[0])}
         return next_state, result
 

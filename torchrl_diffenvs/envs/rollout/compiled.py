@@ -203,7 +203,9 @@ class CompiledPhysics:
         fn = self.step_functions.get((dt, integrator))
         if fn is None:
             def one_step(qpos, qvel, ctrl, params, invweight0):
-                return eager_step(tree, qpos, qvel, ctrl, params, dt, integrator, invweight0)
+                # a graph returns tensors: the solved contact problem (Python objects) stays behind
+                return eager_step(tree, qpos, qvel, ctrl, params, dt, integrator, invweight0)._replace(
+                    solved_contacts=None)
 
             fn = self.step_functions[(dt, integrator)] = self.compiled(one_step)
         what = f"physics step ({integrator}), {'with' if torch.is_grad_enabled() else 'without'} grad"
