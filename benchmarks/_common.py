@@ -288,6 +288,17 @@ def measured_from_raw(raws: Sequence[dict], script: str) -> dict:
             "command": "; ".join(commands)}
 
 
+def _script(name: str, source: str | None = None) -> str:
+    """The benchmark script this process runs (its own file, or ``<source or name>.py`` when called
+    from elsewhere, e.g. a test)."""
+    return Path(sys.argv[0]).name if Path(sys.argv[0]).suffix == ".py" else f"{source or name}.py"
+
+
+def command_line(name: str, source: str | None = None) -> str:
+    """This process's command as :func:`write_data` records it (:func:`portable_args`)."""
+    return " ".join(["python", f"benchmarks/{_script(name, source)}", *portable_args(sys.argv[1:])])
+
+
 def data_path(settings: BenchmarkSettings, name: str) -> Path | None:
     """The data file :func:`write_data` writes for these settings (``None``: it writes none)."""
     target = getattr(settings, "data", None)
@@ -306,13 +317,12 @@ def write_data(settings: BenchmarkSettings, name: str, tables: dict[str, dict], 
     path = data_path(settings, name)
     if path is None:
         return None
-    script = Path(sys.argv[0]).name if Path(sys.argv[0]).suffix == ".py" else f"{source or name}.py"
     measured = measured or {}
     payload = {
         "measured": measured.get("date") or today(),
         "machine": measured.get("machine") or machine_name(device),
-        "command": measured.get("command") or " ".join(["python", f"benchmarks/{script}", *portable_args(sys.argv[1:])]),
-        "source": f"benchmarks/{source}.py" if source else f"benchmarks/{script}",
+        "command": measured.get("command") or command_line(name, source),
+        "source": f"benchmarks/{source}.py" if source else f"benchmarks/{_script(name)}",
         "tables": tables,
     }
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -18,7 +18,8 @@ solve used all its iterations (MuJoCo's contact; the env flags them in ``("state
 healthy simulator has 0 non-finite envs everywhere.
 
 A task and policy take minutes to hours at 1024 envs; the data file is rewritten after each row, and
-``resume=true`` keeps its rows and runs only the (task, policy, size) pairs it does not hold yet.
+``resume=true`` keeps its rows and runs only the (task, contact, integrator, policy, size) rows it
+does not hold yet.
 
     OMP_NUM_THREADS=1 python benchmarks/stress.py
     OMP_NUM_THREADS=1 python benchmarks/stress.py tasks=[HalfCheetah-v5] num_envs=1024 steps=1000
@@ -127,19 +128,35 @@ def stress(task: str, kind: str, s: StressSettings) -> dict:
             "env_steps_per_s": s.num_envs * s.steps / (time.perf_counter() - began)}
 
 
-def resumed_rows(settings: StressSettings) -> list[list[str]]:
-    """The rows of the data file this run rewrites, with ``resume=true`` (else none)."""
+def resumed(settings: StressSettings) -> tuple[list[list[str]], dict | None]:
+    """With ``resume=true``, the rows of the data file this run rewrites and its provenance merged
+    with this sitting's (``measured=`` of `write_data`: the newest date, every machine and
+    command); without, no rows and ``None``."""
     path = C.data_path(settings, "stress")
     if not settings.resume:
-        return []
+        return [], None
     if path is None:
         raise SystemExit("resume=true: no data file to resume (data=none, or a quick run without data=)")
     if not path.exists():
-        return []
-    table = json.loads(path.read_text())["tables"]["stress"]
-    if table["columns"] != HEADERS:
-        raise SystemExit(f"resume=true: {path} has columns {table['columns']}, expected {HEADERS}")
-    return [list(row) for row in table["rows"]]
+        return [], None
+    try:
+        kept = json.loads(path.read_text())
+        table = kept["tables"]["stress"]
+        columns, rows = table["columns"], [list(row) for row in table["rows"]]
+    except (ValueError, KeyError, TypeError) as error:
+        raise SystemExit(f"resume=true: {path} is not a stress data file ({error!r})") from None
+    if columns != HEADERS:
+        raise SystemExit(f"resume=true: {path} has columns {columns}, expected {HEADERS}")
+    merged = {"date": C.today(),
+              "machine": "; ".join(dict.fromkeys([*kept["machine"].split("; "), C.machine_name()])),
+              "command": "; ".join(dict.fromkeys([*kept["command"].split("; "), C.command_line("stress")]))}
+    return rows, merged
+
+
+def physics_of(task: str, s: StressSettings) -> tuple[str, str]:
+    """The ``(contact, integrator)`` a row of ``task`` steps with under these settings."""
+    env = make_env(task, num_envs=1, seed=s.seed, **({"integrator": s.integrator} if s.integrator else {}))
+    return env.contact, env.integrator
 
 
 def main(argv=None):
@@ -148,21 +165,23 @@ def main(argv=None):
     warnings.filterwarnings("ignore")
     if settings.quick:
         settings = StressSettings(**{**settings.__dict__, "num_envs": 8, "steps": 20})
-    rows = resumed_rows(settings)
-    done = {(row[0], row[3], row[4]) for row in rows}
+    rows, measured = resumed(settings)
+    done = {tuple(row[:5]) for row in rows}  # task, contact, integrator, policy, size
+    size = f"{settings.num_envs} x {settings.steps}"
     for task in settings.tasks:
+        physics = physics_of(task, settings) if done else None
         for kind in settings.policies:
-            if (task, kind, f"{settings.num_envs} x {settings.steps}") in done:
+            if done and (task, *physics, kind, size) in done:
                 continue
             r = stress(task, kind, settings)
             unconverged = "-" if r["unconverged"] is None else str(r["unconverged"])  # "-": no solve to count
-            row = [task, r["contact"], r["integrator"], kind, f"{settings.num_envs} x {settings.steps}",
+            row = [task, r["contact"], r["integrator"], kind, size,
                    str(r["nonfinite"]), unconverged, f"{r['max_qvel']:.3g}", f"{r['travel']:.3g}"]
             rows.append(row)
             print(" | ".join(row), flush=True)
             # rewritten after every row: a long run that is stopped still leaves what it measured
             C.write_data(settings, "stress", {"stress": C.data_table(
-                "Long episodes under the policies that break simulators (float32)", HEADERS, rows)})
+                "Long episodes under the policies that break simulators (float32)", HEADERS, rows)}, measured=measured)
     print_table(HEADERS, rows)
     return rows
 

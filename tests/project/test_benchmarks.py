@@ -639,14 +639,27 @@ def test_stress_resume_keeps_the_data_files_rows_and_runs_only_the_missing_pairs
     args = ["tasks=[HalfCheetah-v5]", "steps=20", f"out={tmp_path / 's.json'}", f"data={data}"]
     first = stress.main([*args, "policies=[random]"])
     assert ran == [("HalfCheetah-v5", "random")]
+    kept = json.loads(data.read_text())
+    kept["command"], kept["machine"] = "python benchmarks/stress.py an earlier sitting", "an earlier machine"
+    data.write_text(json.dumps(kept))
     rows = stress.main([*args, "policies=[random,greedy]", "resume=true"])
     assert ran == [("HalfCheetah-v5", "random"), ("HalfCheetah-v5", "greedy")]  # random was in the file
     assert rows[0] == first[0] and [r[3] for r in rows] == ["random", "greedy"]
-    assert json.loads(data.read_text())["tables"]["stress"]["rows"] == rows
+    written = json.loads(data.read_text())
+    assert written["tables"]["stress"]["rows"] == rows
+    # the rows of both sittings: both commands and machines, the newest date
+    assert written["command"].startswith("python benchmarks/stress.py an earlier sitting; python benchmarks/")
+    assert written["machine"].startswith("an earlier machine; ")
     stress.main([*args, "policies=[random,greedy]", "resume=true", "num_envs=4"])  # another size: both run again
     assert ran[2:] == [("HalfCheetah-v5", "random"), ("HalfCheetah-v5", "greedy")]
+    ran.clear()  # the kept rows stepped with HalfCheetah's Euler: another integrator runs them again
+    stress.main([*args, "policies=[random]", "resume=true", "integrator=implicit"])
+    assert ran == [("HalfCheetah-v5", "random")]
     with pytest.raises(SystemExit, match="resume=true: no data file"):
         stress.main(["quick=true", "resume=true", "data=none"])
+    data.write_text("{}")
+    with pytest.raises(SystemExit, match="is not a stress data file"):
+        stress.main([*args, "resume=true"])
 
 
 def test_gradient_health_quick(tmp_path):

@@ -924,11 +924,13 @@ def test_regulariser_scales_follow_params_changed_between_steps():
     assert torch.isfinite(inferred["next", "observation"]).all()
 
 
-@pytest.mark.parametrize("mode", ["exact", "penalty"])
-def test_the_steps_solved_contacts_give_the_wrench_of_a_fresh_solve(mode):
-    """``cfrc_ext`` read from the contact problem the RK4 step solved at its last stage is the
-    wrench a fresh forward at that state gives: values and gradient w.r.t. the action."""
-    env = make_env("Ant-v5", num_envs=2, dtype=torch.float64, seed=0, contact_gradient=mode)
+@pytest.mark.parametrize("mode, integrator", [("exact", "rk4"), ("penalty", "rk4"), ("cfd", "euler"),
+                                              ("exact", "implicit")])
+def test_the_steps_solved_contacts_give_the_wrench_of_a_fresh_solve(mode, integrator):
+    """``cfrc_ext`` read from the contact problem the step solved at the state it evaluated last (RK4's
+    last stage, Euler's start) is the wrench a fresh forward at that state gives: values and
+    gradient w.r.t. the action; the env's transition reads it."""
+    env = make_env("Ant-v5", num_envs=2, dtype=torch.float64, seed=0, contact_gradient=mode, integrator=integrator)
     td = env.reset()
     for _ in range(10):  # onto the floor
         td["action"] = torch.zeros(2, 8, dtype=torch.float64)
@@ -945,3 +947,5 @@ def test_the_steps_solved_contacts_give_the_wrench_of_a_fresh_solve(mode):
     grads = [torch.autograd.grad((w * weights).sum(), action, retain_graph=True)[0] for w in (reused, fresh)]
     assert grads[1].abs().max() > 0
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-10, atol=1e-12)
+    stepped = env.transition(state, action, params)[0]["cfrc_ext"]  # with grad, as above: the same slots in use
+    torch.testing.assert_close(stepped, fresh, rtol=0, atol=0)

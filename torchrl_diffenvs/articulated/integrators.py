@@ -29,7 +29,8 @@ class StepResult(NamedTuple):
     # (None: no iterative solve, the smooth contact model or no constraints)
     solver_converged: torch.Tensor | None = None
     # MuJoCo's contact model: the contact problem solved at the evaluated state, which cfrc_ext reads
-    # (eager steps only: a compiled step returns tensors, and the task then solves that state again)
+    # (None from compile_physics' compiled physics step, whose graph returns tensors only: the task then
+    # solves that state again)
     solved_contacts: SolvedContacts | None = None
 
 
@@ -82,7 +83,8 @@ def eager_step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float,
     quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
     observations and rewards read some of them, the largest contact normal force there
     (``contact_force [N]``, detached; None without contacts) and whether MuJoCo's constraint
-    solve there converged (``solver_converged [N]``; None without one). ``invweight0``:
+    solve there converged (``solver_converged [N]``; None without one), and the contact problem
+    that solve solved (``solved_contacts``, which ``cfrc_ext`` reads). ``invweight0``:
     `invweight0` of ``params``, if the caller has it.
     """
     # the params are the same at every stage: the constraints' regulariser scales are computed once

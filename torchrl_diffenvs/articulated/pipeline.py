@@ -14,7 +14,7 @@ import torch
 
 from .collision import Contacts, ContactSlots, collide
 from . import convergence
-from .constraint import constraint_rows, contact_frame_forces, contact_normal_forces, solve
+from .constraint import ConstraintRows, constraint_rows, contact_frame_forces, contact_normal_forces, solve
 from .contact_gradient import ContactGradient
 from .contact import _contact_points_and_forces, _pair_forces, body_contact_forces, contact_force, pair_contact_force
 from .forces import actuator_force, passive_force
@@ -101,8 +101,9 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     ``invweight0``: `invweight0` of ``params`` when the caller has it (computed if not).
     ``with_contact_force``: also return what ``mjData`` reports of this forward besides ``qacc``,
     as ``(qacc, ForwardReport)``: the largest contact normal force ``[N]`` (detached; None for a
-    model without contacts) and whether MuJoCo's constraint solve converged (``[N]`` bool; None
-    for the smooth model, which has no iterative solve).
+    model without contacts), whether MuJoCo's constraint solve converged (``[N]`` bool; None
+    for the smooth model, which has no iterative solve) and the contact problem it solved
+    ([`SolvedContacts`][torchrl_diffenvs.articulated.pipeline.SolvedContacts]; None without one).
     """
     if tree.contact_model == "mujoco":
         if tree.contact_gradient.mode == "penalty":
@@ -121,7 +122,7 @@ class SolvedContacts(NamedTuple):
 
     slots: ContactSlots  # the slots the rows were built for
     contacts: Contacts
-    rows: object  # the constraint rows (ConstraintRows)
+    rows: ConstraintRows
     force: torch.Tensor  # [N, rows] efc_force
 
 

@@ -82,7 +82,7 @@ class AntV5Env(HealthySurrogate, MuJoCoModelEnv):
         kin = forward_kinematics(self.tree, qpos)  # once per env step, at the state mj_step leaves behind
         centre = root_subtree_com(self.tree, kin, params)[:, 1]  # every body's root is the torso
         return body_contact_wrenches(self.tree, qpos, qvel, ctrl, params, about=centre,
-                                     weights=self._regulariser_scales(params), solved=solved)
+                                     weights=None if solved else self._regulariser_scales(params), solved=solved)
 
     def initial_state(self, params, n):
         noise = params["reset_noise_scale"].unsqueeze(-1)

@@ -58,7 +58,7 @@ class _HumanoidBase(MuJoCoModelEnv):
         centre = root_subtree_com(self.tree, kin, params)[:, 1]  # the torso's subtree: the whole humanoid
         cfrc_ext = qpos.new_zeros(qpos.shape[0], self.model.nbody, 6) if ctrl is None else \
             body_contact_wrenches(self.tree, qpos, qvel, ctrl, params, about=centre,
-                                  weights=self._regulariser_scales(params), solved=solved)
+                                  weights=None if solved else self._regulariser_scales(params), solved=solved)
         return {"mass_center_xy": mass_center(self.tree, kin, params)[:, :2],
                 "cinert": com_inertia(self.tree, kin, params), "cvel": com_velocity(self.tree, kin, qvel, params),
                 "cfrc_ext": cfrc_ext}
