@@ -12,7 +12,8 @@
   object (its capsule along the object's cap), which are not reproduced (see
   ``articulated/capsule_cylinder.py``).
 * **speed** (one thread, interleaved rounds, CPU time): env-steps/s at ``N`` envs of the env step
-  (no gradient) and of a 4-step BPTT window (forward + backward), and the ratio mujoco / smooth.
+  (no gradient) and of a 4-step BPTT window (forward + backward), and the ratio mujoco / smooth;
+  each model with its default integrator, and ``TASK:INTEGRATOR`` both with that one.
 * **ops**: aten ops per env step (``torch.profiler`` on the CPU, no gradient), the CPU proxy of
   CUDA kernels per step; and whether ``torch.compile(fullgraph=True)`` of one physics step
   succeeds (traced by dynamo; a graph break: the data-dependent parts, reported with their reason).
@@ -41,7 +42,9 @@ from torchrl_diffenvs.articulated import step  # noqa: E402
 from torchrl_diffenvs.articulated.pipeline import invweight0  # noqa: E402
 
 PARITY_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "HumanoidStandup-v5", "Pusher-v5"]
-SPEED_TASKS = ["HalfCheetah-v5", "Ant-v5", "Pusher-v5"]
+# the Ant's file steps RK4 (four constraint solves per physics step), the smooth option's default is implicit
+# Euler (one evaluation): "Ant-v5:implicit" times both models with one evaluation per physics step
+SPEED_TASKS = ["HalfCheetah-v5", "Ant-v5", "Ant-v5:implicit", "Pusher-v5"]
 
 
 def _trajectory(mm, steps: int, seed: int, warmstart: bool = True):
@@ -176,8 +179,12 @@ def _yes_no(outcome: str | None) -> str:
     return "-" if outcome is None else ("yes" if outcome == "yes" else "no (graph break)")
 
 
-def speed(task: str, n: int, rounds: int) -> dict:
-    envs = {contact: make_env(task, num_envs=n, contact=contact) for contact in ("mujoco", "smooth")}
+def speed(spec: str, n: int, rounds: int) -> dict:
+    """``spec``: a task (each contact model with its default integrator), or ``TASK:INTEGRATOR``
+    (both with that one: the cost of one evaluation of each, where the defaults differ)."""
+    task, _, integrator = spec.partition(":")
+    options = {"integrator": integrator} if integrator else {}
+    envs = {contact: make_env(task, num_envs=n, contact=contact, **options) for contact in ("mujoco", "smooth")}
     tds = {contact: env.reset() for contact, env in envs.items()}
     gen = torch.Generator().manual_seed(0)
     actions = (torch.rand(8, n, envs["mujoco"].action_dim, generator=gen) * 2 - 1)
@@ -209,13 +216,14 @@ def speed(task: str, n: int, rounds: int) -> dict:
     ratio = {kind: C.median_ratio([c / steps[kind] for c in times[f"smooth {kind}"]["cpu"]],
                                   [c / steps[kind] for c in times[f"mujoco {kind}"]["cpu"]]) for kind in steps}
     ops = {c: _aten_ops_per_step(env, tds[c].set("action", actions[0])) for c, env in envs.items()}
-    return {"task": task, "N": n, "rates_cpu": rates, "ratio_mujoco_over_smooth": ratio, "aten_ops_per_env_step": ops,
+    return {"task": spec, "N": n, "rates_cpu": rates, "ratio_mujoco_over_smooth": ratio, "aten_ops_per_env_step": ops,
             "integrators": {c: env.integrator for c, env in envs.items()}}
 
 
 @dataclass(frozen=True)
 class ContactModelSettings(C.BenchmarkSettings):
     parity_tasks: list[str] = field(default_factory=lambda: list(PARITY_TASKS))
+    # TASK, or TASK:INTEGRATOR for both contact models with that integrator
     speed_tasks: list[str] = field(default_factory=lambda: list(SPEED_TASKS))
     steps: int = 1000  # trajectory length of the parity check
     size: int = 1024  # N of the speed check
@@ -254,7 +262,9 @@ def main(argv=None) -> dict:
     for task in args.speed_tasks:
         s = speed(task, n, rounds)
         if args.compile:
-            s["fullgraph_compile"] = {c: _compiles_fullgraph(make_env(task, num_envs=8, contact=c))
+            name, _, integrator = task.partition(":")
+            options = {"integrator": integrator} if integrator else {}
+            s["fullgraph_compile"] = {c: _compiles_fullgraph(make_env(name, num_envs=8, contact=c, **options))
                                       for c in ("mujoco", "smooth")}
         speeds.append(s)
         r, ops = s["rates_cpu"], s["aten_ops_per_env_step"]

@@ -756,3 +756,11 @@ def test_contact_model_writes_the_parts_it_measured(tmp_path, monkeypatch):
                                         "300 / 100", "- / -"]]
     with pytest.raises(SystemExit, match="name it with data=<name>"):
         bench.main(["parity_tasks=[]", f"out={tmp_path / 'x.json'}"])
+
+
+def test_contact_model_speed_times_both_models_with_the_integrator_a_task_names():
+    pytest.importorskip("mujoco")
+    measured = load("contact_model").speed("HalfCheetah-v5:implicit", 2, 1)
+    assert measured["task"] == "HalfCheetah-v5:implicit"
+    assert measured["integrators"] == {"mujoco": "implicit", "smooth": "implicit"}  # the file's is Euler
+    assert all(rate["median"] > 0 for rate in measured["rates_cpu"].values())
