@@ -44,14 +44,18 @@ def _plain(text: str) -> str:
     return re.sub(r"``([^`]+)``", r"`\1`", text)
 
 
-SCIENTIFIC = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?e\+0[34]\b")
+SCIENTIFIC = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?e[+-]\d\d\b")
 CODE_SPAN = re.compile(r"(`+)(.+?)\1")
 SKIPPED = "skipped (budget)"
 
 
 def _plain_number(match: re.Match) -> str:
-    """``2.23e+03`` -> ``2230``: thousands as people read them (smaller and larger stay as written)."""
-    return f"{float(match.group(0)):.0f}"
+    """Numbers as people read them: ``2.23e+03`` -> ``2230`` (thousands written out), ``1.3e+09`` ->
+    ``1.3e9`` and ``4.2e-05`` -> ``4.2e-5`` (no plus sign, no leading zero in the exponent)."""
+    mantissa, _, exponent = match.group(0).partition("e")
+    if exponent in ("+03", "+04"):
+        return f"{float(match.group(0)):.0f}"
+    return f"{mantissa}e{int(exponent)}"
 
 
 def _cell(value) -> str:

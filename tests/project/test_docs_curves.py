@@ -99,3 +99,11 @@ def test_a_table_leaves_out_the_columns_named_by_prefix_and_says_so(hook):
 def _page(src_uri: str):
     """What the hook reads of an MkDocs page: its source path."""
     return SimpleNamespace(file=SimpleNamespace(src_uri=src_uri))
+
+
+def test_table_cells_write_numbers_as_people_read_them(hook):
+    cell = hook._cell
+    assert cell("2.23e+03") == "2230" and cell("-1.5e+04 s") == "-15000 s"  # thousands written out
+    assert cell("1.3e+09") == "1.3e9" and cell("4.2e-05") == "4.2e-5" and cell("2e+19") == "2e19"
+    assert cell("`x=1e+09` or 1e+05") == "`x=1e+09` or 1e5"  # code stays as written
+    assert cell("ratio 0.5x | 12") == "ratio 0.5x \\| 12"
