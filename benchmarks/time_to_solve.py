@@ -323,6 +323,8 @@ def overview_table(summary: list[dict]) -> dict:
         cell = row["levels"].get(1.0)
         if cell is None:
             return "-"
+        if cell.get("ppo_at_start"):  # no race to PPO's final: its untrained policy already scores it
+            return "- (PPO ends below its start)"
         if not math.isfinite(cell["time_s"]):
             return f"never ({cell['reached']})"
         t = cell["time_s"]
