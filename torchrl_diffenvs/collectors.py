@@ -157,9 +157,11 @@ class EpisodeReturnTracker:
         return finished, per_step
 
     def state_dict(self) -> dict:
+        """The running returns of the episodes in progress (for a checkpoint)."""
         return {"running": self.running.clone()}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restores `state_dict`'s running returns."""
         self.running = state["running"].to(self.running)
 
 
@@ -269,10 +271,12 @@ class DiffWindowCollector:
 
     @property
     def num_envs(self) -> int:
+        """The number of envs the collector steps in parallel."""
         return self._num_envs
 
     @property
     def frames(self) -> int:
+        """Env steps collected so far: windows x ``num_envs`` x ``horizon``."""
         return self.windows * self.num_envs * self.horizon
 
     # ------------------------------------------------------------------ state

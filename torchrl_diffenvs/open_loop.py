@@ -60,6 +60,7 @@ class OpenLoopActor(TensorDictModuleBase):
 
     @property
     def horizon(self) -> int:
+        """The number of steps the action sequence covers."""
         return self.logits.shape[0]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

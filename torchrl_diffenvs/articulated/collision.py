@@ -149,6 +149,7 @@ class ContactSlots:
 
     @property
     def count(self) -> int:
+        """The number of contact slots (geom pairs that can touch)."""
         return len(self.condim)
 
     def frictional(self) -> tuple[tuple[int, torch.Tensor], ...]:

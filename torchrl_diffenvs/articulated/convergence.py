@@ -37,6 +37,8 @@ class ConvergenceWatch:
 
     @classmethod
     def for_device(cls, device: torch.device) -> ConvergenceWatch | None:
+        """A watch for ``device``'s solves: on CUDA a new one; ``None`` on the CPU (which reads the flags
+        directly) and while a CUDA graph is being captured."""
         if device.type != "cuda":
             return None
         with torch.cuda.device(device):

@@ -72,5 +72,6 @@ class SwimmerRaceEnv(TwoPlayerDiffEnv):
         return torch.tanh(2.0 * (state["goal"] - state["pos"][:, 1]) - 2.0 * state["vel"][:, 1])
 
     def player_wins(self, state, params):
+        """``[N]`` bool: player 0 reached the goal, and before player 1 did (or player 1 did not)."""
         arrived, steps = state["arrived"].bool(), state["steps_to_goal"]
         return arrived[:, 0] & (~arrived[:, 1] | (steps[:, 0] < steps[:, 1]))

@@ -265,6 +265,7 @@ class Learner(ABC):
 
     @property
     def num_envs(self) -> int:
+        """The number of envs the learner trains on (this rank's)."""
         return self._num_envs
 
     @property
@@ -279,6 +280,7 @@ class Learner(ABC):
 
     @property
     def total_iterations(self) -> int:
+        """Training iterations in the run: ``total_env_steps`` over the env steps of one iteration, at least 1."""
         return max(1, math.ceil(self.total_env_steps / self.env_steps_per_iteration))
 
     @abstractmethod

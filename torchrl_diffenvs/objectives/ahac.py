@@ -151,9 +151,11 @@ class AdaptiveHorizon:
         return self.steps
 
     def state_dict(self) -> dict:
+        """The current horizon and its dual variables (for a checkpoint)."""
         return {"horizon": self.horizon, "dual": self.dual.clone()}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restores `state_dict`."""
         self.horizon = float(state["horizon"])
         self.dual = state["dual"].to(torch.float64).clone()
 

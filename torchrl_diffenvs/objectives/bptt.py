@@ -74,10 +74,12 @@ class BPTTLoss(LossModule):
 
     @property
     def in_keys(self):
+        """The rollout entries the loss reads."""
         return [("next", self.tensor_keys.reward), ("next", self.tensor_keys.done)]
 
     @property
     def out_keys(self):
+        """The entries of the loss's output TensorDict."""
         return ["loss_actor", "reward_mean", "nonfinite_envs"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -138,9 +138,11 @@ class GradientGuard:
             )
 
     def state_dict(self) -> dict:
+        """Its counters: updates skipped, updates seen, non-finite gradients in a row (for a checkpoint)."""
         return {"skipped": self.skipped, "steps": self.steps, "nonfinite_in_a_row": self.nonfinite_in_a_row}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restores `state_dict`."""
         self.skipped = int(state["skipped"])
         self.steps = int(state["steps"])
         self.nonfinite_in_a_row = int(state.get("nonfinite_in_a_row", 0))  # absent from older checkpoints

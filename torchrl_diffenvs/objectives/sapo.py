@@ -105,10 +105,12 @@ class SAPOLoss(AHACLoss):
 
     @property
     def in_keys(self):
+        """SHAC's entries and the actions' log-probabilities."""
         return super().in_keys + [self.tensor_keys.log_prob]
 
     @property
     def out_keys(self):
+        """The entries of the loss's output TensorDict."""
         return ["loss_actor", "reward_mean", "value_mean", "entropy", "alpha"]
 
     # ------------------------------------------------------------------ entropy

@@ -136,11 +136,13 @@ class SHACLoss(LossModule):
 
     @property
     def in_keys(self):
+        """The rollout entries the loss reads (rewards, done flags and the critic's inputs, now and next)."""
         keys = [("next", self.tensor_keys.reward), ("next", self.tensor_keys.done), ("next", self.tensor_keys.terminated)]
         return keys + list(self.critic_network.in_keys) + [("next", k) for k in self.critic_network.in_keys]
 
     @property
     def out_keys(self):
+        """The entries of the loss's output TensorDict."""
         return ["loss_actor", "reward_mean", "value_mean", "nonfinite_envs"]
 
     def make_target_updater(self, tau: float = 0.8) -> SoftUpdate:

@@ -154,6 +154,7 @@ class Drawer:
     background: RGB = WHITE
 
     def unit_reward(self, reward: float | None) -> float | None:
+        """``reward`` scaled from ``reward_range`` to [0, 1] (for the reward bar), or ``None``."""
         if reward is None:
             return None
         low, high = self.reward_range
