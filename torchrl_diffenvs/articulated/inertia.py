@@ -49,8 +49,14 @@ def mass_matrix_and_bias(tree, kin: Kinematics, qvel: torch.Tensor, params: Para
     """Joint-space mass matrix ``[N, nv, nv]`` (armature included) and bias force ``[N, nv]``.
 
     The bias force is MuJoCo's ``qfrc_bias``: Coriolis, centrifugal and gravity terms.
-    ``with_velocity_jacobian=True`` also returns ``d qfrc_bias / d qvel [N, nv, nv]``
-    (`bias_velocity_jacobian`), as a third result.
+
+    Args:
+        tree: the model's tensors.
+        kin: the bodies' [`Kinematics`][torchrl_diffenvs.articulated.Kinematics] at the state.
+        qvel: ``[N, nv]`` velocities.
+        params: the physical parameters, each ``[N, ...]``.
+        with_velocity_jacobian: also return ``d qfrc_bias / d qvel [N, nv, nv]``
+            (`bias_velocity_jacobian`), as a third result.
     """
     inertia = _spatial_inertia(tree, kin, params)
     mass = _joint_space_inertia(tree, kin.motion, inertia) + torch.diag_embed(params["armature"])

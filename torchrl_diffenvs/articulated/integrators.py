@@ -76,16 +76,27 @@ def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integ
 
 def eager_step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,
                invweight0=None) -> StepResult:
-    """One physics step of MuJoCo's ``integrator`` (``"euler"``, ``"implicit"`` or ``"rk4"``).
+    """One physics step of MuJoCo's ``integrator``.
 
-    Besides the new state, returns the state at which MuJoCo evaluated the forward dynamics last
-    (the start state for Euler and implicit, the fourth stage for RK4): after ``mj_step`` MuJoCo's derived
-    quantities (body and site positions, constraint forces) belong to that state, and Gymnasium's
-    observations and rewards read some of them, the largest contact normal force there
-    (``contact_force [N]``, detached; None without contacts) and whether MuJoCo's constraint
-    solve there converged (``solver_converged [N]``; None without one), and the contact problem
-    that solve solved (``solved_contacts``, which ``cfrc_ext`` reads). ``invweight0``:
-    `invweight0` of ``params``, if the caller has it.
+    Args:
+        tree: the model's tensors.
+        qpos: ``[N, nq]`` positions.
+        qvel: ``[N, nv]`` velocities.
+        ctrl: ``[N, nu]`` controls, held through the step.
+        params: the physical parameters, each ``[N, ...]``.
+        dt: the step's length (s).
+        integrator: ``"euler"``, ``"implicit"`` or ``"rk4"``.
+        invweight0: `invweight0` of ``params``, if the caller has it (computed if not).
+
+    Returns:
+        A [`StepResult`][torchrl_diffenvs.articulated.StepResult]: the new state and the state at
+        which MuJoCo evaluated the forward dynamics last (the start state for Euler and implicit,
+        the fourth stage for RK4). After ``mj_step`` MuJoCo's derived quantities (body and site
+        positions, constraint forces) belong to that state, and Gymnasium's observations and
+        rewards read some of them; with them, the largest contact normal force there
+        (``contact_force [N]``, detached; None without contacts), whether MuJoCo's constraint
+        solve there converged (``solver_converged [N]``; None without one) and the contact problem
+        that solve solved (``solved_contacts``, which ``cfrc_ext`` reads).
     """
     # the params are the same at every stage: the constraints' regulariser scales are computed once
     # (callers stepping several times with the same params pass them in: see MuJoCoModelEnv.simulate)

@@ -78,7 +78,14 @@ def _coordinates(q: torch.Tensor, first: torch.Tensor, count: int) -> torch.Tens
 
 
 def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
-    """Body poses and dof motion subspaces for ``qpos [N, nq]`` (MuJoCo's mj_kinematics and cdof).
+    """Body poses and dof motion subspaces (MuJoCo's mj_kinematics and cdof).
+
+    Args:
+        tree: the model's tensors.
+        qpos: ``[N, nq]`` positions.
+
+    Returns:
+        The [`Kinematics`][torchrl_diffenvs.articulated.Kinematics] of the batch.
 
     A free joint sets its body's world pose from ``qpos`` (position, quaternion); its dofs move the
     body along the world axes and turn it about its own axes. A ball joint turns its body about its

@@ -84,7 +84,14 @@ _DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)
 
 
 def gymnasium_asset(filename: str) -> Path:
-    """The path of one of the model files that ship inside gymnasium (``envs/mujoco/assets``)."""
+    """The path of one of the model files that ship inside gymnasium (``envs/mujoco/assets``).
+
+    Args:
+        filename: the file's name there, e.g. ``"half_cheetah.xml"``.
+
+    Raises:
+        FileNotFoundError: the installed gymnasium ships no such file.
+    """
     import gymnasium
 
     path = Path(gymnasium.__file__).parent / "envs" / "mujoco" / "assets" / filename
@@ -599,7 +606,18 @@ class _Reader:
 
 
 def load_mjcf(path: str | Path) -> ArticulatedModel:
-    """Reads an MJCF model file (see the module docstring for the supported subset)."""
+    """Reads an MJCF model file (see the module docstring for the supported subset).
+
+    Args:
+        path: the model file.
+
+    Returns:
+        The parsed [`ArticulatedModel`][torchrl_diffenvs.articulated.ArticulatedModel].
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        MJCFError: the file asks for something outside the supported subset, or is malformed.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no MJCF file at {path}")

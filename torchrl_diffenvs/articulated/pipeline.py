@@ -91,19 +91,29 @@ def accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, *, impl
     (`contact`), the joint limits solved on their own (`limits`), then
     ``M qacc = force``.
 
-    ``implicit_damping_dt = h`` gives the acceleration of MuJoCo's Euler integrator, which solves
-    with ``M + h D``: joint damping treated implicitly (MuJoCo), and with the smooth contact its
-    velocity damping too (explicit contact friction and damping at 0.01 s steps would be unstable).
-    ``implicit_bias=True`` (with ``implicit_damping_dt``): MuJoCo's ``implicit`` integrator, which
-    also treats the Coriolis and centrifugal forces implicitly, ``M + h (D + d bias / d qvel)``
-    (`bias_velocity_jacobian`): stable where a light body spins fast, where the
-    explicit velocity-product forces pump energy into it.
-    ``invweight0``: `invweight0` of ``params`` when the caller has it (computed if not).
-    ``with_contact_force``: also return what ``mjData`` reports of this forward besides ``qacc``,
-    as ``(qacc, ForwardReport)``: the largest contact normal force ``[N]`` (detached; None for a
-    model without contacts), whether MuJoCo's constraint solve converged (``[N]`` bool; None
-    for the smooth model, which has no iterative solve) and the contact problem it solved
-    ([`SolvedContacts`][torchrl_diffenvs.articulated.pipeline.SolvedContacts]; None without one).
+    Args:
+        tree: the model's tensors.
+        qpos: ``[N, nq]`` positions.
+        qvel: ``[N, nv]`` velocities.
+        ctrl: ``[N, nu]`` controls.
+        params: the physical parameters, each ``[N, ...]``.
+        implicit_damping_dt: ``h`` gives the acceleration of MuJoCo's Euler integrator, which
+            solves with ``M + h D``: joint damping treated implicitly (MuJoCo), and with the smooth
+            contact its velocity damping too (explicit contact friction and damping at 0.01 s
+            steps would be unstable).
+        implicit_bias: with ``implicit_damping_dt``, MuJoCo's ``implicit`` integrator, which also
+            treats the Coriolis and centrifugal forces implicitly, ``M + h (D + d bias / d qvel)``
+            (`bias_velocity_jacobian`): stable where a light body spins fast, where the explicit
+            velocity-product forces pump energy into it.
+        invweight0: `invweight0` of ``params`` when the caller has it (computed if not).
+        with_contact_force: also return what ``mjData`` reports of this forward besides ``qacc``.
+
+    Returns:
+        ``qacc [N, nv]``; with ``with_contact_force``, ``(qacc, ForwardReport)``: the largest
+        contact normal force ``[N]`` (detached; None for a model without contacts), whether
+        MuJoCo's constraint solve converged (``[N]`` bool; None for the smooth model, which has no
+        iterative solve) and the contact problem it solved
+        ([`SolvedContacts`][torchrl_diffenvs.articulated.pipeline.SolvedContacts]; None without one).
     """
     if tree.contact_model == "mujoco":
         if tree.contact_gradient.mode == "penalty":
@@ -256,11 +266,21 @@ def _slots_in_use(slots: ContactSlots, contacts: Contacts, gradient: ContactGrad
 def body_contact_wrenches(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, about: torch.Tensor,
                           weights=None, solved: SolvedContacts | None = None) -> torch.Tensor:
     """``[N, nbody, 6]`` MuJoCo's ``cfrc_ext`` at a state: the contact wrench on every body
-    (torque about ``about [N, 3]``, force; world frame), from the constraint solve's contact forces
-    (``"mujoco"``) or the smooth model's (``"smooth"``). ``weights``: `invweight0` of ``params``
-    when the caller has it; ``solved``: the contact problem the step already solved at this state
-    (its [`StepResult`][torchrl_diffenvs.articulated.StepResult]'s ``solved_contacts``), else the
-    forward runs again."""
+    (torque about ``about``, force; world frame), from the constraint solve's contact forces
+    (``"mujoco"``) or the smooth model's (``"smooth"``).
+
+    Args:
+        tree: the model's tensors.
+        qpos: ``[N, nq]`` positions.
+        qvel: ``[N, nv]`` velocities.
+        ctrl: ``[N, nu]`` controls.
+        params: the physical parameters, each ``[N, ...]``.
+        about: ``[N, 3]`` the point the torques are taken about.
+        weights: `invweight0` of ``params`` when the caller has it (computed if not).
+        solved: the contact problem the step already solved at this state (its
+            [`StepResult`][torchrl_diffenvs.articulated.StepResult]'s ``solved_contacts``);
+            without it the forward runs again.
+    """
     if tree.contact_model != "mujoco":
         return body_contact_forces(tree, forward_kinematics(tree, qpos), qvel, params, about=about)
     if tree.contact_gradient.mode == "penalty" and torch.is_grad_enabled():  # MuJoCo's values, the penalty's gradient

@@ -437,8 +437,16 @@ def _contact_points(model: ArticulatedModel, g: int) -> list[tuple[np.ndarray, f
 
 
 def default_params(model: ArticulatedModel) -> dict[str, torch.Tensor]:
-    """The model file's physical parameters (float64, unbatched): the per-env ``params`` defaults
-    (with ``fluid_density`` and ``fluid_viscosity`` for a model in a fluid)."""
+    """The model file's physical parameters (float64, unbatched): the per-env ``params`` defaults.
+
+    Args:
+        model: the parsed model file.
+
+    Returns:
+        ``body_mass``, ``body_inertia``, ``gravity``, ``damping``, ``armature`` and ``stiffness``;
+        ``fluid_density`` and ``fluid_viscosity`` for a model in a fluid, ``tendon_stiffness`` and
+        ``tendon_damping`` for a model with tendons.
+    """
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
     params = {
         "body_mass": t(model.body_mass), "body_inertia": t(model.body_inertia), "gravity": t(model.gravity),
