@@ -6,7 +6,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-from .modules.actors import _action_bounds, _ScaledTanh
+from .modules.actors import action_bounds, ScaledTanh
 
 __all__ = ["OpenLoopActor"]
 
@@ -46,7 +46,7 @@ class OpenLoopActor(TensorDictModuleBase):
         self.out_keys = ["action"]
         a, b = init_range
         self.logits = nn.Parameter(torch.rand(horizon, action_dim, generator=generator, dtype=dtype) * (b - a) + a)
-        self.squash = _ScaledTanh(low, high)
+        self.squash = ScaledTanh(low, high)
 
     @classmethod
     def from_env(cls, env, horizon: int | None = None, **kwargs) -> OpenLoopActor:
@@ -54,7 +54,7 @@ class OpenLoopActor(TensorDictModuleBase):
         horizon = horizon if horizon is not None else env.max_episode_steps
         if horizon is None:
             raise ValueError("OpenLoopActor.from_env: the env never truncates; pass horizon=")
-        low, high = _action_bounds(env)
+        low, high = action_bounds(env)
         action = env.full_action_spec[env.action_key]  # the (transformed) spec the actions must fit
         return cls(horizon, int(action.shape[-1]), low=low, high=high, dtype=action.dtype, **kwargs)
 

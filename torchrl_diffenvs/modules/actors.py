@@ -18,13 +18,14 @@ from ..envs.multi_agent import policy_keys
 from ..normalization import ObservationNormalizer
 from .networks import LeanModule, env_dims, make_agent_mlp, make_mlp, orthogonal_init_
 
-__all__ = ["DISTRIBUTIONS", "SquashedNormalActor", "TanhNormalActor", "make_actor", "make_sapo_actor"]
+__all__ = ["DISTRIBUTIONS", "ScaledTanh", "SquashedNormalActor", "TanhNormalActor", "action_bounds", "make_actor",
+           "make_sapo_actor"]
 
 DISTRIBUTIONS = ("tanh_normal", "deterministic")
 """The valid ``distribution`` names of `make_actor`."""
 
 
-def _action_bounds(env, who: str = "make_actor") -> tuple[float, float]:
+def action_bounds(env, who: str = "make_actor") -> tuple[float, float]:
     """``(low, high)`` of ``env``'s action spec, the same for every action dimension (``who``:
     the caller's name, for the error)."""
     spec = env.full_action_spec_unbatched[env.action_key]
@@ -34,7 +35,7 @@ def _action_bounds(env, who: str = "make_actor") -> tuple[float, float]:
     return float(low.flatten()[0]), float(high.flatten()[0])
 
 
-class _ScaledTanh(nn.Module):
+class ScaledTanh(nn.Module):
     """``low + (tanh(x) + 1) / 2 * (high - low)``: squashes into the action bounds."""
 
     def __init__(self, low: float, high: float):
@@ -162,7 +163,7 @@ def make_actor(
     keys = policy_keys(env)
     in_key = keys.observation if in_key is None else in_key
     observation_dim, action_dim, dtype = env_dims(env, in_key)
-    low, high = _action_bounds(env)
+    low, high = action_bounds(env)
     if keys.num_agents is None:
         net = make_mlp(observation_dim, action_dim, hidden, activation, layer_norm, dtype, norm_after_activation, init)
     else:
@@ -170,7 +171,7 @@ def make_actor(
                              norm_after_activation, init)
     prefix = [normalizer] if normalizer is not None else []
     if distribution == "deterministic":
-        return LeanModule(nn.Sequential(*prefix, net, _ScaledTanh(low, high)), in_keys=[in_key], out_keys=[keys.action])
+        return LeanModule(nn.Sequential(*prefix, net, ScaledTanh(low, high)), in_keys=[in_key], out_keys=[keys.action])
     # loc = MLP(observation), scale = exp(log-std), one learned value per action dimension
     scale = AddStateIndependentNormalScale(action_dim, scale_mapping="exp", init_value=float(init_log_std))
     head = nn.Sequential(*prefix, net, scale.to(dtype))
@@ -264,7 +265,7 @@ def make_sapo_actor(
     if keys.num_agents is not None:
         raise ValueError(f"make_sapo_actor: {type(env).__name__} is multi-agent; SAPO is single-agent")
     observation_dim, action_dim, dtype = env_dims(env, keys.observation)
-    low, high = _action_bounds(env, "make_sapo_actor")
+    low, high = action_bounds(env, "make_sapo_actor")
     net = make_mlp(observation_dim, 2 * action_dim, hidden, activation, layer_norm, dtype, norm_after_activation)
     if init == "orthogonal":
         orthogonal_init_(net, orthogonal_gain)
