@@ -26,8 +26,18 @@ __all__ = ["DiffWindowCollector", "EpisodeReturnTracker", "IsolatingPolicy", "ba
 
 def batch_size_of(env, reset_input=None, who: str = "") -> int:
     """``N``: the env's batch size ``[N]``, or for a batch-unlocked env (``batch_size`` ``[]``, like
-    TorchRL's ``PendulumEnv``) the batch size of what ``reset_input()`` returns. Raises a
-    ``ValueError`` naming ``who`` and the fix for any other env."""
+    TorchRL's ``PendulumEnv``) the batch size of what ``reset_input()`` returns.
+
+    Args:
+        env: the env, batched (``batch_size`` ``[N]``) or batch-unlocked (``batch_size`` ``[]``).
+        reset_input: for a batch-unlocked env only: a callable returning the TensorDict of batch size
+            ``[N]`` that ``reset`` receives (e.g. ``lambda: env.gen_params(batch_size=[N])``).
+        who: the caller's name, which the error messages begin with.
+
+    Raises:
+        ValueError: for any other env (naming ``who`` and the fix), or when ``reset_input`` is given
+            for a batched env or returns a batch size other than ``[N]``.
+    """
     if reset_input is not None:
         if len(env.batch_size) != 0:
             raise ValueError(f"{who}: reset_input is for batch-unlocked envs (batch_size []); this env is "
@@ -50,7 +60,11 @@ def detach_transform_state(env) -> None:
     """Cuts the autograd graph out of the state that ``env``'s transforms keep between steps
     (``CatFrames``' frame buffer, ...): every buffer that carries a graph is replaced by a
     detached copy (a copy, so that a window collected earlier keeps its own graph intact).
-    A no-op for an env without transforms."""
+    A no-op for an env without transforms.
+
+    Args:
+        env: the env; its ``TransformedEnv`` layers, if any, are walked down to the base env.
+    """
     while isinstance(env, TransformedEnv):
         for module in env.transform.modules():
             for name, buffer in list(module.named_buffers(recurse=False)):

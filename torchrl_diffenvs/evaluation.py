@@ -34,7 +34,11 @@ NOT_TASK_OPTIONS = frozenset({"contact", "integrator", "substeps", "contact_grad
 
 def first_episode_mask(rollout: TensorDictBase) -> torch.Tensor:
     """``[N, T]`` float mask of the steps of each env's *first* episode in a rollout (up to and
-    including its first ``("next", "done")``)."""
+    including its first ``("next", "done")``).
+
+    Args:
+        rollout: a ``[N, T]`` rollout (``env.rollout`` output) with ``("next", "done")``.
+    """
     done = rollout.get(("next", "done"))[..., 0].to(torch.int64)
     ended_before = torch.cumsum(done, dim=-1) - done  # dones strictly before t
     return (ended_before == 0).to(torch.float64)
@@ -43,7 +47,11 @@ def first_episode_mask(rollout: TensorDictBase) -> torch.Tensor:
 def first_episode_ends(rollout: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
     """``(length [N], terminated [N])`` of each env's *first* episode in a ``[N, T]`` rollout: its
     number of steps (``T`` if it did not end), and whether it ended by termination (a fall, a
-    goal) rather than by truncation or the rollout's end."""
+    goal) rather than by truncation or the rollout's end.
+
+    Args:
+        rollout: a ``[N, T]`` rollout with ``("next", "done")`` and ``("next", "terminated")``.
+    """
     in_first = first_episode_mask(rollout)
     length = in_first.sum(-1).long()
     last = (length - 1).clamp(max=rollout.shape[-1] - 1)
@@ -52,15 +60,24 @@ def first_episode_ends(rollout: TensorDictBase) -> tuple[torch.Tensor, torch.Ten
 
 
 def episode_returns(rollout: TensorDictBase, reward_key: NestedKey = "reward") -> torch.Tensor:
-    """Per-env return of the *first* episode of a ``[N, T]`` rollout (later episodes ignored);
-    a multi-agent env's (``reward_key=("agents", "reward")``) is the mean over its agents."""
+    """Per-env return of the *first* episode of a ``[N, T]`` rollout (later episodes ignored).
+
+    Args:
+        rollout: a ``[N, T]`` rollout.
+        reward_key: the reward's key under ``"next"``; a multi-agent env's
+            (``reward_key=("agents", "reward")``) return is the mean over its agents.
+    """
     reward = reward_per_env(rollout, reward_key)
     return (reward * first_episode_mask(rollout).to(reward.dtype)).sum(-1)
 
 
 def uniform_random_policy(env):
     """A policy writing uniformly random actions within the action spec, drawn from ``env.rng``
-    (so it neither consumes nor disturbs torch's global generator)."""
+    (so it neither consumes nor disturbs torch's global generator).
+
+    Args:
+        env: the env whose bounded action spec (at ``env.action_key``) and ``rng`` the policy uses.
+    """
     space = env.full_action_spec[env.action_key].space
     low, high = space.low, space.high
 
@@ -86,12 +103,23 @@ def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, 
     """Scores ``policy`` on every env of ``env`` for one episode of ``steps`` steps (default: the
     env's ``max_episode_steps``), in deterministic mode (the mean action) by default.
 
-    Returns ``return`` (mean over envs of the first episode's return), ``return_std``,
-    ``return_min``, ``return_max``, ``reward_mean`` (mean per-step reward over the steps of
-    the first episodes) and ``tail_reward_mean`` (mean per-step reward of the last ``tail_steps``
-    steps: how well a task is held once reached, e.g. a pendulum kept upright); on a two-player
-    env (``player_wins``) also ``win_rate``: the fraction of first episodes the policy won
-    against the env's opponent.
+    Args:
+        env: the (batched) evaluation env.
+        policy: the policy to score, as ``env.rollout`` takes it.
+        steps: the rollout's length (default: the env's ``max_episode_steps``).
+        seed: if given, the envs are reseeded with it first, so every evaluation starts from the same
+            start states.
+        tail_steps: the number of last steps ``tail_reward_mean`` averages over.
+        exploration_type: the exploration mode the policy runs in (default: deterministic, the mean action).
+
+    Returns:
+        ``return`` (mean over envs of the first episode's return), ``return_std``,
+        ``return_min``, ``return_max``, ``reward_mean`` (mean per-step reward over the steps of
+        the first episodes) and ``tail_reward_mean`` (mean per-step reward of the last ``tail_steps``
+        steps: how well a task is held once reached, e.g. a pendulum kept upright), ``episode_length``
+        (the first episodes' mean length) and ``terminated`` (the fraction of them that ended by
+        termination); on a two-player env (``player_wins``) also ``win_rate``: the fraction of first
+        episodes the policy won against the env's opponent.
     """
     rollout = _rollout(env, policy, steps, seed, exploration_type)
     reward = reward_per_env(rollout, env.reward_key).double()  # the agents' mean on a multi-agent env
@@ -120,7 +148,15 @@ def gymnasium_kwargs(env_id: str, options: dict | None = None) -> dict:
     of our env made with ``options``: the options Gymnasium's env class takes, by name. The
     options of the simulator and of the backward (``NOT_TASK_OPTIONS``: ``contact``,
     ``integrator``, ``contact_gradient``, the ``*_gradient*`` shaping options...) are dropped:
-    Gymnasium's env is MuJoCo's forward. Any other option raises, naming those it takes."""
+    Gymnasium's env is MuJoCo's forward.
+
+    Args:
+        env_id: the Gymnasium env id, e.g. ``"HalfCheetah-v5"``.
+        options: our env's task options.
+
+    Raises:
+        ValueError: any other option (one Gymnasium's env class does not take), naming those it takes.
+    """
     import gymnasium
 
     from gymnasium.envs.registration import load_env_creator
@@ -147,11 +183,23 @@ def evaluate_in_gymnasium(policy, env_id: str, episodes: int = 16, seed: int = 0
     the ``mujoco`` extra): ``episodes`` full episodes, episode ``i`` reset with seed ``seed + i``,
     each played to its termination or to its time limit (``steps``, else the env's).
 
-    The policy reads ``observation_key`` from a TensorDict of the still-running episodes (converted
-    to ``dtype`` on ``device``) and writes ``action_key``, as it does on our env; ``options`` are
-    our env's task options ([`gymnasium_kwargs`][torchrl_diffenvs.evaluation.gymnasium_kwargs]). Returns [`evaluate`][torchrl_diffenvs.evaluation.evaluate]'s ``return``,
-    ``return_std``, ``return_min``, ``return_max``, ``episode_length`` and ``terminated``, and the
-    per-episode ``returns`` and ``lengths``.
+    Args:
+        policy: the policy; it reads ``observation_key`` from a TensorDict of the still-running
+            episodes and writes ``action_key``, as it does on our env.
+        env_id: Gymnasium's env id, e.g. ``"HalfCheetah-v5"``.
+        episodes: the number of episodes (an integer >= 1).
+        seed: episode ``i`` is reset with seed ``seed + i``.
+        steps: the time limit of an episode (default: the env's).
+        options: our env's task options ([`gymnasium_kwargs`][torchrl_diffenvs.evaluation.gymnasium_kwargs]).
+        dtype: the observations are converted to it for the policy.
+        device: the observations are put on it for the policy.
+        observation_key: where the policy reads the observation.
+        action_key: where the policy writes the action.
+        exploration_type: the exploration mode the policy runs in (default: deterministic, the mean action).
+
+    Returns:
+        [`evaluate`][torchrl_diffenvs.evaluation.evaluate]'s ``return``, ``return_std``, ``return_min``,
+        ``return_max``, ``episode_length`` and ``terminated``, and the per-episode ``returns`` and ``lengths``.
     """
     import gymnasium
     import numpy as np
@@ -197,7 +245,15 @@ def evaluate_in_gymnasium(policy, env_id: str, episodes: int = 16, seed: int = 0
 
 
 def evaluate_random(env, steps: int | None = None, seed: int | None = None) -> float:
-    """Mean return of uniformly random actions on the same start states as [`evaluate`][torchrl_diffenvs.evaluation.evaluate]."""
+    """Mean return of uniformly random actions on the same start states as
+    [`evaluate`][torchrl_diffenvs.evaluation.evaluate].
+
+    Args:
+        env: the (batched) evaluation env.
+        steps: the rollout's length (default: the env's ``max_episode_steps``).
+        seed: if given, the envs are reseeded with it first (the same start states as
+            [`evaluate`][torchrl_diffenvs.evaluation.evaluate] with this seed).
+    """
     rollout = _rollout(env, uniform_random_policy(env), steps, seed, ExplorationType.RANDOM)
     return episode_returns(rollout, env.reward_key).double().mean().item()
 
@@ -209,6 +265,20 @@ def record_video(env, policy, steps: int, seed: int, path: str | Path, env_index
 
     Needs Pillow (``pip install "torchrl_diffenvs[render]"``), and for MP4 imageio-ffmpeg (the
     ``video`` extra).
+
+    Args:
+        env: the env to roll out (its task must have a drawer).
+        policy: the policy that plays, as ``env.rollout`` takes it.
+        steps: the number of steps recorded.
+        seed: the envs are reseeded with it first (``None``: not reseeded).
+        path: the file to write: ``.gif`` or ``.mp4``.
+        env_index: which env of the batch is drawn.
+        fps: frames per second of the video.
+        size: pixels of a frame, each way.
+        exploration_type: the exploration mode the policy runs in (default: deterministic, the mean action).
+
+    Returns:
+        The path of the written file.
     """
     from .rendering import rollout_frames, save_video  # Pillow is an optional extra
 

@@ -247,7 +247,18 @@ def _face_contacts(size1, size2, pos1, pos2, mat1, mat2, pos21, pos12, rot, code
 
 def box_box(box1: PosedGeoms, box2: PosedGeoms, margin: torch.Tensor) -> PairContacts:
     """MuJoCo's ``mjc_BoxBox``: ``K = 8`` slots per pair, the contacts in MuJoCo's order first
-    (one from an edge axis, up to eight from a face axis), ``found`` where MuJoCo has them."""
+    (one from an edge axis, up to eight from a face axis), ``found`` where MuJoCo has them.
+
+    Args:
+        box1: the pairs' first boxes, posed in the world (``size``: the half-sizes).
+        box2: the pairs' second boxes, posed in the world.
+        margin: ``[P]`` the pairs' margins: boxes separated by more (plus a rounding slack) have no
+            contact, and a face's clipped vertices are contacts within it.
+
+    Returns:
+        The [`PairContacts`][torchrl_diffenvs.articulated.primitive_types.PairContacts], ``K = 8`` per pair,
+        the normals from box 1 towards box 2.
+    """
     pos1, mat1, pos2, mat2 = box1.pos, box1.rot, box2.pos, box2.rot
     size1, size2 = box1.size.expand_as(pos1), box2.size.expand_as(pos2)
     sepeps, pareps, sgneps, dupeps = _TOLERANCES.get(pos1.dtype, _SINGLE)

@@ -202,7 +202,13 @@ def _second(axis, halfaxis, pos, half, bestsegmentpos, bestboxpos, cltype, clfac
 
 def capsule_box(capsule: PosedGeoms, box: PosedGeoms, margin: torch.Tensor) -> PairContacts:
     """A capsule (geom 1) against a box (geom 2): ``PairContacts`` with two slots, MuJoCo's first and
-    second contact (``found``: MuJoCo makes it, active where within the margin)."""
+    second contact (``found``: MuJoCo makes it, active where within the margin).
+
+    Args:
+        capsule: the pairs' capsules, posed in the world (``size``: radius, half-length).
+        box: the pairs' boxes, posed in the world (``size``: the half-sizes).
+        margin: ``[P]`` the pairs' margins.
+    """
     radius, halflength, half = capsule.size[:, 0], capsule.size[:, 1], box.size
     pos = _mul_mat_t_vec3(box.rot, capsule.pos - box.pos)
     axis = _mul_mat_t_vec3(box.rot, capsule.rot[..., :, 2])

@@ -243,9 +243,22 @@ def _segment_cylinder(start, axis, radius, half):
 
 
 def capsule_cylinder(pos1, half_axis1, radius1, pos2, rot2, size2):
-    """A capsule (centre ``pos1``, half-axis ``half_axis1``, radius ``radius1``) against a cylinder
-    (``pos2``, ``rot2``, ``size2`` its radius and half-height): ``(dist, pos, normal)``, ``[N, P, ...]``,
-    the normal from the capsule to the cylinder (see the module's docstring)."""
+    """A capsule against a cylinder: ``(dist, pos, normal)``, ``[N, P, ...]``, the normal from the
+    capsule to the cylinder (see the module's docstring).
+
+    Args:
+        pos1: ``[N, P, 3]`` the capsule's centre.
+        half_axis1: ``[N, P, 3]`` the capsule's half-axis (from the centre to one end of its segment).
+        radius1: ``[P]`` the capsule's radius.
+        pos2: ``[N, P, 3]`` the cylinder's centre.
+        rot2: ``[N, P, 3, 3]`` the cylinder's orientation (its axis is the third column).
+        size2: ``[P, 3]`` the cylinder's size: its radius and half-height first.
+
+    Returns:
+        ``(dist, pos, normal)``: the signed distance ``[N, P]`` (negative: penetrating), the contact
+        point ``[N, P, 3]`` midway between the surfaces and the unit normal ``[N, P, 3]`` from the
+        capsule to the cylinder.
+    """
     to_local = rot2.transpose(-1, -2)
     start = (to_local @ (pos1 - pos2).unsqueeze(-1)).squeeze(-1)
     axis = (to_local @ half_axis1.unsqueeze(-1)).squeeze(-1)

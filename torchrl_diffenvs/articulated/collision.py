@@ -41,7 +41,11 @@ def colliding_pairs(model: ArticulatedModel) -> list[tuple[int, int]]:
     """The geom pairs ``(g1, g2)`` MuJoCo's collision filter lets touch, ordered as MuJoCo orders
     them (``g1``'s type first in MuJoCo's type order, so the normal points from ``g1`` to ``g2``):
     compatible ``contype``/``conaffinity`` bits, bodies that do not move together and are not both
-    static, and (``filterparent``) not a body and its parent unless that parent is the world."""
+    static, and (``filterparent``) not a body and its parent unless that parent is the world.
+
+    Args:
+        model: the parsed model file.
+    """
     out = []
     ngeom = len(model.geom_names)
     for g1 in range(ngeom):
@@ -177,14 +181,25 @@ class ContactSlots:
 
 def unsupported_pairs(model: ArticulatedModel) -> list[tuple[str, str]]:
     """The colliding geom pairs (names) whose types have no primitive here (empty: MuJoCo's
-    contact model covers the model)."""
+    contact model covers the model).
+
+    Args:
+        model: the parsed model file.
+    """
     return [(model.geom_names[g1], model.geom_names[g2]) for g1, g2 in colliding_pairs(model)
             if (model.geom_type[g1], model.geom_type[g2]) not in PRIMITIVES]
 
 
 def contact_slots(model: ArticulatedModel, friction_slots: list[tuple[str, str]], dtype, device) -> ContactSlots:
-    """The [`ContactSlots`][torchrl_diffenvs.articulated.collision.ContactSlots] of a model. ``friction_slots``: the geom-name pairs of the
-    ``contact_friction`` param (``RigidBodyTree.contact_pairs``, either order)."""
+    """The [`ContactSlots`][torchrl_diffenvs.articulated.collision.ContactSlots] of a model.
+
+    Args:
+        model: the parsed model file.
+        friction_slots: the geom-name pairs of the ``contact_friction`` param
+            (``RigidBodyTree.contact_pairs``, either order).
+        dtype: the floating-point dtype of the slots' tensors.
+        device: the device of the slots' tensors.
+    """
     if model.cone not in CONES:
         raise ValueError(f"{model.path}: friction cone {model.cone!r} is invalid; valid: {', '.join(map(repr, CONES))}")
     slot_of = {frozenset(pair): i for i, pair in enumerate(friction_slots)}
@@ -270,9 +285,14 @@ def _make_frame(normal, tangent):
 
 
 def collide(slots: ContactSlots, kin) -> Contacts:
-    """The contacts of every slot at the configurations of ``kin`` (a
-    [`Kinematics`][torchrl_diffenvs.articulated.Kinematics]; not imported here: the kinematics import the tree, which
-    imports this module): [`Contacts`][torchrl_diffenvs.articulated.collision.Contacts]."""
+    """The contacts of every slot at the configurations of ``kin``:
+    [`Contacts`][torchrl_diffenvs.articulated.collision.Contacts].
+
+    Args:
+        slots: the model's contact slots ([`contact_slots`][torchrl_diffenvs.articulated.collision.contact_slots]).
+        kin: a [`Kinematics`][torchrl_diffenvs.articulated.Kinematics] (not imported here: the kinematics
+            import the tree, which imports this module).
+    """
     dists, poss, frames, founds = [], [], [], []
     for kind, first, geom1, geom2 in slots.groups:
         primitive = PRIMITIVES[kind]

@@ -108,9 +108,18 @@ def constraint_rows(tree: RigidBodyTree, slots: ContactSlots, kin: Kinematics, c
     """The constraint rows at a state: joint limits, then contacts (pyramidal or elliptic cones, the
     model's; the layout is the module docstring's).
 
-    ``dof_weight [N, nv]`` and ``body_weight [N, nbody, 2]``: MuJoCo's ``dof_invweight0`` and
-    ``body_invweight0`` for these params (`dof_invweight0`,
-    `body_invweight0`), the scales of the regularisers (``mj_diagApprox``).
+    Args:
+        tree: the model's tensors.
+        slots: the model's contact slots (those ``contacts`` were collided for).
+        kin: the bodies' [`Kinematics`][torchrl_diffenvs.articulated.Kinematics] at the state.
+        contacts: the slots' [`Contacts`][torchrl_diffenvs.articulated.collision.Contacts] at the state.
+        qpos: ``[N, nq]`` positions.
+        qvel: ``[N, nv]`` velocities.
+        params: the physical parameters, each ``[N, ...]``.
+        dof_weight: ``[N, nv]`` MuJoCo's ``dof_invweight0`` for these params (`dof_invweight0`),
+            a scale of the regularisers (``mj_diagApprox``).
+        body_weight: ``[N, nbody, 2]`` MuJoCo's ``body_invweight0`` for these params
+            (`body_invweight0`), a scale of the regularisers (``mj_diagApprox``).
     """
     timestep = tree.model.timestep
     n, nv = qpos.shape[0], tree.nv
@@ -454,8 +463,21 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
     its terms (at least ``1000 eps`` of the dtype). On the CPU the iterations stop once every env
     has; on other devices converged envs are held by a mask (no host-device synchronisation), and
     on CUDA the host stops issuing rounds once it sees, without waiting, that every env has
-    converged ([`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch]). ``gradient``: how the backward differentiates the solve
-    ([`ContactGradient`][torchrl_diffenvs.articulated.contact_gradient.ContactGradient]; the values are the same in every mode).
+    converged ([`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch]).
+
+    Args:
+        mass: ``[N, nv, nv]`` the mass matrix ``M``.
+        qacc_smooth: ``[N, nv]`` the unconstrained acceleration ``qacc_smooth``.
+        rows: the constraint rows ([`constraint_rows`][torchrl_diffenvs.articulated.constraint.constraint_rows]).
+        iterations: the most Newton steps.
+        tolerance: an env has converged once its cost's gradient is below it, relative to the size
+            of its terms (at least ``1000 eps`` of the dtype).
+        gradient: how the backward differentiates the solve
+            ([`ContactGradient`][torchrl_diffenvs.articulated.contact_gradient.ContactGradient]; the values are
+            the same in every mode).
+
+    Returns:
+        A [`SolverResult`][torchrl_diffenvs.articulated.constraint.SolverResult]: ``qacc`` and the rows' forces.
     """
     tolerance = max(tolerance, 1000 * torch.finfo(mass.dtype).eps)
     if rows.jacobian.shape[1] == 0:
@@ -507,7 +529,12 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
 def contact_row_blocks(slots: ContactSlots, rows: ConstraintRows) -> list[tuple[int, torch.Tensor, int]]:
     """Where each condim's contact rows lie: ``(condim, slots [S] long, first row)``, each slot
     taking ``2 (condim - 1)`` consecutive rows (its pyramid's edges), ``condim`` with elliptic
-    cones, or 1 for condim 1 (see the module docstring); condims without slots are left out."""
+    cones, or 1 for condim 1 (see the module docstring); condims without slots are left out.
+
+    Args:
+        slots: the contact slots the rows were built for.
+        rows: the constraint rows ([`constraint_rows`][torchrl_diffenvs.articulated.constraint.constraint_rows]).
+    """
     out, start = [], rows.rows_per_slot[0]
     for condim, index in (*slots.frictional(), (1, slots.normal_index)):
         if index.numel():
@@ -518,7 +545,13 @@ def contact_row_blocks(slots: ContactSlots, rows: ConstraintRows) -> list[tuple[
 
 def contact_normal_forces(slots: ContactSlots, rows: ConstraintRows, force: torch.Tensor) -> torch.Tensor:
     """``[N, C]`` each contact slot's normal force (the sum of its pyramid's edge forces, an
-    elliptic cone's normal row); ``slots``: those the rows were built for."""
+    elliptic cone's normal row).
+
+    Args:
+        slots: the contact slots the rows were built for.
+        rows: the constraint rows.
+        force: ``[N, R]`` the rows' forces (``efc_force``, the solve's ``force``).
+    """
     out = force.new_zeros(force.shape[0], slots.count)
     for condim, index, start in contact_row_blocks(slots, rows):
         edges = _rows_per_contact(condim, slots.cone)
@@ -531,9 +564,16 @@ def contact_frame_forces(slots: ContactSlots, rows: ConstraintRows, force: torch
     """``[N, C, 6]`` each contact slot's force and torque in its frame, MuJoCo's
     ``mj_contactForce``: the force along the normal and the two tangents, then the torque about
     the normal (torsional friction, condim 4 and 6) and the two tangents (rolling friction, condim
-    6), for the ``slots`` the rows were built for. A pyramid's normal force is the sum of its edges', its friction in direction ``d`` is
-    ``mu_d (f_{+d} - f_{-d})``; an elliptic cone's rows are these forces. ``friction [N, C]``: each
-    slot's sliding ``mu`` (the torsional and rolling ones are the model's, ``slots.spin_friction``)."""
+    6). A pyramid's normal force is the sum of its edges', its friction in direction ``d`` is
+    ``mu_d (f_{+d} - f_{-d})``; an elliptic cone's rows are these forces.
+
+    Args:
+        slots: the contact slots the rows were built for.
+        rows: the constraint rows.
+        force: ``[N, R]`` the rows' forces (``efc_force``, the solve's ``force``).
+        friction: ``[N, C]`` each slot's sliding ``mu`` (the torsional and rolling ones are the
+            model's, ``slots.spin_friction``).
+    """
     out = force.new_zeros(force.shape[0], slots.count, 6)
     for condim, index, start in contact_row_blocks(slots, rows):
         if condim == 1 or slots.cone == "elliptic":

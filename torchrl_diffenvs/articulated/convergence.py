@@ -18,7 +18,11 @@ __all__ = ["ConvergenceWatch", "reads_data_freely"]
 def reads_data_freely(device: torch.device) -> bool:
     """Whether the step may look at the data to skip work (converged envs, contact slots and rows
     no env needs): eagerly on the CPU, where it costs nothing; not on a GPU (a host-device
-    synchronisation) nor under ``torch.compile`` (a graph break)."""
+    synchronisation) nor under ``torch.compile`` (a graph break).
+
+    Args:
+        device: the device the step's tensors are on.
+    """
     return device.type == "cpu" and not torch.compiler.is_compiling()
 
 

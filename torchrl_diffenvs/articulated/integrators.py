@@ -67,7 +67,21 @@ def physics_stepper(tree: RigidBodyTree) -> Callable | None:
 
 def step(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, dt: float, integrator: str,
          invweight0=None) -> StepResult:
-    """One physics step (`eager_step`, or the stepper `stepping_with` set for ``tree``)."""
+    """One physics step (`eager_step`, or the stepper `stepping_with` set for ``tree``).
+
+    Args:
+        tree: the model's tensors.
+        qpos: ``[N, nq]`` positions.
+        qvel: ``[N, nv]`` velocities.
+        ctrl: ``[N, nu]`` controls, held through the step.
+        params: the physical parameters, each ``[N, ...]``.
+        dt: the step's length (s).
+        integrator: ``"euler"``, ``"implicit"`` or ``"rk4"``.
+        invweight0: `invweight0` of ``params``, if the caller has it (computed if not).
+
+    Returns:
+        A [`StepResult`][torchrl_diffenvs.articulated.StepResult], as `eager_step` returns it.
+    """
     stepper = physics_stepper(tree)
     if stepper is not None and not torch.compiler.is_compiling():
         return stepper(tree, qpos, qvel, ctrl, params, dt, integrator, invweight0)

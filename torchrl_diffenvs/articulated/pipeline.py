@@ -36,7 +36,13 @@ class InvWeight0(NamedTuple):
 
 
 def invweight0(tree: RigidBodyTree, params: Params):
-    """What [`accelerations`][torchrl_diffenvs.articulated.accelerations] takes as ``invweight0`` for these params (None where nothing needs it)."""
+    """What [`accelerations`][torchrl_diffenvs.articulated.accelerations] takes as ``invweight0`` for these
+    params (None where nothing needs it).
+
+    Args:
+        tree: the model's tensors.
+        params: the physical parameters, each ``[N, ...]``.
+    """
     if tree.contact_model == "mujoco":
         return InvWeight0(dof_invweight0(tree, params), body_invweight0(tree, params) if tree.contact_slots.count else None)
     return dof_invweight0(tree, params) if tree.limit_dof.numel() else None
@@ -342,7 +348,15 @@ def _constrained_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Pa
 
 
 def constraint_force(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params) -> torch.Tensor:
-    """MuJoCo's ``qfrc_constraint [N, nv]`` at a state: the joint-limit forces (contact is a smooth force here)."""
+    """MuJoCo's ``qfrc_constraint [N, nv]`` at a state: the joint-limit forces (contact is a smooth force here).
+
+    Args:
+        tree: the model's tensors.
+        qpos: ``[N, nq]`` positions.
+        qvel: ``[N, nv]`` velocities.
+        ctrl: ``[N, nu]`` controls.
+        params: the physical parameters, each ``[N, ...]``.
+    """
     kin = forward_kinematics(tree, qpos)
     mass, bias = mass_matrix_and_bias(tree, kin, qvel, params)
     force = _smooth_force(tree, kin, qpos, qvel, ctrl, params, bias).force

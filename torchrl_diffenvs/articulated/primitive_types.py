@@ -41,7 +41,17 @@ class Primitive(NamedTuple):
 
 
 def one_contact(dist, pos, normal) -> PairContacts:
-    """A primitive's single contact per pair, with MuJoCo's default tangent."""
+    """A primitive's single contact per pair, with MuJoCo's default tangent.
+
+    Args:
+        dist: ``[N, P]`` the signed distances (negative: penetrating).
+        pos: ``[N, P, 3]`` the contact points.
+        normal: ``[N, P, 3]`` the normals, from geom 1 to geom 2.
+
+    Returns:
+        [`PairContacts`][torchrl_diffenvs.articulated.primitive_types.PairContacts] with ``K = 1``, ``found``
+        everywhere.
+    """
     return PairContacts(dist[..., None], pos[..., None, :], normal[..., None, :], torch.zeros_like(pos)[..., None, :],
                         torch.ones_like(dist, dtype=torch.bool)[..., None])
 
@@ -49,6 +59,10 @@ def one_contact(dist, pos, normal) -> PairContacts:
 def box_corners(like: torch.Tensor) -> torch.Tensor:
     """The signs ``[8, 3]`` of a box's corners in MuJoCo's order (corner ``i``: + along axis ``k``
     where bit ``k`` of ``i`` is set), made on ``like``'s device (a tensor built from Python
-    numbers is a host-to-device copy, a synchronisation on CUDA)."""
+    numbers is a host-to-device copy, a synchronisation on CUDA).
+
+    Args:
+        like: a tensor whose device and dtype the signs take.
+    """
     corner, axis = torch.arange(8, device=like.device).unsqueeze(-1), torch.arange(3, device=like.device)
     return (2 * torch.bitwise_and(torch.bitwise_right_shift(corner, axis), 1) - 1).to(like.dtype)

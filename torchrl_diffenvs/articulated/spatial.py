@@ -32,10 +32,16 @@ def _inverse(matrix: torch.Tensor) -> torch.Tensor:
 
 def small_matmul(a: torch.Tensor, b: torch.Tensor, broadcast: bool | None = None) -> torch.Tensor:
     """``a @ b`` for batches of small blocks (3x3 rotations, 6x6 inertias, their products with
-    vectors). ``broadcast``: as a broadcast product summed over the shared axis (one elementwise
-    kernel and one reduction) rather than a batched GEMM; by default on CUDA, where cuBLAS's batched
-    GEMM is slow for such blocks (3-8x slower at N = 65536 on an H200), not on the CPU, where ``@``
-    is the faster (both measured by ``benchmarks/batched_products.py``)."""
+    vectors).
+
+    Args:
+        a: ``[.., m, k]`` the left blocks.
+        b: ``[.., k, n]`` the right blocks (broadcast against ``a``'s batch axes).
+        broadcast: as a broadcast product summed over the shared axis (one elementwise kernel and
+            one reduction) rather than a batched GEMM; by default (``None``) on CUDA, where cuBLAS's
+            batched GEMM is slow for such blocks (3-8x slower at N = 65536 on an H200), not on the
+            CPU, where ``@`` is the faster (both measured by ``benchmarks/batched_products.py``).
+    """
     if broadcast is None:
         broadcast = a.device.type == "cuda"
     if broadcast:
@@ -44,7 +50,13 @@ def small_matmul(a: torch.Tensor, b: torch.Tensor, broadcast: bool | None = None
 
 
 def small_matvec(a: torch.Tensor, v: torch.Tensor, broadcast: bool | None = None) -> torch.Tensor:
-    """``(a @ v[..., None])[..., 0]`` for small blocks ``a``, by `small_matmul`."""
+    """``(a @ v[..., None])[..., 0]`` for small blocks ``a``, by `small_matmul`.
+
+    Args:
+        a: ``[.., m, k]`` the blocks.
+        v: ``[.., k]`` the vectors.
+        broadcast: as in `small_matmul` (by default on CUDA only).
+    """
     return small_matmul(a, v.unsqueeze(-1), broadcast).squeeze(-1)
 
 
@@ -65,21 +77,35 @@ def _skew(v: torch.Tensor) -> torch.Tensor:
 
 
 def cross_motion(v: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """Spatial motion cross product ``v x u`` of ``[.., 6]`` (angular, linear) vectors."""
+    """Spatial motion cross product ``v x u`` of ``[.., 6]`` (angular, linear) vectors.
+
+    Args:
+        v: ``[.., 6]`` motion vectors (angular, linear).
+        u: ``[.., 6]`` motion vectors (angular, linear).
+    """
     w, vl = v[..., :3], v[..., 3:]
     a, ul = u[..., :3], u[..., 3:]
     return torch.cat([_cross(w, a), _cross(w, ul) + _cross(vl, a)], dim=-1)
 
 
 def cross_force(v: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
-    """Spatial force cross product ``v x* f`` (``[.., 6]``: torque about the origin, force)."""
+    """Spatial force cross product ``v x* f``.
+
+    Args:
+        v: ``[.., 6]`` motion vectors (angular, linear).
+        f: ``[.., 6]`` force vectors (torque about the origin, force).
+    """
     w, vl = v[..., :3], v[..., 3:]
     n, fl = f[..., :3], f[..., 3:]
     return torch.cat([_cross(w, n) + _cross(vl, fl), _cross(w, fl)], dim=-1)
 
 
 def quaternion_to_matrix(quat: torch.Tensor) -> torch.Tensor:
-    """``[.., 4]`` quaternions ``(w, x, y, z)`` (normalised here, as MuJoCo does) -> ``[.., 3, 3]``."""
+    """``[.., 4]`` quaternions ``(w, x, y, z)`` -> ``[.., 3, 3]`` rotation matrices.
+
+    Args:
+        quat: ``[.., 4]`` quaternions ``(w, x, y, z)`` (normalised here, as MuJoCo does).
+    """
     w, x, y, z = (quat / torch.linalg.vector_norm(quat, dim=-1, keepdim=True)).unbind(-1)
     return torch.stack([
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
@@ -100,6 +126,11 @@ def integrate_quaternion(quat: torch.Tensor, omega: torch.Tensor, dt: float) -> 
     velocity ``omega`` for ``dt``: ``quat * (cos(|w| dt / 2), sin(|w| dt / 2) w / |w|)``.
 
     Smooth at ``omega = 0`` (``sin(|w| dt / 2) / |w|`` is written through ``sinc``).
+
+    Args:
+        quat: ``[.., 4]`` quaternions ``(w, x, y, z)``, normalised first.
+        omega: ``[.., 3]`` body-frame angular velocities.
+        dt: the time step (s).
     """
     speed = torch.sqrt((omega * omega).sum(-1, keepdim=True).clamp(min=_MINVAL * _MINVAL))
     half = 0.5 * dt * speed

@@ -14,7 +14,17 @@ __all__ = ["sphere_box"]
 def sphere_box(sphere: PosedGeoms, box: PosedGeoms, margin: torch.Tensor) -> PairContacts:
     """MuJoCo's ``mjraw_SphereBox``: the sphere against the box's nearest point (its centre clamped
     to the box, in the box's frame); a centre inside the box leaves through the nearest face (the
-    first in MuJoCo's order -x, +x, -y, +y, -z, +z where two are as near)."""
+    first in MuJoCo's order -x, +x, -y, +y, -z, +z where two are as near).
+
+    Args:
+        sphere: the pairs' spheres, posed in the world (``size``: the radius first).
+        box: the pairs' boxes, posed in the world (``size``: the half-sizes).
+        margin: ``[P]`` the pairs' margins (unused: the one contact is returned at any distance,
+            and the collision stage compares its distance with the margin).
+
+    Returns:
+        One contact per pair, its normal from the sphere to the box.
+    """
     radius, half = sphere.size[:, 0], box.size  # [P], [P, 3]
     centre = (box.rot.transpose(-1, -2) @ (sphere.pos - box.pos).unsqueeze(-1)).squeeze(-1)  # the box's frame
     clamped = torch.maximum(torch.minimum(centre, half), -half)

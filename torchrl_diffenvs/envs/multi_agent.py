@@ -33,7 +33,11 @@ AGENTS = "agents"  # the group's name, TorchRL's convention
 
 
 def is_multi_agent(env) -> bool:
-    """Whether ``env`` (any TorchRL env) uses the ``("agents", ...)`` layout for its actions."""
+    """Whether ``env`` uses the ``("agents", ...)`` layout for its actions.
+
+    Args:
+        env: any TorchRL env.
+    """
     return env.action_key == (AGENTS, "action")
 
 

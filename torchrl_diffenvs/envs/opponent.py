@@ -40,8 +40,12 @@ class _FrozenActor(nn.Module):
 
 
 def opponent_from_actor(actor: nn.Module) -> Callable[[torch.Tensor], torch.Tensor]:
-    """A frozen copy of ``actor`` (from [`make_actor`][torchrl_diffenvs.modules.make_actor]) as an opponent:
-    ``observation [N, obs_dim] -> action [N, action_dim]``, its deterministic (mean) action."""
+    """A frozen copy of ``actor`` as an opponent:
+    ``observation [N, obs_dim] -> action [N, action_dim]``, its deterministic (mean) action.
+
+    Args:
+        actor: an actor from [`make_actor`][torchrl_diffenvs.modules.make_actor].
+    """
     return _FrozenActor(actor)
 
 

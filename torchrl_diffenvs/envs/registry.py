@@ -49,7 +49,21 @@ _DRAWERS: dict[str, object] = {}  # resolved drawers, by task name
 def register_env(cls: type | None = None, name: str | None = None, *, drawer=None, options: Mapping | None = None,
                  num_envs: int = 64):
     """Registers an env class under ``name`` (default ``cls.name``); usable as a decorator, with
-    or without arguments (``@register_env`` or ``@register_env(drawer=...)``)."""
+    or without arguments (``@register_env`` or ``@register_env(drawer=...)``).
+
+    Args:
+        cls: the env class (a [`DiffEnv`][torchrl_diffenvs.DiffEnv] subclass); ``None`` when used as
+            ``@register_env(...)``, which returns the decorator.
+        name: the name to register under (default ``cls.name``).
+        drawer: how the task is drawn: a ``"module:attribute"`` path to a
+            [`Drawer`][torchrl_diffenvs.rendering.Drawer] (or to a callable ``(env_class) -> Drawer``),
+            a ``Drawer`` itself, or ``None``.
+        options: task options shown in (and passed from) the training config's ``env.options``.
+        num_envs: the training config's default batch size.
+
+    Returns:
+        ``cls``, registered; without ``cls``, a decorator that registers the class it is given.
+    """
 
     def add(cls: type) -> type:
         key = name or getattr(cls, "name", "")
@@ -84,7 +98,11 @@ def task_spec(name: str) -> TaskSpec:
 
 
 def env_class(name: str) -> type:
-    """The class [`make_env`][torchrl_diffenvs.make_env] builds for ``name``."""
+    """The class [`make_env`][torchrl_diffenvs.make_env] builds for ``name``.
+
+    Args:
+        name: a registered task name (one of [`list_envs`][torchrl_diffenvs.list_envs]).
+    """
     return _spec(name).cls
 
 
@@ -104,7 +122,11 @@ def task_drawer(name: str):
 
 
 def env_config(name: str) -> dict:
-    """The training script's ``env`` section for task ``name`` (``python sota_scripts/train.py env=<name>``)."""
+    """The training script's ``env`` section for task ``name`` (``python sota_scripts/train.py env=<name>``).
+
+    Args:
+        name: a registered task name (one of [`list_envs`][torchrl_diffenvs.list_envs]).
+    """
     spec = _spec(name)
     # backend: torchrl_diffenvs (this library's env) | gymnasium (Gymnasium's own, envs/gymnasium_backend.py)
     return {"name": name, "num_envs": spec.num_envs, "max_episode_steps": None, "options": dict(spec.options),
@@ -114,7 +136,10 @@ def env_config(name: str) -> dict:
 def make_env(name: str, num_envs: int = 1, **kwargs):
     """Builds a batched differentiable env by name, e.g. ``make_env("swimmer", num_envs=64)``.
 
-    Keyword arguments go to the env class: ``device``, ``dtype``, ``seed``,
-    ``max_episode_steps``, ``params`` and task options (``num_links``, ``num_urchins``, ...).
+    Args:
+        name: a registered task name (one of [`list_envs`][torchrl_diffenvs.list_envs]).
+        num_envs: the batch size, the number of envs simulated together.
+        **kwargs: go to the env class: ``device``, ``dtype``, ``seed``,
+            ``max_episode_steps``, ``params`` and task options (``num_links``, ``num_urchins``, ...).
     """
     return env_class(name)(num_envs, **kwargs)

@@ -56,8 +56,15 @@ LEARNERS: dict[str, type[Learner]] = {}
 
 
 def register_learner(learner: type[Learner]) -> type[Learner]:
-    """Makes ``learner`` available as ``loss=<learner.name>`` ([`make_learner`][torchrl_diffenvs.learners.make_learner] and the training
-    script's ``loss`` configuration group). Returns it, so it can decorate the class."""
+    """Makes ``learner`` available as ``loss=<learner.name>`` ([`make_learner`][torchrl_diffenvs.learners.make_learner]
+    and the training script's ``loss`` configuration group).
+
+    Args:
+        learner: a [`Learner`][torchrl_diffenvs.learners.Learner] subclass with a ``name``.
+
+    Returns:
+        ``learner``, so it can decorate the class.
+    """
     if not (isinstance(learner, type) and issubclass(learner, Learner)) or not learner.name:
         raise TypeError(f"register_learner needs a Learner subclass with a name, got {learner!r}")
     LEARNERS[learner.name] = learner
@@ -70,8 +77,14 @@ def register_learner(learner: type[Learner]) -> type[Learner]:
 
 
 def make_learner(loss_cfg: Mapping, env, total_env_steps: int, world: World = SINGLE_PROCESS) -> Learner:
-    """Builds the learner named by ``loss_cfg.name`` (the training script's ``loss`` section) on
-    ``env`` (this rank's envs when ``world`` has several ranks)."""
+    """Builds the learner named by ``loss_cfg.name`` on ``env``.
+
+    Args:
+        loss_cfg: the training script's ``loss`` section; its ``name`` picks the learner.
+        env: the env to train on (this rank's envs when ``world`` has several ranks).
+        total_env_steps: the training budget in env steps (global: all ranks together).
+        world: the ranks training together (default: one process).
+    """
     name = loss_cfg.get("name")
     if name not in LEARNERS:
         raise ValueError(f"unknown loss {name!r}; valid: {', '.join(LEARNERS)}")

@@ -86,16 +86,22 @@ def lr_scheduler(optimizer: torch.optim.Optimizer, kind: str, total_iterations: 
                  min_lr: float = 0.0, decay: float = 1.0) -> torch.optim.lr_scheduler.LambdaLR:
     """A learning-rate schedule that follows the budget as it is *now*.
 
-    ``"linear"`` decays from the optimiser's learning rate to ``min_lr`` over
-    ``total_iterations()`` iterations, then stays there; ``"exponential"`` multiplies it by
-    ``decay`` every iteration; ``"constant"`` keeps it.
-
     A run resumed with another budget (`load_lr_scheduler`) continues without a jump: the
     linear schedule goes on from the learning rate it had reached, straight to ``min_lr`` at the
     end of the new budget (from the iteration ``r`` and factor ``f_r`` of the resume,
     ``f(i) = f_r + (end - f_r) (i - r) / (total - r)``), and holds ``min_lr`` after it. A
-    schedule that had already reached ``min_lr`` stays there. ``total_iterations`` is read at
-    every step; the anchor ``(r, f_r)`` is saved in the scheduler's state.
+    schedule that had already reached ``min_lr`` stays there. The anchor ``(r, f_r)`` is saved
+    in the scheduler's state.
+
+    Args:
+        optimizer: the optimiser whose learning rates are scheduled (every group's by the same factor,
+            which ends at ``min_lr`` over the first group's learning rate).
+        kind: ``"linear"`` decays from the optimiser's learning rate to ``min_lr`` over
+            ``total_iterations()`` iterations, then stays there; ``"exponential"`` multiplies it by
+            ``decay`` every iteration; ``"constant"`` keeps it.
+        total_iterations: returns the budget in iterations; read at every step.
+        min_lr: where the linear schedule ends.
+        decay: the exponential schedule's factor per iteration.
     """
     if kind not in LR_SCHEDULES:
         raise ValueError(f"unknown lr_schedule {kind!r}; valid: {', '.join(LR_SCHEDULES)}")

@@ -259,7 +259,20 @@ def make_sapo_actor(
     ([`SquashedNormalActor`][torchrl_diffenvs.modules.SquashedNormalActor], writing ``"action"`` and ``"action_log_prob"``).
 
     The reference: ``[128, 64, 32]`` Linear-LayerNorm-SiLU, orthogonal weights of gain 1, log-std
-    in ``[-5, 2]``. ``init="orthogonal"`` uses ``orthogonal_gain``; ``"default"`` PyTorch's.
+    in ``[-5, 2]``.
+
+    Args:
+        env: a single-agent env with a bounded action spec (sizes from [`env_dims`][torchrl_diffenvs.modules.env_dims]).
+        hidden: the MLP's hidden sizes ([`make_mlp`][torchrl_diffenvs.modules.make_mlp]).
+        activation: the MLP's activation.
+        layer_norm: a LayerNorm in each hidden layer.
+        norm_after_activation: the LayerNorm after the activation instead of before.
+        init: ``"orthogonal"`` uses ``orthogonal_gain``; ``"default"`` PyTorch's.
+        orthogonal_gain: the gain of the orthogonal weights (zero biases).
+        min_log_std: the lower clamp of the log-std.
+        max_log_std: the upper clamp of the log-std.
+        normalizer: an [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] applied to the
+            observation first.
     """
     keys = policy_keys(env)
     if keys.num_agents is not None:

@@ -22,7 +22,11 @@ CRITIC_INPUTS = ("observation", "state")
 
 def privileged_inputs(env) -> list[tuple[tuple[str, str], int]]:
     """``[(key, size), ...]``: every ``("state", ...)`` and ``("params", ...)`` entry of ``env``'s
-    observation spec with its size per env (what ``critic_input="state"`` adds to the critic's input)."""
+    observation spec with its size per env (what ``critic_input="state"`` adds to the critic's input).
+
+    Args:
+        env: the env; its observation spec must have ``("state", ...)`` entries.
+    """
     batch_dims = len(env.batch_size)
     found = [(key, math.prod(env.observation_spec[key].shape[batch_dims:]))
              for key in env.observation_spec.keys(True, True)
@@ -74,9 +78,14 @@ class _ConcatInputs(nn.Module):
 
 @torch.no_grad()
 def update_privileged_statistics(critic: nn.Module, tensordict: TensorDictBase, gather=lambda x: x) -> None:
-    """Merges the privileged inputs of ``tensordict`` (a batch the critic was trained on) into the
-    running statistics of ``critic``'s privileged normaliser (``critic_input="state"``); a no-op
-    for any other critic. ``gather`` collects the ranks' blocks (``world.gather``)."""
+    """Merges the privileged inputs of ``tensordict`` into the running statistics of ``critic``'s
+    privileged normaliser (``critic_input="state"``); a no-op for any other critic.
+
+    Args:
+        critic: the critic ([`make_critic`][torchrl_diffenvs.modules.make_critic]'s).
+        tensordict: a batch the critic was trained on.
+        gather: collects the ranks' blocks (``world.gather``); by default the identity (one process).
+    """
     for module in critic.modules():
         if isinstance(module, _ConcatInputs) and module.privileged_normalizer is not None:
             module.privileged_normalizer.update(gather(module.privileged_block(tensordict)))
@@ -111,17 +120,30 @@ def make_critic(
 ) -> LeanModule:
     """A state-value network writing ``"state_value"`` (``[..., 1]``).
 
-    ``critic_input="observation"`` (default): ``V(observation)``. ``"state"``: an asymmetric
-    (privileged) critic ``V(observation, state, params)`` that also reads every ``("state", ...)``
-    and ``("params", ...)`` entry of the env's TensorDicts (the physical state and parameters,
-    flattened per env), while the actor keeps seeing the observation only. ``normalizer``
-    applies to the observation part; the state and parameters go through their own running
-    normaliser (as rl_games normalises its central value's inputs), which the learner updates
-    with [`update_privileged_statistics`][torchrl_diffenvs.modules.update_privileged_statistics] (``privileged_norm=False``: they enter raw).
-
     On a multi-agent env it writes ``("agents", "state_value")`` ``[..., A, 1]``, one value per
     agent, from a parameter-shared ``MultiAgentMLP``: from the agent's own observation
     (``centralised=False``, IPPO) or from every agent's (``centralised=True``, MAPPO).
+
+    Args:
+        env: the env the critic is for (sizes from [`env_dims`][torchrl_diffenvs.modules.env_dims]).
+        hidden: the MLP's hidden sizes ([`make_mlp`][torchrl_diffenvs.modules.make_mlp]).
+        activation: the MLP's activation.
+        layer_norm: a LayerNorm in each hidden layer.
+        norm_after_activation: the LayerNorm after the activation instead of before.
+        init: the weights' initialisation, as in [`make_mlp`][torchrl_diffenvs.modules.make_mlp].
+        normalizer: an [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] applied to the
+            observation part.
+        in_key: the observation entry to read (single-agent envs).
+        critic_input: ``"observation"`` (default): ``V(observation)``. ``"state"``: an asymmetric
+            (privileged) critic ``V(observation, state, params)`` that also reads every ``("state", ...)``
+            and ``("params", ...)`` entry of the env's TensorDicts (the physical state and parameters,
+            flattened per env), while the actor keeps seeing the observation only.
+        centralised: on a multi-agent env, each agent's value from every agent's observation (MAPPO)
+            rather than from its own (IPPO).
+        privileged_norm: with ``critic_input="state"``, the state and parameters go through their own
+            running normaliser (as rl_games normalises its central value's inputs), which the learner
+            updates with [`update_privileged_statistics`][torchrl_diffenvs.modules.update_privileged_statistics];
+            ``False``: they enter raw.
     """
     agent_keys = policy_keys(env)
     if agent_keys.num_agents is not None:
@@ -152,9 +174,19 @@ def make_qvalue(env, hidden: Sequence[int] = (256, 256), activation: type[nn.Mod
                 layer_norm: bool = False, norm_after_activation: bool = False, init: str = "default",
                 critic_input: str = "observation") -> ValueOperator:
     """``Q(observation, action)`` writing ``"state_action_value"`` (what TorchRL's ``SACLoss``
-    expects); with ``critic_input="state"``, ``Q(observation, state, params, action)`` (see
-    [`make_critic`][torchrl_diffenvs.modules.make_critic]), the privileged inputs raw: SAC keeps no running input statistics (its
-    replay buffer would mix them)."""
+    expects).
+
+    Args:
+        env: a single-agent env (sizes from [`env_dims`][torchrl_diffenvs.modules.env_dims]).
+        hidden: the MLP's hidden sizes ([`make_mlp`][torchrl_diffenvs.modules.make_mlp]).
+        activation: the MLP's activation.
+        layer_norm: a LayerNorm in each hidden layer.
+        norm_after_activation: the LayerNorm after the activation instead of before.
+        init: the weights' initialisation, as in [`make_mlp`][torchrl_diffenvs.modules.make_mlp].
+        critic_input: ``"observation"`` (default), or ``"state"``: ``Q(observation, state, params, action)``
+            (see [`make_critic`][torchrl_diffenvs.modules.make_critic]), the privileged inputs raw: SAC keeps
+            no running input statistics (its replay buffer would mix them).
+    """
     if policy_keys(env).num_agents is not None:
         raise ValueError(f"make_qvalue: {type(env).__name__} is a multi-agent env; SAC's Q-networks are single-agent "
                          "(train it with bptt, shac or ppo: loss=mappo / loss=ippo)")

@@ -47,7 +47,12 @@ class LeanModule(TensorDictModuleBase):
 
 def orthogonal_init_(module: nn.Module, gain: float) -> None:
     """Every ``nn.Linear`` in ``module`` (nested ones included) gets orthogonal weights of
-    ``gain`` and zero biases, in place."""
+    ``gain`` and zero biases, in place.
+
+    Args:
+        module: the module whose ``nn.Linear`` layers are initialised.
+        gain: the orthogonal weights' gain.
+    """
     for layer in module.modules():
         if isinstance(layer, nn.Linear):
             nn.init.orthogonal_(layer.weight, gain=gain)
@@ -66,11 +71,18 @@ def make_mlp(
 ) -> nn.Sequential:
     """``[Linear -> (LayerNorm) -> activation] * len(hidden) -> Linear``: TorchRL's ``MLP``.
 
-    ``norm_after_activation=True`` gives ``Linear -> activation -> LayerNorm`` per hidden layer (the
-    order of DiffRL's SHAC networks), which TorchRL's ``MLP`` cannot build: then a plain
-    ``nn.Sequential`` of the same layers. ``init="orthogonal"`` initialises every Linear with
-    orthogonal weights of gain sqrt(2) and zero biases (DiffRL's critic); ``"default"`` keeps
-    PyTorch's. Parameters are created in ``dtype`` (float64 networks for gradient checks).
+    Args:
+        in_dim: the input size.
+        out_dim: the output size.
+        hidden: the hidden layers' widths.
+        activation: the hidden layers' activation class.
+        layer_norm: a LayerNorm in each hidden layer.
+        dtype: the dtype the parameters are created in (float64 networks for gradient checks).
+        norm_after_activation: ``True`` gives ``Linear -> activation -> LayerNorm`` per hidden layer
+            (the order of DiffRL's SHAC networks), which TorchRL's ``MLP`` cannot build: then a plain
+            ``nn.Sequential`` of the same layers.
+        init: ``"orthogonal"`` initialises every Linear with orthogonal weights of gain sqrt(2) and
+            zero biases (DiffRL's critic); ``"default"`` keeps PyTorch's.
     """
     if init not in NETWORK_INITS:
         raise ValueError(f"make_mlp: init must be one of {NETWORK_INITS}, got {init!r}")
@@ -113,11 +125,22 @@ def make_agent_mlp(
 ) -> MultiAgentMLP:
     """The networks of a multi-agent env: TorchRL's ``MultiAgentMLP`` on ``[..., num_agents, in_dim]``.
 
-    ``centralised=False``: each agent's output from its own input, one network shared by the
-    agents (a decentralised policy or critic: [`make_mlp`][torchrl_diffenvs.modules.make_mlp] applied to every agent).
-    ``True``: each agent's output from every agent's input (MAPPO's centralised critic), with one
-    network per agent: a shared one would give every agent the same value, which per-agent
-    rewards (``multi_swimmer``'s) do not have."""
+    Args:
+        in_dim: one agent's input size.
+        out_dim: one agent's output size.
+        num_agents: the number of agents.
+        hidden: the hidden layers' widths.
+        activation: the hidden layers' activation class.
+        layer_norm: a LayerNorm in each hidden layer (before the activation).
+        dtype: the dtype the parameters are created in.
+        norm_after_activation: must be ``False``: ``MultiAgentMLP`` is Linear-LayerNorm-activation.
+        init: must be ``"default"``: ``MultiAgentMLP`` keeps PyTorch's initialisation.
+        centralised: ``False``: each agent's output from its own input, one network shared by the
+            agents (a decentralised policy or critic: [`make_mlp`][torchrl_diffenvs.modules.make_mlp] applied
+            to every agent). ``True``: each agent's output from every agent's input (MAPPO's centralised
+            critic), with one network per agent: a shared one would give every agent the same value,
+            which per-agent rewards (``multi_swimmer``'s) do not have.
+    """
     if norm_after_activation or init != "default":
         raise ValueError("the multi-agent networks (TorchRL's MultiAgentMLP) are Linear-LayerNorm-activation with "
                          "PyTorch's initialisation: set norm_after_activation=false and init=default")
@@ -134,8 +157,13 @@ def env_dims(env, in_key="observation") -> tuple[int, int, torch.dtype]:
     ``ObservationNorm``, ...), which is what the networks receive; attributes of a DiffEnv such as
     ``observation_dim`` describe the base env and are forwarded unchanged through a transform.
 
-    Raises a ``ValueError`` when ``in_key`` is missing or not floating point, or when the action
-    dtype differs from the observation dtype (the networks compute in one dtype).
+    Args:
+        env: any TorchRL env.
+        in_key: the observation entry the networks read.
+
+    Raises:
+        ValueError: ``in_key`` is missing or not floating point, or the action dtype differs from
+            the observation dtype (the networks compute in one dtype).
     """
     observation = env.observation_spec.get(in_key, None)
     if observation is None:
@@ -158,6 +186,12 @@ def env_dims(env, in_key="observation") -> tuple[int, int, torch.dtype]:
 
 def observation_key_of(policy, default="observation"):
     """The observation entry ``policy`` reads (its only in-key), else ``default``: what a learner
-    updates the policy's [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] from (e.g. a key a ``CatTensors`` added)."""
+    updates the policy's [`ObservationNormalizer`][torchrl_diffenvs.modules.ObservationNormalizer] from
+    (e.g. a key a ``CatTensors`` added).
+
+    Args:
+        policy: a TensorDict module (its ``in_keys`` are read), or anything else.
+        default: the key returned when ``policy`` has not exactly one in-key.
+    """
     in_keys = list(getattr(policy, "in_keys", ()))
     return in_keys[0] if len(in_keys) == 1 else default

@@ -42,10 +42,14 @@ def now_and_next(keys: Iterable[NestedKey]) -> list:
 
 
 def nonfinite_envs(batch: TensorDictBase, keys: Iterable[NestedKey] = (("next", "reward"),)) -> torch.Tensor:
-    """``[N]`` bool: the envs of ``batch`` (batch size ``[N]`` or ``[N, T]``) with a NaN/inf in
-    any floating-point entry ``keys`` at any step, with ``("next", "nonfinite")`` set at any step
-    (the flag an env reports itself), or marked ``"isolated"`` (by the window collector).
-    Missing entries are ignored."""
+    """``[N]`` bool: the envs of ``batch`` with a NaN/inf in any floating-point entry ``keys`` at
+    any step, with ``("next", "nonfinite")`` set at any step (the flag an env reports itself), or
+    marked ``"isolated"`` (by the window collector).
+
+    Args:
+        batch: a TensorDict of batch size ``[N]`` or ``[N, T]``.
+        keys: the entries checked for NaN/inf (default: the reward); missing entries are ignored.
+    """
     n = batch.batch_size[0]
     # on the batch's device; a batch without one (TorchRL's collectors on CUDA) gets a CPU mask,
     # which indexes its entries on any device

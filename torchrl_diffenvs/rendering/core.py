@@ -42,8 +42,9 @@ Bounds = tuple[float, float, float, float]  # xmin, xmax, ymin, ymax in world un
 def reward_color(unit_reward: float | None) -> RGB:
     """Ivy Gym's body colour ``RGB(1 - r, r, 0)``: red at reward 0, green at 1.
 
-    ``unit_reward`` is clamped to ``[0, 1]``; ``None`` or a non-finite value gives
-    `NO_REWARD_COLOR`.
+    Args:
+        unit_reward: the reward mapped onto ``[0, 1]`` (clamped into it); ``None`` or a non-finite
+            value gives `NO_REWARD_COLOR`.
     """
     if unit_reward is None or not math.isfinite(unit_reward):
         return NO_REWARD_COLOR
@@ -52,7 +53,13 @@ def reward_color(unit_reward: float | None) -> RGB:
 
 
 def transform(points, angle: float = 0.0, offset=(0.0, 0.0)) -> np.ndarray:
-    """Rotates ``points`` ``[K, 2]`` counter-clockwise by ``angle`` (radians), then shifts them."""
+    """Rotates ``points`` counter-clockwise by ``angle``, then shifts them.
+
+    Args:
+        points: ``[K, 2]`` points (anything reshapeable to it).
+        angle: the rotation (radians).
+        offset: the shift ``(x, y)``, applied after the rotation.
+    """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     c, s = math.cos(angle), math.sin(angle)
     return p @ np.array([[c, s], [-s, c]]) + np.asarray(offset, dtype=np.float64)
@@ -189,6 +196,21 @@ def register_drawer(
     def draw_mytask(canvas, state, params, color):
         canvas.circle((state["x"], 0.0), 0.2, fill=color)
     ```
+
+    Args:
+        name: the task's name (an env's ``name``).
+        draw: ``draw(canvas, state, params, color)``, which draws one env
+            (see [`Drawer`][torchrl_diffenvs.rendering.Drawer]); ``None`` when used as
+            ``@register_drawer(name, ...)``, which returns the decorator.
+        bounds: the world box ``(xmin, xmax, ymin, ymax)`` to show, or a function
+            ``bounds(state, params)`` returning it.
+        reward_range: rewards mapped linearly from this range ``(low, high)``, ``low < high``, onto
+            ``[0, 1]`` for the colour.
+        background: RGB background colour.
+        overwrite: replace a drawer already registered under ``name`` (else that is an error).
+
+    Returns:
+        ``draw``; without ``draw``, a decorator that registers the function it is given.
     """
     low, high = reward_range
     if not high > low:
@@ -211,8 +233,13 @@ def list_drawers() -> list[str]:
 
 
 def get_drawer(env_or_name) -> Drawer:
-    """The drawer of an env or a task name: one added with [`register_drawer`][torchrl_diffenvs.rendering.register_drawer] (by the env's
-    ``name``, then its base classes' names), else the one named in the task's registration."""
+    """The drawer of an env or a task name: one added with
+    [`register_drawer`][torchrl_diffenvs.rendering.register_drawer] (by the env's ``name``, then its base
+    classes' names), else the one named in the task's registration.
+
+    Args:
+        env_or_name: an env, or a task name.
+    """
     from ..envs.registry import list_envs, task_drawer
 
     if isinstance(env_or_name, str):
@@ -365,8 +392,16 @@ def rollout_frames(
 ) -> list[np.ndarray]:
     """Frames of a ``[N, T]`` rollout (``env.rollout`` output): the reset state, then every post-step state.
 
-    Frame ``t + 1`` draws ``rollout[:, t]["next"]``, coloured by that step's reward; the first
-    frame (``include_reset``) draws ``rollout[:, 0]`` in the no-reward grey.
+    Frame ``t + 1`` draws ``rollout[:, t]["next"]``, coloured by that step's reward.
+
+    Args:
+        env: the env that made the rollout (its task must have a drawer).
+        rollout: a ``[N, T]`` rollout.
+        env_index: which envs each frame draws, as in [`render_frame`][torchrl_diffenvs.rendering.render_frame]:
+            one index, or a list of indices / ``"all"`` (a grid).
+        size: pixels of one env's picture, ``int`` or ``(height, width)``.
+        include_reset: a first frame drawing ``rollout[:, 0]`` (the reset state) in the no-reward grey.
+        **kwargs: go to [`render_frame`][torchrl_diffenvs.rendering.render_frame] (``supersample``, ``ncols``).
     """
     if rollout.batch_dims != 2:
         raise ValueError(f"rollout_frames expects a [num_envs, T] rollout, got batch size {tuple(rollout.batch_size)}")
@@ -391,10 +426,14 @@ def tile_frames(
     frames: Sequence[np.ndarray], ncols: int | None = None, labels: Sequence[str] | None = None,
     border: RGB = (190, 190, 190),
 ) -> np.ndarray:
-    """Tiles equal-sized ``[h, w, 3]`` frames row by row into ``[rows * h, cols * w, 3]``.
+    """Tiles equal-sized ``[h, w, 3]`` frames row by row into ``[rows * h, cols * w, 3]``; empty
+    cells are white.
 
-    ``ncols`` defaults to ``ceil(sqrt(k))``; empty cells are white; each cell gets a 1-pixel
-    ``border`` inside its area and, with ``labels``, a small label in its top-left corner.
+    Args:
+        frames: ``k`` uint8 frames of one shape ``[h, w, 3]``.
+        ncols: the number of columns (default ``ceil(sqrt(k))``).
+        labels: one label per frame, written small in the top-left corner of its cell.
+        border: the colour of the 1-pixel border each cell gets inside its area.
     """
     if not len(frames):
         raise ValueError("tile_frames needs at least one frame")

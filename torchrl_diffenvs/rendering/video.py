@@ -88,7 +88,16 @@ def mp4_available() -> bool:
 
 def save_mp4(frames: Sequence, path: str | os.PathLike, fps: float = 25.0) -> Path:
     """Writes ``[H, W, 3]`` uint8 frames to an H.264 MP4 (imageio + imageio-ffmpeg: the ``video``
-    extra). Odd frame sizes are padded by one white pixel (H.264's 4:2:0 needs even sizes)."""
+    extra). Odd frame sizes are padded by one white pixel (H.264's 4:2:0 needs even sizes).
+
+    Args:
+        frames: the frames, ``[H, W, 3]`` uint8, all of one shape.
+        path: the file to write (its folder is created if missing).
+        fps: frames per second (positive).
+
+    Returns:
+        ``path``, as a ``Path``.
+    """
     if not mp4_available():
         raise ImportError('save_mp4 needs imageio and imageio-ffmpeg: pip install "torchrl_diffenvs[video]"')
     import imageio
@@ -112,7 +121,17 @@ def save_mp4(frames: Sequence, path: str | os.PathLike, fps: float = 25.0) -> Pa
 
 
 def save_video(frames: Sequence, path: str | os.PathLike, fps: float = 25.0) -> Path:
-    """[`save_gif`][torchrl_diffenvs.rendering.save_gif] or [`save_mp4`][torchrl_diffenvs.rendering.save_mp4], by the suffix of ``path`` (``.gif`` or ``.mp4``)."""
+    """[`save_gif`][torchrl_diffenvs.rendering.save_gif] or [`save_mp4`][torchrl_diffenvs.rendering.save_mp4],
+    by the suffix of ``path``.
+
+    Args:
+        frames: the frames, ``[H, W, 3]`` uint8, all of one shape.
+        path: the file to write: ``.gif`` or ``.mp4``.
+        fps: frames per second.
+
+    Returns:
+        The path written, as a ``Path``.
+    """
     suffix = Path(path).suffix.lower()
     if suffix == ".mp4":
         return save_mp4(frames, path, fps)

@@ -306,12 +306,21 @@ def compile_physics(env: EnvBase, steps_per_chunk: int = 8, **compile_kwargs) ->
     for repeated rollouts, mostly at small and medium batch sizes. `compile_report` says
     how long the first calls took. If ``torch.compile`` fails (no C++ compiler for inductor, an
     operation it cannot trace), the rollout logs the reason and runs eagerly from there on.
-    ``compile_kwargs`` go to ``torch.compile`` (default ``dynamic=False``). On CUDA,
-    ``mode="reduce-overhead"`` replays each compiled graph as a CUDA graph (inductor's CUDA graph
-    trees), to save the kernel-launch overhead of an eager GPU step: rollouts without gradient
-    use them (each call's outputs are copied out of the graph's buffers); windows with gradient
-    use a second compilation without CUDA graphs (its own compile time at its first call). Undo with
-    [`eager_physics`][torchrl_diffenvs.eager_physics]. ``EnvBase.rollout`` and ``env.step`` are not affected.
+    Undo with [`eager_physics`][torchrl_diffenvs.eager_physics]. ``EnvBase.rollout`` and ``env.step``
+    are not affected.
+
+    Args:
+        env: the env whose ``env.rollout`` to compile; its rollouts must be able to take the lean
+            rollout loop that the compiled chunks replace.
+        steps_per_chunk: ``K``, the number of env steps each compiled chunk covers (a positive integer).
+        **compile_kwargs: go to ``torch.compile`` (default ``dynamic=False``). On CUDA,
+            ``mode="reduce-overhead"`` replays each compiled graph as a CUDA graph (inductor's CUDA graph
+            trees), to save the kernel-launch overhead of an eager GPU step: rollouts without gradient
+            use them (each call's outputs are copied out of the graph's buffers); windows with gradient
+            use a second compilation without CUDA graphs (its own compile time at its first call).
+
+    Returns:
+        ``env``, its rollouts now compiled.
     """
     if isinstance(steps_per_chunk, bool) or not isinstance(steps_per_chunk, int) or steps_per_chunk < 1:
         raise ValueError(f"compile_physics: steps_per_chunk must be a positive integer, got {steps_per_chunk!r}")
@@ -353,7 +362,14 @@ def compile_report(env: EnvBase) -> dict | None:
 
 
 def eager_physics(env: EnvBase) -> EnvBase:
-    """Undoes [`compile_physics`][torchrl_diffenvs.compile_physics]; returns ``env``."""
+    """Undoes [`compile_physics`][torchrl_diffenvs.compile_physics]; returns ``env``.
+
+    Args:
+        env: the env whose compiled rollouts to drop (nothing happens if it has none).
+
+    Returns:
+        ``env``, its rollouts eager again.
+    """
     if compiled_physics(env) is not None:
         del env._compiled_physics
     return env
