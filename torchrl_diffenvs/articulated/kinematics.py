@@ -103,20 +103,20 @@ def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
     for group in tree.body_groups:
         # index_select, not rots[:, parents]: advanced indexing is several times slower on the CPU
         parent_rot, parent_pos = rots.index_select(1, group.parents), poss.index_select(1, group.parents)
-        rot = small_matmul(parent_rot, tree.body_rot[group.bodies])
-        pos = parent_pos + _apply(parent_rot, tree.body_pos[group.bodies])
-        for kind, joint, qa, da in zip(group.kinds, group.joints, group.qposadr, group.dofadr):
+        rot = small_matmul(parent_rot, group.body_rot)
+        pos = parent_pos + _apply(parent_rot, group.body_pos)
+        for k, (kind, qa, da) in enumerate(zip(group.kinds, group.qposadr, group.dofadr)):
             if kind == "hinge":
-                axis = _apply(rot, tree.joint_axis[joint])
-                anchor = pos + _apply(rot, tree.joint_pos[joint])
-                local = (eye + sin[:, qa, None, None] * tree.joint_skew[joint]
-                         + (1 - cos[:, qa, None, None]) * tree.joint_skew_squared[joint])  # Rodrigues
+                axis = _apply(rot, group.joint_axis[k])
+                anchor = pos + _apply(rot, group.joint_pos[k])
+                local = (eye + sin.index_select(1, qa)[..., None, None] * group.joint_skew[k]
+                         + (1 - cos.index_select(1, qa))[..., None, None] * group.joint_skew_squared[k])  # Rodrigues
                 rot = small_matmul(rot, local)
-                pos = anchor - _apply(rot, tree.joint_pos[joint])
+                pos = anchor - _apply(rot, group.joint_pos[k])
                 turning.append((da, axis, anchor))
             elif kind == "slide":
-                axis = _apply(rot, tree.joint_axis[joint])
-                pos = pos + axis * q[:, qa, None]
+                axis = _apply(rot, group.joint_axis[k])
+                pos = pos + axis * q.index_select(1, qa).unsqueeze(-1)
                 linear_dofs.append(da)
                 linear_axes.append(axis)
             else:
@@ -127,9 +127,9 @@ def forward_kinematics(tree: RigidBodyTree, qpos: torch.Tensor) -> Kinematics:
                         linear_dofs.append(da + i)
                         linear_axes.append(eye[:, i].expand_as(pos))
                 else:
-                    anchor, turn = pos + _apply(rot, tree.joint_pos[joint]), da
+                    anchor, turn = pos + _apply(rot, group.joint_pos[k]), da
                     rot = small_matmul(rot, quaternion_to_matrix(_coordinates(qpos, qa, 4)))
-                    pos = anchor - _apply(rot, tree.joint_pos[joint])
+                    pos = anchor - _apply(rot, group.joint_pos[k])
                 for i in range(3):
                     turning.append((turn + i, rot[..., :, i], anchor))
         rots = rots.index_copy(1, group.bodies, rot)

@@ -21,7 +21,8 @@ CONTACT_MODELS = ("mujoco", "smooth")
 
 class BodyGroup(NamedTuple):
     """Bodies at the same depth of the tree whose joints are of the same kinds in the same order:
-    forward kinematics poses a group with one batched op per stage instead of one per body."""
+    forward kinematics poses a group with one batched op per stage instead of one per body. The
+    model's constants of the group's bodies and joints are gathered here once, not every step."""
 
     bodies: torch.Tensor  # [g] long
     parents: torch.Tensor  # [g] long
@@ -29,24 +30,36 @@ class BodyGroup(NamedTuple):
     joints: tuple[torch.Tensor, ...]  # per kind, [g] long: each body's k-th joint
     qposadr: tuple[torch.Tensor, ...]  # per kind, [g] long: its first coordinate
     dofadr: tuple[torch.Tensor, ...]  # per kind, [g] long: its first dof
+    body_pos: torch.Tensor  # [g, 3] each body's position in its parent's frame
+    body_rot: torch.Tensor  # [g, 3, 3] its orientation in its parent's frame
+    joint_axis: tuple[torch.Tensor, ...]  # per kind, [g, 3] the joint's axis (body frame)
+    joint_pos: tuple[torch.Tensor, ...]  # per kind, [g, 3] its anchor (body frame)
+    joint_skew: tuple[torch.Tensor, ...]  # per kind, [g, 3, 3] skew(axis), for Rodrigues
+    joint_skew_squared: tuple[torch.Tensor, ...]  # per kind, [g, 3, 3] skew(axis)^2
 
 
-def _body_groups(model: ArticulatedModel, body_joints: list[list[int]], device) -> list[BodyGroup]:
-    """The bodies (world excluded) grouped by depth and joint kinds, parents' groups first."""
+def _body_groups(model: ArticulatedModel, body_joints: list[list[int]], t, idx, axis, skew) -> list[BodyGroup]:
+    """The bodies (world excluded) grouped by depth and joint kinds, parents' groups first (``t``,
+    ``idx``: arrays to the tree's float and index tensors; ``axis [njnt, 3]``, ``skew [njnt, 3, 3]``:
+    the joints' unit axes and their skew matrices)."""
     depth = [0] * model.nbody
     for b in range(1, model.nbody):  # MuJoCo orders parents before children
         depth[b] = depth[model.body_parent[b]] + 1
     keys: dict[tuple, list[int]] = {}
     for b in range(1, model.nbody):
         keys.setdefault((depth[b], tuple(model.joint_type[j] for j in body_joints[b])), []).append(b)
-    idx = lambda a: torch.as_tensor(np.asarray(a, dtype=np.int64), device=device)  # noqa: E731
     groups = []
     for (_, kinds), bodies in sorted(keys.items(), key=lambda item: (item[0][0], min(item[1]))):
         joints = [[body_joints[b][k] for b in bodies] for k in range(len(kinds))]
+        per_joint = lambda values: tuple(t(np.asarray(values)[js]) for js in joints)  # noqa: E731
         groups.append(BodyGroup(idx(bodies), idx([model.body_parent[b] for b in bodies]), kinds,
                                 tuple(idx(js) for js in joints),
                                 tuple(idx([model.joint_qposadr[j] for j in js]) for js in joints),
-                                tuple(idx([model.joint_dofadr[j] for j in js]) for js in joints)))
+                                tuple(idx([model.joint_dofadr[j] for j in js]) for js in joints),
+                                t(np.asarray(model.body_pos)[bodies]), t(np.asarray(model.body_rot)[bodies]),
+                                per_joint(np.asarray(axis).reshape(-1, 3)),
+                                per_joint(np.asarray(model.joint_pos).reshape(-1, 3)),
+                                per_joint(skew), per_joint(skew @ skew)))
     return groups
 
 
@@ -306,7 +319,7 @@ class RigidBodyTree:
             joint_type=list(model.joint_type), joint_qposadr=[int(a) for a in model.joint_qposadr],
             joint_dofadr=[int(a) for a in model.joint_dofadr], joint_axis=t(axis).reshape(njnt, 3),
             joint_pos=t(model.joint_pos).reshape(njnt, 3), joint_skew=t(skew),
-            joint_skew_squared=t(skew @ skew), body_groups=_body_groups(model, body_joints, device), qpos0=t(model.qpos0),
+            joint_skew_squared=t(skew @ skew), body_groups=_body_groups(model, body_joints, t, idx, axis, skew), qpos0=t(model.qpos0),
             qpos_spring=t(model.qpos_spring), dof_qpos=idx(dof_qpos), dof_has_spring=t(dof_has_spring),
             position_segments=segments, body_dof_mask=t(moves), dof_pre_mask=t(pre),
             dof_support=t(moves[dof_body].T.reshape(nv, nv)),
