@@ -8,9 +8,8 @@
   ``mj_step`` of the same file with a converged Newton solve (the same minimiser): what is left
   of the gap there is the residual of MuJoCo's unconverged PGS solve. The Pusher's trajectory
   drives its fingertip at the object (random actions never touch it); its gap is also reported
-  without the states where MuJoCo 4's multi-contact gave a wrist capsule two contacts on the
-  object (its capsule along the object's cap), which are not reproduced (see
-  ``articulated/capsule_cylinder.py``).
+  without the states where MuJoCo 4's cylinder multi-contact gave a wrist capsule two contacts
+  on the object's cap, which are not reproduced (see ``articulated/capsule_cylinder.py``).
 * **speed** (one thread, interleaved rounds, CPU time): env-steps/s at ``N`` envs of the env step
   (no gradient) and of a 4-step BPTT window (forward + backward), and the ratio mujoco / smooth;
   each model with its default integrator, and ``TASK:INTEGRATOR`` both with that one.

@@ -788,8 +788,8 @@ def test_pusher_contacts_and_step_match_mujoco_while_pushing():
     MuJoCo's EPA, which stops at the file's ccd_tolerance), and one physics step from MuJoCo's
     state as mj_step's: exact without the wrist on the object, within EPA's residual with it
     (measured: 2e-5 in qvel; the smooth model lands ~6 m/s away). States where MuJoCo's
-    multi-contact gave a wrist two contacts (its capsule lying along the object's cap; one here)
-    are left out."""
+    cylinder multi-contact gave a wrist two contacts (its capsule over the object's cap; one
+    here) are left out."""
     model, mm, data, tree, params = setup("pusher_v5.xml")
     starts, ends, depth, multi = CONTACT_MODEL.pushing_trajectory(mm, episodes=6, steps=200, seed=0)
     single = np.flatnonzero(np.isfinite(depth) & ~multi)

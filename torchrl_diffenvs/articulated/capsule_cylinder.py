@@ -14,8 +14,10 @@ Against MuJoCo's convex collision run to 1e-11 it agrees to 1e-11 in distance, 2
 and 5e-7 in position at random poses; MuJoCo's default ``ccd_tolerance`` (1e-6) leaves its own
 answer up to ~4e-3 (normal) and ~1e-4 (position) from the exact one in deep contacts. Where the
 witness points are not unique (a capsule lying exactly along a face) any point of the overlap is a
-valid contact and EPA's choice is not reproduced; nor are the extra contacts MuJoCo 4's
-multi-contact adds when a capsule lies along the cylinder's cap (one contact here).
+valid contact and EPA's choice is not reproduced. Nor is MuJoCo 4's cylinder multi-contact
+(multi-CCD, on by default): with a capsule over a cylinder's cap it clips the capsule against the
+cap and returns two contacts, each with the cap's normal and its own depth (in 4.0.0 sometimes the
+same contact twice, an edge case 4.0.1 fixes); here that is one contact, the solution above.
 """
 from __future__ import annotations
 

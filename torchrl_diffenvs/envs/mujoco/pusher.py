@@ -25,8 +25,9 @@ class PusherV5Env(MuJoCoModelEnv):
     cylinders by its general convex collision (GJK/EPA to ``ccd_tolerance``); here that contact is
     the exact solution of the same problem, so one step lands within EPA's residual of
     ``mj_step``'s (measured in ``benchmarks/contact_model.py`` on a trajectory that pushes the
-    object), except in the rare states where MuJoCo's multi-contact gives a wrist capsule lying
-    along the object's cap a second contact (one here). ``contact="smooth"``: the penalty model,
+    object), except where a wrist capsule lies over the object's cap: there MuJoCo 4's cylinder
+    multi-contact clips the capsule against the cap into two contacts (one here; see
+    [`capsule_cylinder`][torchrl_diffenvs.articulated.capsule_cylinder]). ``contact="smooth"``: the penalty model,
     with the object's cylinder taken as the capsule inscribed in it.
     """
 
