@@ -17,7 +17,7 @@ witness points are not unique (a capsule lying exactly along a face) any point o
 valid contact and EPA's choice is not reproduced. Nor is MuJoCo 4's cylinder multi-contact
 (multi-CCD, on by default): with a capsule over a cylinder's cap it clips the capsule against the
 cap and returns two contacts, each with the cap's normal and its own depth (in 4.0.0 sometimes the
-same contact twice, an edge case 4.0.1 fixes); here that is one contact, the solution above.
+same contact twice; 4.0.1 lists fixes to it); here that is one contact, the solution above.
 """
 from __future__ import annotations
 
