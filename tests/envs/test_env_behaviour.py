@@ -10,6 +10,7 @@
 """
 import math
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -21,7 +22,7 @@ from _env_helpers import (
     use_rollout_path,
 )
 from torchrl_diffenvs import make_env
-from torchrl_diffenvs.envs import TwoPlayerDiffEnv, env_class
+from torchrl_diffenvs.envs import TwoPlayerDiffEnv, env_class, env_options
 
 ALL_ENVS = classic_envs()
 # Ivy Gym's tasks (the two-player race has its hand-computed step in test_selfplay.py)
@@ -484,8 +485,23 @@ def test_bad_task_options():
         make_env("swimmer", num_urchins=-1)
     with pytest.raises(ValueError, match=r"urchin_clearance must lie in \[0, 1\), got 1.0"):
         make_env("swimmer", urchin_clearance=1.0)
-    with pytest.raises(TypeError, match="num_link"):  # a misspelt option is not silently ignored
+    # a misspelt option is not silently ignored: the error lists the task's options
+    with pytest.raises(TypeError, match=r"reacher: unknown option\(s\) \['num_link'\]; valid: \[.*'num_links'"):
         make_env("reacher", num_link=3)
+    with pytest.raises(TypeError, match=r"HalfCheetah-v5: unknown option\(s\) \['frame_skip'\]; valid: \[.*'contact'"):
+        make_env("HalfCheetah-v5", frame_skip=2)
+    assert {"device", "dtype", "seed", "max_episode_steps", "params", "contact", "integrator",
+            "contact_gradient"} <= set(env_options("HalfCheetah-v5"))
+    for name in ALL_ENVS:  # every option make_env accepts is one the class's constructor takes
+        assert {"device", "dtype", "seed", "params"} <= set(env_options(name)), name
+
+
+@pytest.mark.parametrize("seed", ["a", 2.5, [1]])
+def test_bad_seed_says_what_a_seed_is(seed):
+    with pytest.raises(TypeError, match=r"pendulum: seed must be an integer or None, got"):
+        make_env("pendulum", seed=seed)
+    env = make_env("pendulum", seed=np.int64(3))  # any integer type is a seed
+    torch.testing.assert_close(env.reset()["observation"], make_env("pendulum", seed=3).reset()["observation"])
 
 
 # ============================================================================ special actions

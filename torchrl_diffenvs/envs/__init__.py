@@ -23,7 +23,7 @@ from .mujoco import (
 )
 from .pendulum import PendulumEnv
 from .reacher import ReacherEnv
-from .registry import env_class, env_config, list_envs, make_env, register_env
+from .registry import env_class, env_config, env_options, list_envs, make_env, register_env
 from .swimmer import SwimmerEnv
 from .swimmer_race import SwimmerRaceEnv
 
@@ -32,5 +32,5 @@ __all__ = [
     "CartPoleV1Env", "PendulumV1Env", "MountainCarContinuousV0Env", "MuJoCoModelEnv", "InvertedPendulumV5Env",
     "InvertedDoublePendulumV5Env", "ReacherV5Env", "HalfCheetahV5Env", "HopperV5Env", "Walker2dV5Env", "SwimmerV5Env",
     "MultiAgentDiffEnv", "MultiSwimmerEnv", "is_multi_agent", "SwimmerRaceEnv", "TwoPlayerDiffEnv",
-    "opponent_from_actor", "env_class", "env_config", "list_envs", "make_env", "register_env", "compile_physics", "eager_physics",
+    "opponent_from_actor", "env_class", "env_config", "env_options", "list_envs", "make_env", "register_env", "compile_physics", "eager_physics",
 ]

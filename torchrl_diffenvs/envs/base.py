@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import operator
 from collections.abc import Mapping
 
 import torch
@@ -354,8 +355,12 @@ class DiffEnv(EnvBase):
         # draw a seed from torch's global RNG (int(None) used to raise a TypeError here).
         if seed is None:
             seed = int(torch.randint(0, 2**62, (), dtype=torch.int64).item())
+        try:
+            seed = operator.index(seed)  # an integer of any kind (Python, NumPy, a 0-dim integer tensor)
+        except TypeError:
+            raise TypeError(f"{self.name}: seed must be an integer or None, got {seed!r}") from None
         # env.rng also holds the episode counts of the start states' per-env streams (see EnvGenerator)
-        self.rng = EnvGenerator(self.device, self.num_envs, int(seed))
+        self.rng = EnvGenerator(self.device, self.num_envs, seed)
         self.__dict__["_env_index"] = torch.arange(self.num_envs, dtype=torch.int64, device=self.device)
 
     # ------------------------------------------------------------------ TorchRL plumbing

@@ -17,10 +17,11 @@ registration ([`env_config`][torchrl_diffenvs.envs.env_config]).
 from __future__ import annotations
 
 import importlib
+import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-__all__ = ["TaskSpec", "env_class", "env_config", "list_envs", "make_env", "register_env", "task_drawer", "task_spec"]
+__all__ = ["TaskSpec", "env_class", "env_config", "env_options", "list_envs", "make_env", "register_env", "task_drawer", "task_spec"]
 
 
 @dataclass(frozen=True)
@@ -133,6 +134,21 @@ def env_config(name: str) -> dict:
             "params": {}, "randomize": {}, "backend": "torchrl_diffenvs"}
 
 
+def env_options(name: str) -> list[str]:
+    """The keyword arguments [`make_env`][torchrl_diffenvs.make_env] takes for task ``name``:
+    those of every ``__init__`` along its class's hierarchy (the common ones, ``device``,
+    ``dtype``, ``seed``, ``max_episode_steps``, ``params``, and the task's options).
+
+    Args:
+        name: a registered task name (one of [`list_envs`][torchrl_diffenvs.list_envs]).
+    """
+    keyword = (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    names = {parameter.name for cls in env_class(name).__mro__ if "__init__" in vars(cls)
+             for parameter in inspect.signature(vars(cls)["__init__"]).parameters.values()
+             if parameter.kind in keyword}
+    return sorted(names - {"self", "num_envs"})
+
+
 def make_env(name: str, num_envs: int = 1, **kwargs):
     """Builds a batched differentiable env by name, e.g. ``make_env("swimmer", num_envs=64)``.
 
@@ -140,6 +156,10 @@ def make_env(name: str, num_envs: int = 1, **kwargs):
         name: a registered task name (one of [`list_envs`][torchrl_diffenvs.list_envs]).
         num_envs: the batch size, the number of envs simulated together.
         **kwargs: go to the env class: ``device``, ``dtype``, ``seed``,
-            ``max_episode_steps``, ``params`` and task options (``num_links``, ``num_urchins``, ...).
+            ``max_episode_steps``, ``params`` and task options (``num_links``, ``num_urchins``, ...;
+            [`env_options`][torchrl_diffenvs.envs.env_options] lists a task's).
     """
+    unknown = sorted(set(kwargs) - set(env_options(name)))
+    if unknown:  # a misspelt option must not be silently ignored, nor fail deep in a constructor
+        raise TypeError(f"{name}: unknown option(s) {unknown}; valid: {env_options(name)}")
     return env_class(name)(num_envs, **kwargs)
