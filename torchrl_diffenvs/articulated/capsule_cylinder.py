@@ -1,23 +1,29 @@
-"""Capsule against cylinder, the exact solution of the problem MuJoCo's general convex collision
-solves (GJK and EPA on the two shapes grown by half the margin each, ``mjc_Convex``): one contact,
-the signed distance between the capsule's axis and the cylinder less the capsule's radius, along
-the direction that minimises it.
+"""Capsule against cylinder, as MuJoCo 4 collides them (``mjc_Convex``: GJK and EPA on the two
+shapes grown by half the margin each, then its multi-contact): one contact, or two where the
+capsule lies along a cap.
 
-Where the axis stays outside the cylinder that is its nearest point (a 1-D convex minimisation:
-golden section, then a Newton step that also carries the implicit gradient, `_axis_parameter`);
-where it enters, the minimal translation that separates them, the minimiser of the support
-function of their difference among the directions that can minimise it (`_segment_cylinder`).
-Every search runs a fixed number of iterations without gradient, and one Newton step at its
-answer carries the derivative: no data-dependent shape, no Python branch on values.
+The single contact is the exact solution of the problem GJK and EPA solve: the signed distance
+between the capsule's axis and the cylinder less the capsule's radius, along the direction that
+minimises it. Where the axis stays outside the cylinder that is its nearest point (a 1-D convex
+minimisation: golden section, then a Newton step that also carries the implicit gradient,
+`_axis_parameter`); where it enters, the minimal translation that separates them, the minimiser
+of the support function of their difference among the directions that can minimise it
+(`_segment_cylinder`). Every search runs a fixed number of iterations without gradient, and one
+Newton step at its answer carries the derivative: no data-dependent shape, no Python branch on
+values.
 
-Against MuJoCo's convex collision run to 1e-11 it agrees to 1e-11 in distance, 2e-5 in the normal
-and 5e-7 in position at random poses; MuJoCo's default ``ccd_tolerance`` (1e-6) leaves its own
-answer up to ~4e-3 (normal) and ~1e-4 (position) from the exact one in deep contacts. Where the
-witness points are not unique (a capsule lying exactly along a face) any point of the overlap is a
-valid contact and EPA's choice is not reproduced. Nor is MuJoCo 4's cylinder multi-contact
-(multi-CCD, on by default): with a capsule over a cylinder's cap it clips the capsule against the
-cap and returns two contacts, each with the cap's normal and its own depth (in 4.0.0 sometimes the
-same contact twice; 4.0.1 lists fixes to it); here that is one contact, the solution above.
+Where the cylinder's witness is on a cap (or its rim) and the capsule's axis is within 5.09
+degrees of the cap's plane, MuJoCo 4 (multi-CCD, on by default) clips the capsule's edge against
+the cap's 16-gon and gives each clipped point a contact with the cap's normal and its own depth
+(`_cap_contacts`; in MuJoCo 4.0.0 a clipped point left alone is returned twice). That algorithm's
+source is not public for 4.0: it was measured against mujoco 4.0.0 (the contact count at every
+pose tested, values to its convex collision's tolerance).
+
+Against MuJoCo's convex collision run to 1e-11 the contacts agree to 2e-9 in distance, 2e-5 in the
+normal and 5e-7 in position at random poses; MuJoCo's default ``ccd_tolerance`` (1e-6) leaves its
+own answer up to ~4e-3 (normal) and ~1e-4 (position) from the exact one in deep contacts. Where the
+witness points are not unique (a capsule lying exactly along a face, the single contact) any point
+of the overlap is a valid contact and EPA's choice is not reproduced.
 """
 from __future__ import annotations
 
@@ -34,6 +40,10 @@ _GOLDEN = (5 ** 0.5 - 1) / 2
 _TOUCHING = 1e-9  # metres: an axis this close to the cylinder is treated as entering it (see _segment_cylinder)
 _EDGE_SAMPLES = 32  # directions across a segment sampled before the golden section (edge against rim)
 _EDGE_CANDIDATES = 3  # the best local minima of those samples refined
+#: MuJoCo's mjEDGE_TOL: a capsule whose axis is this close to a cap's plane (``|axis . normal|``,
+#: the sine of its tilt) lies along the cap, and its contact is clipped against the cap
+_EDGE_TOLERANCE = 0.0888
+_CAP_SIDES = 16  # the edges of MuJoCo's polygon of a cylinder's cap
 
 
 def _cylinder_nearest(p, radius, half):
@@ -244,9 +254,77 @@ def _segment_cylinder(start, axis, radius, half):
             torch.where(inside.unsqueeze(-1), x2, q), torch.where(inside.unsqueeze(-1), u, -outward))
 
 
-def capsule_cylinder(pos1, half_axis1, radius1, pos2, rot2, size2):
-    """A capsule against a cylinder: ``(dist, pos, normal)``, ``[N, P, ...]``, the normal from the
-    capsule to the cylinder (see the module's docstring).
+def _cap_contacts(start, axis, u, x1, x2, sd, radius1, radius, half, margin):
+    """MuJoCo 4's multi-contact of a capsule lying along a cylinder's cap, in the cylinder's frame.
+
+    MuJoCo takes it where the cylinder's witness is on a cap or its rim and the capsule's axis is
+    within ``asin(_EDGE_TOLERANCE)`` (5.09 degrees) of the cap's plane: the capsule's edge, its
+    segment moved towards the cylinder by its radius plus half the margin along ``w = u - (u.a) a``
+    (``a`` the unit axis; ``w`` not renormalised), is clipped against the cap's 16-gon (radius
+    ``R``, in the plane ``H + margin / 2``; MuJoCo's ``polygonClip``), and every clipped point at or
+    below that plane is a contact with the cap's normal and its own depth. MuJoCo's clip of a
+    two-point polygon lists each clipped end twice and an original end once: one clipped end left
+    alone after pruning is two equal contacts, an original end one; none leaves the single contact.
+
+    Returns:
+        ``(multi, dist [.., 2], pos [.., 2, 3], normal [.., 3], second)``: where the multi-contact
+        applies, its two contacts (the second meaningful where ``second``) and their normal.
+    """
+    tiny = _MINVAL * _MINVAL
+    h_plane = half + margin / 2
+    # the cap the witness is on: the segment's point beyond it outside, the exit point inside
+    beyond = torch.where(sd > 0, x1[..., 2].abs() > half, x2[..., 2].abs() >= half * (1 - 1e-12))
+    s = torch.where(torch.where(sd > 0, x1[..., 2], x2[..., 2]) >= 0, 1.0, -1.0).to(start.dtype)
+    a = axis / torch.sqrt(_dot(axis, axis).clamp_min(tiny)).unsqueeze(-1)
+    aligned = (a[..., 2] * s).abs() < _EDGE_TOLERANCE
+    touching = sd - radius1 < margin  # the single contact exists
+    w = u - _dot(u, a).unsqueeze(-1) * a
+    q0 = start - axis + (radius1 + margin / 2).unsqueeze(-1) * w
+    span = 2 * axis
+    # the cap's polygon: vertices at -s 2 pi k / 16 (clockwise seen from outside) and each edge's
+    # inward normal pn = unit((V_k+1 - V_k) x n); the same 16 half-planes for either cap, so their
+    # order (which only orders MuJoCo's contacts) is not needed for the clipped segment
+    angle = torch.arange(_CAP_SIDES + 1, dtype=start.dtype, device=start.device) * (-2 * torch.pi / _CAP_SIDES)
+    vx, vy = torch.cos(angle), torch.sin(angle)
+    ex, ey = vx[1:] - vx[:-1], vy[1:] - vy[:-1]
+    length = torch.sqrt(ex * ex + ey * ey)
+    nx, ny = ey / length, -ex / length  # (edge x (0, 0, 1)) / |edge|: inward for the top cap's order
+    r = radius.unsqueeze(-1)
+    offset = (q0[..., :1] - r * vx[:-1]) * nx + (q0[..., 1:2] - r * vy[:-1]) * ny  # [.., 16]: pn . (Q0 - V)
+    rate = span[..., :1] * nx + span[..., 1:2] * ny  # pn . D
+    root = -offset / torch.where(rate == 0, 1.0, rate)
+    t_lo = torch.where(rate > 0, root, -torch.inf).amax(-1).clamp_min(0.0)
+    t_hi = torch.where(rate < 0, root, torch.inf).amin(-1).clamp_max(1.0)
+    parallel_outside = ((rate == 0) & (offset <= -_MINVAL)).any(-1)
+    crossing = (t_lo <= t_hi) & ~parallel_outside
+    ends = q0.unsqueeze(-2) + torch.stack([t_lo, t_hi], dim=-1).unsqueeze(-1) * span.unsqueeze(-2)  # [.., 2, 3]
+    depth = s.unsqueeze(-1) * ends[..., 2] - h_plane.unsqueeze(-1)  # <= 0: at or below the inflated plane
+    kept = (depth <= 0) & crossing.unsqueeze(-1)
+    clipped = torch.stack([t_lo > 0, t_hi < 1], dim=-1)
+    both = kept.all(-1) & (t_lo < t_hi)
+    one = kept.any(-1) & ~both
+    # MuJoCo's order: a clipped point before an original end
+    swap = both & ~clipped[..., 0] & clipped[..., 1]
+    lone = torch.where(kept[..., 0], 0, 1)  # the kept one where only one is
+    first = torch.where(swap | (one & (lone == 1)), 1, 0)
+    second_index = torch.where(swap, 0, torch.where(one, lone, 1))
+    pick = lambda x, i: x.gather(-1, i.unsqueeze(-1)).squeeze(-1)  # noqa: E731
+    pick3 = lambda x, i: x.gather(-2, i[..., None, None].expand(*i.shape, 1, 3)).squeeze(-2)  # noqa: E731
+    point = torch.stack([pick3(ends, first), pick3(ends, second_index)], dim=-2)
+    sdv = torch.stack([pick(depth, first), pick(depth, second_index)], dim=-1)
+    zero = torch.zeros_like(sdv)
+    pos = point + torch.stack([zero, zero, -s.unsqueeze(-1) * sdv / 2], dim=-1)  # midway to the inflated plane
+    normal = torch.stack([torch.zeros_like(s), torch.zeros_like(s), -s], dim=-1)  # into the cap
+    multi = beyond & aligned & touching & (both | one)
+    second = multi & (both | (one & pick(clipped, lone)))
+    return multi, margin.unsqueeze(-1) + sdv, pos, normal, second
+
+
+def capsule_cylinder(pos1, half_axis1, radius1, pos2, rot2, size2, margin):
+    """A capsule against a cylinder: up to two contacts per pair, ``[N, P, 2, ...]``, normals from
+    the capsule to the cylinder (see the module's docstring): MuJoCo 4's multi-contact where the
+    capsule lies along a cap (`_cap_contacts`), else the single contact of their convex collision
+    (the second slot unused).
 
     Args:
         pos1: ``[N, P, 3]`` the capsule's centre.
@@ -255,15 +333,25 @@ def capsule_cylinder(pos1, half_axis1, radius1, pos2, rot2, size2):
         pos2: ``[N, P, 3]`` the cylinder's centre.
         rot2: ``[N, P, 3, 3]`` the cylinder's orientation (its axis is the third column).
         size2: ``[P, 3]`` the cylinder's size: its radius and half-height first.
+        margin: ``[P]`` the pair's margin (MuJoCo's ``includemargin``).
 
     Returns:
-        ``(dist, pos, normal)``: the signed distance ``[N, P]`` (negative: penetrating), the contact
-        point ``[N, P, 3]`` midway between the surfaces and the unit normal ``[N, P, 3]`` from the
-        capsule to the cylinder.
+        ``(dist, pos, normal, found)``: the signed distances ``[N, P, 2]`` (negative: penetrating),
+        the contact points ``[N, P, 2, 3]`` midway between the surfaces, the unit normals
+        ``[N, P, 2, 3]`` from the capsule to the cylinder, and which contacts exist ``[N, P, 2]``
+        (the first always: it is the single contact wherever the multi-contact does not apply).
     """
     to_local = rot2.transpose(-1, -2)
     start = (to_local @ (pos1 - pos2).unsqueeze(-1)).squeeze(-1)
     axis = (to_local @ half_axis1.unsqueeze(-1)).squeeze(-1)
-    sd, x1, x2, u = _segment_cylinder(start, axis, size2[:, 0], size2[:, 1])
+    radius, half = size2[:, 0], size2[:, 1]
+    sd, x1, x2, u = _segment_cylinder(start, axis, radius, half)
     middle = (x1 + x2 + radius1.unsqueeze(-1) * u) / 2
-    return sd - radius1, pos2 + (rot2 @ middle.unsqueeze(-1)).squeeze(-1), (rot2 @ u.unsqueeze(-1)).squeeze(-1)
+    multi, cap_dist, cap_pos, cap_normal, second = _cap_contacts(start, axis, u, x1, x2, sd, radius1, radius, half,
+                                                                 margin)
+    dist = torch.stack([torch.where(multi, cap_dist[..., 0], sd - radius1), cap_dist[..., 1]], dim=-1)
+    local_pos = torch.stack([torch.where(multi.unsqueeze(-1), cap_pos[..., 0, :], middle), cap_pos[..., 1, :]], dim=-2)
+    local_normal = torch.stack([torch.where(multi.unsqueeze(-1), cap_normal, u), cap_normal], dim=-2)
+    world = lambda v: (rot2.unsqueeze(-3) @ v.unsqueeze(-1)).squeeze(-1)  # noqa: E731
+    found = torch.stack([torch.ones_like(multi), second], dim=-1)
+    return dist, pos2.unsqueeze(-2) + world(local_pos), world(local_normal), found

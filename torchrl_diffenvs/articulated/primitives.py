@@ -6,7 +6,7 @@ fixed number ``K`` of contacts per pair ([`PairContacts`][torchrl_diffenvs.artic
 plane-sphere and sphere-sphere one, plane-capsule two (one per end), plane-cylinder up to four
 (``mjc_PlaneCylinder``: the lowest rim point, the opposite end's and two more on the lowest disk),
 plane-box up to four (``mjc_PlaneBox``: the lower corners within the margin),
-sphere-capsule, sphere-cylinder and sphere-box one, capsule-capsule one (two where the axes are parallel), capsule-cylinder one
+sphere-capsule, sphere-cylinder and sphere-box one, capsule-capsule one (two where the axes are parallel), capsule-cylinder one (two where the capsule lies along a cap)
 ([`capsule_cylinder`][torchrl_diffenvs.articulated.capsule_cylinder]), capsule-box up to two
 (``mjc_CapsuleBox``, [`capsule_box`][torchrl_diffenvs.articulated.capsule_box]), box-box up to eight (``mjc_BoxBox``: the
 clipped face or the edges' closest points, [`box_box`][torchrl_diffenvs.articulated.box_box]). The same ops run whatever touches.
@@ -231,8 +231,10 @@ def capsule_capsule(capsule1: PosedGeoms, capsule2: PosedGeoms, margin: torch.Te
 
 
 def capsule_cylinder(capsule: PosedGeoms, cylinder: PosedGeoms, margin: torch.Tensor) -> PairContacts:
-    return one_contact(*_capsule_cylinder(capsule.pos, capsule.size[:, 1, None] * capsule.rot[..., :, 2], capsule.size[:, 0],
-                                   cylinder.pos, cylinder.rot, cylinder.size))
+    """MuJoCo's convex collision: one contact, two where the capsule lies along a cap."""
+    dist, pos, normal, found = _capsule_cylinder(capsule.pos, capsule.size[:, 1, None] * capsule.rot[..., :, 2],
+                                                 capsule.size[:, 0], cylinder.pos, cylinder.rot, cylinder.size, margin)
+    return PairContacts(dist, pos, normal, torch.zeros_like(pos), found)
 
 
 PRIMITIVES: dict[tuple[str, str], Primitive] = {
@@ -245,7 +247,7 @@ PRIMITIVES: dict[tuple[str, str], Primitive] = {
     ("sphere", "cylinder"): Primitive(1, sphere_cylinder),
     ("sphere", "box"): Primitive(1, sphere_box),
     ("capsule", "capsule"): Primitive(2, capsule_capsule),
-    ("capsule", "cylinder"): Primitive(1, capsule_cylinder),
+    ("capsule", "cylinder"): Primitive(2, capsule_cylinder),
     ("capsule", "box"): Primitive(2, capsule_box),
     ("box", "box"): Primitive(8, box_box),
 }

@@ -22,12 +22,10 @@ class PusherV5Env(MuJoCoModelEnv):
     Contact (the wrist's capsules against the object and the table): MuJoCo's own by default
     ([`collision`][torchrl_diffenvs.articulated.collision]: plane-capsule, plane-cylinder and
     capsule-cylinder), frictionless as the file's ``condim=1`` says. MuJoCo collides capsules with
-    cylinders by its general convex collision (GJK/EPA to ``ccd_tolerance``); here that contact is
-    the exact solution of the same problem, so one step lands within EPA's residual of
-    ``mj_step``'s (measured in ``benchmarks/contact_model.py`` on a trajectory that pushes the
-    object), except where a wrist capsule lies over the object's cap: there MuJoCo 4's cylinder
-    multi-contact clips the capsule against the cap into two contacts (one here; see
-    [`capsule_cylinder`][torchrl_diffenvs.articulated.capsule_cylinder]). ``contact="smooth"``: the penalty model,
+    cylinders by its general convex collision (GJK/EPA to ``ccd_tolerance``, then its multi-contact:
+    two contacts where a wrist capsule lies along the object's cap); here those contacts are the
+    exact solution of the same problem, so one step lands within EPA's residual of ``mj_step``'s
+    (measured in ``benchmarks/contact_model.py`` on a trajectory that pushes the object). ``contact="smooth"``: the penalty model,
     with the object's cylinder taken as the capsule inscribed in it.
     """
 
