@@ -798,13 +798,15 @@ def test_capsule_cylinder_matches_mujocos_converged_convex_collision(tmp_path, d
 
 
 @pytest.mark.filterwarnings("ignore")
-def test_a_capsule_along_a_cylinders_cap_gets_mujocos_two_contacts(tmp_path):
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_a_capsule_along_a_cylinders_cap_gets_mujocos_two_contacts(tmp_path, dtype):
     """MuJoCo 4's multi-contact: a capsule within 5.09 degrees of a cap's plane (MuJoCo's
     mjEDGE_TOL 0.0888), above it, sunk into it and across its rim, on either cap: its edge clipped
     against the cap's 16-gon, each contact with the cap's normal and its own depth, as mjData's
     (count exact; values to MuJoCo's convex-collision tolerance, run to 1e-11 here). Tilts on
-    either side of the threshold switch between the two contacts and the single one."""
-    tree = _two_bodies(tmp_path, CAPSULE, CYLINDER)
+    either side of the threshold switch between the two contacts and the single one. Float32, the
+    envs' default: the same counts, values to its rounding."""
+    tree = _two_bodies(tmp_path, CAPSULE, CYLINDER, dtype)
     converged = 'gravity="0 0 0" ccd_tolerance="1e-11" ccd_iterations="1000"'
     mm = mujoco.MjModel.from_xml_string((tmp_path / "pair.xml").read_text().replace('gravity="0 0 0"', converged))
     data = mujoco.MjData(mm)
@@ -826,7 +828,7 @@ def test_a_capsule_along_a_cylinders_cap_gets_mujocos_two_contacts(tmp_path):
     pivot = np.cross(np.array([0.0, 0.0, 1.0]), axis)
     pivot /= np.linalg.norm(pivot, axis=1, keepdims=True)
     poses[:, 3:7] = np.concatenate([np.cos(half)[:, None], np.sin(half)[:, None] * pivot], 1)
-    c = collide(tree.contact_slots, forward_kinematics(tree, torch.as_tensor(poses)))
+    c = collide(tree.contact_slots, forward_kinematics(tree, torch.as_tensor(poses, dtype=dtype)))
     errors, counts = [], {1: 0, 2: 0}
     for k, pose in enumerate(poses):
         data.qpos[:] = pose
@@ -840,9 +842,13 @@ def test_a_capsule_along_a_cylinders_cap_gets_mujocos_two_contacts(tmp_path):
     assert counts[2] > 150 and counts[1] > 20  # both paths taken
     within = errors[:, 3] > -0.02 - 0.002  # the axis outside the inflated cylinder
     worst = errors[within, :3].max(0)
-    assert worst[0] < 1e-7 and worst[1] < 1e-5 and worst[2] < 1e-6, worst  # measured 2e-8, 6e-7, 2e-7
+    # distance, normal, position; float64 measured 2e-8, 1.2e-5 (a sunk single contact: EPA's
+    # direction, as in the test above), 2e-7; float32 5e-6, 2e-3, 6e-5
+    assert (worst < ([1e-7, 1e-4, 1e-6] if dtype == torch.float64 else [2e-5, 5e-2, 1e-3])).all(), worst
     # the axis inside the cylinder: MuJoCo's EPA direction against the exact one
-    assert (~within).sum() > 20 and errors[~within, :3].max() < 1e-4
+    assert (~within).sum() > 20 and errors[~within, :3].max() < (1e-4 if dtype == torch.float64 else 1e-3)
+    if dtype == torch.float32:
+        return
 
     # both contacts' distance and position carry the gradient (float64 against finite differences):
     # a capsule tilted 2 degrees, one end over the cap and the other beyond its rim

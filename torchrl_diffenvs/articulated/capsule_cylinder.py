@@ -255,69 +255,89 @@ def _segment_cylinder(start, axis, radius, half):
 
 
 def _cap_contacts(start, axis, u, x1, x2, sd, radius1, radius, half, margin):
-    """MuJoCo 4's multi-contact of a capsule lying along a cylinder's cap, in the cylinder's frame.
+    """MuJoCo 4's multi-contact of a capsule lying along a cylinder's cap (the cylinder's frame).
 
     MuJoCo takes it where the cylinder's witness is on a cap or its rim and the capsule's axis is
-    within ``asin(_EDGE_TOLERANCE)`` (5.09 degrees) of the cap's plane: the capsule's edge, its
-    segment moved towards the cylinder by its radius plus half the margin along ``w = u - (u.a) a``
-    (``a`` the unit axis; ``w`` not renormalised), is clipped against the cap's 16-gon (radius
-    ``R``, in the plane ``H + margin / 2``; MuJoCo's ``polygonClip``), and every clipped point at or
-    below that plane is a contact with the cap's normal and its own depth. MuJoCo's clip of a
-    two-point polygon lists each clipped end twice and an original end once: one clipped end left
-    alone after pruning is two equal contacts, an original end one; none leaves the single contact.
+    within ``asin(_EDGE_TOLERANCE)`` (5.09 degrees) of the cap's plane, and the pair touches. The
+    capsule's edge, its segment moved towards the cylinder by its radius plus half the margin along
+    ``w = u - (u.a) a`` (``a`` the unit axis; ``w`` is not renormalised, as MuJoCo's), is clipped
+    against the cap's 16-gon (radius ``R``, not grown; in the plane ``H + margin / 2``, grown), and
+    every clipped point at or below that plane is a contact with the cap's normal and its own depth.
+    MuJoCo's clip (``polygonClip``, Sutherland-Hodgman) of a two-point polygon lists each clipped
+    end twice and an original end once: one clipped end left alone after pruning comes back as two
+    equal contacts (mujoco 4.0.0), an original end as one; none left keeps the single contact.
+    The order of two contacts follows the rotation of MuJoCo's clip list and is not reproduced.
+
+    Args:
+        start: ``[.., 3]`` the capsule's centre.
+        axis: ``[.., 3]`` its half-axis; its segment runs from ``start - axis`` to ``start + axis``.
+        u: ``[.., 3]`` the unit direction from the segment to the cylinder (`_segment_cylinder`).
+        x1: ``[.., 3]`` the segment's witness point.
+        x2: ``[.., 3]`` the cylinder's witness point.
+        sd: ``[..]`` the segment's signed distance to the cylinder (not the capsule's).
+        radius1: ``[P]`` the capsule's radius.
+        radius: ``[P]`` the cylinder's radius.
+        half: ``[P]`` the cylinder's half-height.
+        margin: ``[P]`` the pair's margin.
 
     Returns:
-        ``(multi, dist [.., 2], pos [.., 2, 3], normal [.., 3], second)``: where the multi-contact
-        applies, its two contacts (the second meaningful where ``second``) and their normal.
+        ``(multi [..], dist [.., 2], pos [.., 2, 3], normal [.., 3], has_second [..])``: where the
+        multi-contact applies, its contacts (the second meaningful where ``has_second``) and their
+        common normal, from the capsule into the cap.
     """
     tiny = _MINVAL * _MINVAL
-    h_plane = half + margin / 2
-    # the cap the witness is on: the segment's point beyond it outside, the exit point inside
-    beyond = torch.where(sd > 0, x1[..., 2].abs() > half, x2[..., 2].abs() >= half * (1 - 1e-12))
-    s = torch.where(torch.where(sd > 0, x1[..., 2], x2[..., 2]) >= 0, 1.0, -1.0).to(start.dtype)
+    eps = torch.finfo(start.dtype).eps
+    scale = torch.sqrt(_dot(start, start)) + torch.sqrt(_dot(axis, axis)) + radius + half
+    # the cap the cylinder's witness is on: beyond the segment's nearest point outside; sunk, the
+    # exit point lies on the cap's plane (to rounding: x2 = x1 - depth u)
+    beyond = torch.where(sd > 0, x1[..., 2].abs() > half, x2[..., 2].abs() >= half - 64 * eps * scale)
+    side = torch.where(torch.where(sd > 0, x1[..., 2], x2[..., 2]) >= 0, 1.0, -1.0).to(start.dtype)
     a = axis / torch.sqrt(_dot(axis, axis).clamp_min(tiny)).unsqueeze(-1)
-    aligned = (a[..., 2] * s).abs() < _EDGE_TOLERANCE
+    aligned = a[..., 2].abs() < _EDGE_TOLERANCE  # strictly below, as MuJoCo's test
     touching = sd - radius1 < margin  # the single contact exists
     w = u - _dot(u, a).unsqueeze(-1) * a
-    q0 = start - axis + (radius1 + margin / 2).unsqueeze(-1) * w
-    span = 2 * axis
-    # the cap's polygon: vertices at -s 2 pi k / 16 (clockwise seen from outside) and each edge's
-    # inward normal pn = unit((V_k+1 - V_k) x n); the same 16 half-planes for either cap, so their
-    # order (which only orders MuJoCo's contacts) is not needed for the clipped segment
+    edge_start = start - axis + (radius1 + margin / 2).unsqueeze(-1) * w  # the -axis end first, as MuJoCo's
+    edge = 2 * axis
+    # the 16-gon's vertices at -2 pi k / 16 (the top cap's order, clockwise seen from outside) and
+    # each edge's inward normal (edge x z) / |edge|: the bottom cap's polygon is its mirror image in
+    # y, the same 16 half-planes, and the clipped segment does not depend on their order
     angle = torch.arange(_CAP_SIDES + 1, dtype=start.dtype, device=start.device) * (-2 * torch.pi / _CAP_SIDES)
     vx, vy = torch.cos(angle), torch.sin(angle)
     ex, ey = vx[1:] - vx[:-1], vy[1:] - vy[:-1]
     length = torch.sqrt(ex * ex + ey * ey)
-    nx, ny = ey / length, -ex / length  # (edge x (0, 0, 1)) / |edge|: inward for the top cap's order
+    nx, ny = ey / length, -ex / length
     r = radius.unsqueeze(-1)
-    offset = (q0[..., :1] - r * vx[:-1]) * nx + (q0[..., 1:2] - r * vy[:-1]) * ny  # [.., 16]: pn . (Q0 - V)
-    rate = span[..., :1] * nx + span[..., 1:2] * ny  # pn . D
-    root = -offset / torch.where(rate == 0, 1.0, rate)
-    t_lo = torch.where(rate > 0, root, -torch.inf).amax(-1).clamp_min(0.0)
-    t_hi = torch.where(rate < 0, root, torch.inf).amin(-1).clamp_max(1.0)
-    parallel_outside = ((rate == 0) & (offset <= -_MINVAL)).any(-1)
-    crossing = (t_lo <= t_hi) & ~parallel_outside
-    ends = q0.unsqueeze(-2) + torch.stack([t_lo, t_hi], dim=-1).unsqueeze(-1) * span.unsqueeze(-2)  # [.., 2, 3]
-    depth = s.unsqueeze(-1) * ends[..., 2] - h_plane.unsqueeze(-1)  # <= 0: at or below the inflated plane
-    kept = (depth <= 0) & crossing.unsqueeze(-1)
-    clipped = torch.stack([t_lo > 0, t_hi < 1], dim=-1)
+    # Sutherland-Hodgman against convex half-planes, in closed form: the segment's parameters t in
+    # [0, 1] inside every half-plane, pn . (Q0 - V) + t pn . D >= 0
+    offset = (edge_start[..., :1] - r * vx[:-1]) * nx + (edge_start[..., 1:2] - r * vy[:-1]) * ny  # [.., 16]
+    rate = edge[..., :1] * nx + edge[..., 1:2] * ny
+    # an edge parallel to a side (to rounding) is inside or out of it whole; the guard also keeps
+    # the unselected roots' backward finite
+    parallel = rate.abs() <= 16 * eps * torch.sqrt(_dot(edge, edge)).unsqueeze(-1)  # (a near-vertical edge: all)
+    root = -offset / torch.where(parallel, 1.0, rate)
+    t_lo = torch.where(parallel | (rate < 0), -torch.inf, root).amax(-1).clamp_min(0.0)
+    t_hi = torch.where(parallel | (rate > 0), torch.inf, root).amin(-1).clamp_max(1.0)
+    crossing = (t_lo <= t_hi) & ~(parallel & (offset < 0)).any(-1)
+    # the clip's two points (a clipped one where t_lo > 0 or t_hi < 1), kept in [0, 1] for the
+    # slots where the segment misses the polygon (unused there)
+    t = torch.stack([t_lo.clamp_max(1.0), t_hi.clamp_min(0.0)], dim=-1)
+    clip_points = edge_start.unsqueeze(-2) + t.unsqueeze(-1) * edge.unsqueeze(-2)  # [.., 2, 3]
+    height = side.unsqueeze(-1) * clip_points[..., 2] - (half + margin / 2).unsqueeze(-1)  # > 0: pruned
+    kept = (height <= 0) & crossing.unsqueeze(-1)
+    listed_twice = torch.stack([t_lo > 0, t_hi < 1], dim=-1)  # clipped points
     both = kept.all(-1) & (t_lo < t_hi)
-    one = kept.any(-1) & ~both
-    # MuJoCo's order: a clipped point before an original end
-    swap = both & ~clipped[..., 0] & clipped[..., 1]
-    lone = torch.where(kept[..., 0], 0, 1)  # the kept one where only one is
-    first = torch.where(swap | (one & (lone == 1)), 1, 0)
-    second_index = torch.where(swap, 0, torch.where(one, lone, 1))
-    pick = lambda x, i: x.gather(-1, i.unsqueeze(-1)).squeeze(-1)  # noqa: E731
-    pick3 = lambda x, i: x.gather(-2, i[..., None, None].expand(*i.shape, 1, 3)).squeeze(-2)  # noqa: E731
-    point = torch.stack([pick3(ends, first), pick3(ends, second_index)], dim=-2)
-    sdv = torch.stack([pick(depth, first), pick(depth, second_index)], dim=-1)
-    zero = torch.zeros_like(sdv)
-    pos = point + torch.stack([zero, zero, -s.unsqueeze(-1) * sdv / 2], dim=-1)  # midway to the inflated plane
-    normal = torch.stack([torch.zeros_like(s), torch.zeros_like(s), -s], dim=-1)  # into the cap
-    multi = beyond & aligned & touching & (both | one)
-    second = multi & (both | (one & pick(clipped, lone)))
-    return multi, margin.unsqueeze(-1) + sdv, pos, normal, second
+    alone = kept.any(-1) & ~both
+    index0 = torch.where(alone & ~kept[..., 0], 1, 0)  # the first contact: the one kept where only one is
+    index1 = torch.where(alone, index0, 1)
+    index = torch.stack([index0, index1], dim=-1)
+    point = clip_points.gather(-2, index.unsqueeze(-1).expand(*index.shape, 3))
+    depth = height.gather(-1, index)  # <= 0 where kept
+    zero = torch.zeros_like(depth)
+    pos = point + torch.stack([zero, zero, -side.unsqueeze(-1) * depth / 2], dim=-1)  # midway to the grown plane
+    normal = torch.stack([torch.zeros_like(side), torch.zeros_like(side), -side], dim=-1)
+    multi = beyond & aligned & touching & (both | alone)
+    has_second = multi & (both | (alone & listed_twice.gather(-1, index0.unsqueeze(-1)).squeeze(-1)))
+    return multi, margin.unsqueeze(-1) + depth, pos, normal, has_second
 
 
 def capsule_cylinder(pos1, half_axis1, radius1, pos2, rot2, size2, margin):
@@ -338,8 +358,10 @@ def capsule_cylinder(pos1, half_axis1, radius1, pos2, rot2, size2, margin):
     Returns:
         ``(dist, pos, normal, found)``: the signed distances ``[N, P, 2]`` (negative: penetrating),
         the contact points ``[N, P, 2, 3]`` midway between the surfaces, the unit normals
-        ``[N, P, 2, 3]`` from the capsule to the cylinder, and which contacts exist ``[N, P, 2]``
-        (the first always: it is the single contact wherever the multi-contact does not apply).
+        ``[N, P, 2, 3]`` from the capsule to the cylinder, and which contacts exist ``[N, P, 2]``:
+        the first always (the single contact wherever the multi-contact does not apply), the
+        second only where MuJoCo makes two, which is in touch only (a capsule hovering over a cap
+        has one contact until it touches, for the contact-gradient modes too).
     """
     to_local = rot2.transpose(-1, -2)
     start = (to_local @ (pos1 - pos2).unsqueeze(-1)).squeeze(-1)
