@@ -600,6 +600,14 @@ def test_stress_quick(tmp_path, monkeypatch):
     assert all(r[6] == "0" for r in rows)  # and every constraint solve converged within the file's iterations
 
 
+def test_stress_runs_a_fixed_base_task_without_a_track(tmp_path):
+    """The Pusher's arm is fixed to the world: no ``far`` row (no track to go down) and no travel."""
+    rows = load("stress").main(["quick=true", "tasks=[Pusher-v5]", "policies=[random,far,greedy]",
+                                f"out={tmp_path / 's.json'}", "data=none"])
+    assert [r[3] for r in rows] == ["random", "greedy"]
+    assert all(r[5] == "0" and r[8] == "-" for r in rows)
+
+
 def test_stress_counts_the_env_steps_whose_solve_stopped_short(monkeypatch, tmp_path):
     """With one Newton iteration allowed, the env flags unconverged solves (``solver_unconverged``)
     and stress counts them; the smooth option has no solve to count: a dash, not a 0."""
