@@ -742,6 +742,26 @@ def test_capsule_cylinder_gradient_where_the_capsule_edge_meets_the_rim(tmp_path
                                        torch.zeros(1, 4, dtype=torch.float64, requires_grad=True)))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_capsule_cylinder_gradients_stay_finite_for_a_capsule_along_the_axis(dtype):
+    """A capsule standing on the cap, its axis along the cylinder's to 1e-3 ... 1e-30 (its shadow
+    on the cap shrinking to a point): every output's gradient is finite in both slots (a NaN in one
+    env's contact would poison a batch's shared parameters)."""
+    from torchrl_diffenvs.articulated.capsule_cylinder import capsule_cylinder
+
+    for exponent in (3, 8, 13, 16, 20, 30):
+        start = torch.tensor([[[0.01, 0.0, 0.119]]], dtype=dtype, requires_grad=True)
+        axis = torch.tensor([[[0.05 * 10.0 ** -exponent, 0.05 * 10.0 ** -exponent, 0.05]]], dtype=dtype,
+                            requires_grad=True)
+        dist, pos, normal, _ = capsule_cylinder(start, axis, torch.tensor([0.02], dtype=dtype),
+                                                torch.zeros(1, 1, 3, dtype=dtype), torch.eye(3, dtype=dtype).view(1, 1, 3, 3),
+                                                torch.tensor([[0.05, 0.05, 0.0]], dtype=dtype),
+                                                torch.tensor([0.004], dtype=dtype))
+        assert dist[0, 0, 0] < 0.004  # touching the cap
+        gradients = torch.autograd.grad(dist.sum() + pos.sum() + normal.sum(), (start, axis))
+        assert all(torch.isfinite(g).all() for g in gradients), exponent
+
+
 def _capsule_cylinder_gaps(c, data, k):
     """Our contacts of pose ``k`` (the pair's two slots) against mjData's, matched as sets (MuJoCo's
     order of two clipped points is a floating-point tie): ``[(|ddist|, |dnormal|, |dpos|, dist)]``,

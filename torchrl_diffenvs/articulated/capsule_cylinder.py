@@ -208,7 +208,10 @@ def _segment_cylinder(start, axis, radius, half):
     cap_witness = torch.stack([start + lead * axis, start - lead * axis], dim=-2)
     # the side: minus the point of the segment's shadow nearest the axis, or across the shadow
     shadow, across = start[..., :2], axis[..., :2]
-    along = (-_dot(shadow, across) / _dot(across, across).clamp_min(tiny)).clamp(-1, 1)
+    # a shadow shorter than sqrt(eps) of the segment is a point (its t saturates): the floor keeps
+    # the quotient's backward finite in float32, where across^2 ~ 1e-29 made it inf * 0
+    floor = torch.finfo(start.dtype).eps * _dot(axis, axis)
+    along = (-_dot(shadow, across) / torch.maximum(_dot(across, across), floor).clamp_min(tiny)).clamp(-1, 1)
     nearest = shadow + along.unsqueeze(-1) * across
     perp = torch.stack([-across[..., 1], across[..., 0]], dim=-1)
     flat = lambda v: unit(torch.cat([v, torch.zeros_like(v[..., :1])], dim=-1))  # noqa: E731
