@@ -23,8 +23,9 @@ class PairContacts(NamedTuple):
     """The ``K`` candidate contacts of each of ``P`` pairs: ``dist [N, P, K]`` (negative:
     penetrating), ``pos [N, P, K, 3]`` (midway between the surfaces), ``normal [N, P, K, 3]`` (from
     geom 1 to geom 2), ``tangent [N, P, K, 3]`` (the frame's first tangent before it is made
-    orthogonal; zero: MuJoCo's default), ``found [N, P, K]`` (the contact's points exist at any
-    distance: capsule-capsule's second exists only where the axes are parallel)."""
+    orthogonal; zero: MuJoCo's default), ``found [N, P, K]`` (the contact's points exist, mostly at
+    any distance: capsule-capsule's second exists only where the axes are parallel,
+    capsule-cylinder's second only where MuJoCo's multi-contact makes it, in touch)."""
 
     dist: torch.Tensor
     pos: torch.Tensor
