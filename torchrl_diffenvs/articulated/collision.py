@@ -4,7 +4,8 @@ Every geom pair that MuJoCo's filter lets touch ([`colliding_pairs`][torchrl_dif
 primitive of its two geom types ([`primitives`][torchrl_diffenvs.articulated.primitives]), which gives a fixed number of contacts
 per pair (a slot per possible contact); a slot holds a contact when MuJoCo's would: ``active``
 is where its distance is below the pair's margin. No data-dependent shape or Python branch: the
-same ops run whatever touches.
+same ops run whatever touches. The eager CPU step first keeps the pairs that may touch in some env
+(`near_pairs`, MuJoCo's broad phase by bounding spheres) and collides those alone.
 
 Each contact has MuJoCo's ``pos``, ``frame`` (normal first, pointing from geom 1 to geom 2),
 ``dist`` and the pair's mixed parameters (``condim``, friction, ``solref``, ``solimp``,
@@ -25,7 +26,8 @@ from .primitive_types import PosedGeoms
 from .primitives import PRIMITIVES
 from .spatial import _MINVAL, _cross, _dot, small_matmul, small_matvec
 
-__all__ = ["Contacts", "ContactSlots", "colliding_pairs", "contact_slots", "collide", "unsupported_pairs"]
+__all__ = ["Contacts", "ContactSlots", "bounding_radius", "colliding_pairs", "contact_slots", "collide", "near_pairs",
+           "unsupported_pairs"]
 
 _TYPE_ORDER = ("plane", "hfield", "sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
 
@@ -162,17 +164,17 @@ class ContactSlots:
         rows of an elliptic cone)."""
         return (3, self.pyramid_index), (4, self.torsional_index), (6, self.rolling_index)
 
-    def subset(self, index: torch.Tensor) -> ContactSlots:
+    def subset(self, index: torch.Tensor, groups: list[_PrimitiveGroup] | None = None) -> ContactSlots:
         """The slots ``index [K]`` (ascending), as a model of their own for the constraint stage:
         their rows keep their order, so a problem built on them is the full one without the rows
-        of the other slots. For the eager CPU step (it reads ``index`` on the host); without
-        ``groups``: not for `collide`, which runs on every slot of the model."""
+        of the other slots. For the eager CPU step (it reads ``index`` on the host). `collide`
+        runs on its ``groups``: none unless given (`near_pairs` gives those of whole pairs)."""
         keep = index.tolist()
         condim = [self.condim[i] for i in keep]
         of = lambda d: torch.as_tensor([j for j, c in enumerate(condim) if c == d], dtype=torch.long,  # noqa: E731
                                        device=index.device)
         return ContactSlots(
-            groups=[], geom=self.geom.index_select(0, index), body=self.body.index_select(0, index), condim=condim,
+            groups=groups or [], geom=self.geom.index_select(0, index), body=self.body.index_select(0, index), condim=condim,
             friction_slot=self.friction_slot.index_select(0, index), solref=self.solref.index_select(0, index),
             solimp=self.solimp.index_select(0, index), margin=self.margin.index_select(0, index),
             pyramid_index=of(3), normal_index=of(1), torsional_index=of(4), rolling_index=of(6),
@@ -305,3 +307,82 @@ def collide(slots: ContactSlots, kin) -> Contacts:
         founds.append(contacts.found.flatten(1))
     dist, found = torch.cat(dists, dim=1), torch.cat(founds, dim=1)
     return Contacts(dist, torch.cat(poss, dim=1), torch.cat(frames, dim=1), found & (dist < slots.margin), found)
+
+
+def bounding_radius(kind: str, size: torch.Tensor) -> torch.Tensor:
+    """MuJoCo's ``geom_rbound [P]`` of geoms of one type from their ``size [P, 3]``: the radius of
+    the sphere about the geom's centre that holds it (a plane has none: it is infinite).
+
+    Args:
+        kind: the geom type (``"sphere"``, ``"capsule"``, ``"ellipsoid"``, ``"cylinder"`` or ``"box"``).
+        size: ``[P, 3]`` MuJoCo's ``geom_size`` of the geoms.
+    """
+    if kind == "sphere":
+        return size[:, 0]
+    if kind == "capsule":  # radius, half-length
+        return size[:, 0] + size[:, 1]
+    if kind == "ellipsoid":
+        return size.amax(-1)
+    if kind == "cylinder":  # radius, half-height
+        return torch.sqrt(size[:, 0] ** 2 + size[:, 1] ** 2)
+    if kind == "box":  # half-sizes
+        return torch.linalg.vector_norm(size, dim=-1)
+    raise ValueError(f"geom type {kind!r} has no bounding sphere; valid: sphere, capsule, ellipsoid, cylinder, box")
+
+
+def _separation_bound(kind: tuple[str, str], kin, geom1: _Geoms, geom2: _Geoms) -> torch.Tensor:
+    """``[N, P]`` a lower bound of each pair's distance: its bounding spheres' gap, or for a plane
+    the height of the other geom's bounding sphere above it."""
+    def centre(geoms):
+        return kin.body_pos.index_select(1, geoms.body) + small_matvec(kin.body_rot.index_select(1, geoms.body), geoms.pos)
+
+    centre2, radius2 = centre(geom2), bounding_radius(kind[1], geom2.size)
+    if kind[0] == "plane":  # the plane's normal: its z axis
+        normal = small_matvec(kin.body_rot.index_select(1, geom1.body), geom1.rot[:, :, 2])
+        return _dot(centre2 - centre(geom1), normal) - radius2
+    gap = centre2 - centre(geom1)
+    return torch.sqrt(_dot(gap, gap)) - bounding_radius(kind[0], geom1.size) - radius2
+
+
+def near_pairs(slots: ContactSlots, kin, reach: float = 0.0) -> ContactSlots:
+    """The slots of the geom pairs that may touch in some env of the batch: MuJoCo's broad phase,
+    by bounding spheres (``geom_rbound``). A pair is left out only where, in every env, its
+    bounding spheres are further apart than its margin plus ``reach`` (and a thousandth of their
+    radii, for rounding): its primitive would find no contact within the margin, nor within
+    ``reach`` beyond it. The pairs kept keep their order and their groups, so `collide` runs on
+    them alone and gives the same contacts for them; at least one pair is kept (the constraint
+    stage expects a slot).
+
+    For the eager CPU step, which reads the result on the host: on a GPU or under
+    ``torch.compile`` every pair is collided (no data-dependent shape).
+
+    Args:
+        slots: contact slots with their groups (the model's, `contact_slots`).
+        kin: a [`Kinematics`][torchrl_diffenvs.articulated.Kinematics] of the batch.
+        reach: metres beyond the margin within which a pair counts as near (the ``cfd``
+            gradient's distance, where it holds contacts that have not touched yet).
+    """
+    index, groups, first = [], [], 0
+    for kind, start, geom1, geom2 in slots.groups:
+        per_pair = PRIMITIVES[kind].contacts
+        pairs = geom1.body.numel()
+        margin = slots.margin[start:start + per_pair * pairs:per_pair]
+        with torch.no_grad():
+            bound = _separation_bound(kind, kin, geom1, geom2)
+            slack = 1e-3 * (geom2.size.amax(-1) + (0 if kind[0] == "plane" else geom1.size.amax(-1)))
+            near = (bound < margin + reach + slack).any(0).nonzero().squeeze(-1)
+        if near.numel() == 0:
+            continue
+        groups.append(_PrimitiveGroup(kind, first, _Geoms(*(x.index_select(0, near) for x in geom1)),
+                                      _Geoms(*(x.index_select(0, near) for x in geom2))))
+        index.append((start + per_pair * near[:, None] + torch.arange(per_pair, device=near.device)).flatten())
+        first += per_pair * near.numel()
+    if not groups:  # nothing near anywhere: the first pair, whose slots then hold no contact
+        kind, start, geom1, geom2 = slots.groups[0]
+        per_pair = PRIMITIVES[kind].contacts
+        groups = [_PrimitiveGroup(kind, 0, _Geoms(*(x[:1] for x in geom1)), _Geoms(*(x[:1] for x in geom2)))]
+        index = [torch.arange(start, start + per_pair, device=slots.geom.device)]
+    index = torch.cat(index)
+    if index.numel() == slots.count:
+        return slots
+    return slots.subset(index, groups)

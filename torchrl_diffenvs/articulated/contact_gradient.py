@@ -51,12 +51,18 @@ class ContactGradient(NamedTuple):
         the whole contact gradient, outside the solve)."""
         return self.mode != "penalty"
 
+    @property
+    def reach(self) -> float:
+        """How far (metres) beyond its margin a contact still enters the surrogate: ``distance``
+        for ``cfd``, 0 in the other modes."""
+        return self.distance if self.mode == "cfd" else 0.0
+
     def holds_near(self, found: torch.Tensor, gap: torch.Tensor) -> torch.Tensor:
         """Where the ``cfd`` surrogate holds a contact that MuJoCo's solve does not have: found, its
         distance beyond the margin ``gap`` under ``distance`` (all False in the other modes)."""
         if self.mode != "cfd":
             return torch.zeros_like(found)
-        return found & (gap < self.distance)
+        return found & (gap < self.reach)
 
     @classmethod
     def parse(cls, value) -> "ContactGradient":

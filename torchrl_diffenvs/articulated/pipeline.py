@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import torch
 
-from .collision import Contacts, ContactSlots, collide
+from .collision import Contacts, ContactSlots, collide, near_pairs
 from . import convergence
 from .constraint import ConstraintRows, constraint_rows, contact_frame_forces, contact_normal_forces, solve
 from .contact_gradient import ContactGradient
@@ -244,9 +244,12 @@ def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weigh
     kin, mass, bias = inertial.kin, inertial.mass, inertial.bias
     smooth_force = actuator_force(tree, ctrl, tree.nv) + passive_force(tree, kin, qpos, qvel, params) - bias
     qacc_smooth = _solve(mass, smooth_force)
-    contacts = collide(slots, kin) if slots.count else None
     gradient = tree.contact_gradient if tree.contact_gradient.shapes_solve else ContactGradient()
-    if contacts is not None and convergence.reads_data_freely(qpos.device):
+    compact = slots.count and convergence.reads_data_freely(qpos.device)
+    if compact:  # the broad phase: only the pairs near enough to touch in some env
+        slots = near_pairs(slots, kin, gradient.reach if torch.is_grad_enabled() else 0.0)
+    contacts = collide(slots, kin) if slots.count else None
+    if compact:
         slots, contacts = _slots_in_use(slots, contacts, gradient)
     rows = constraint_rows(tree, slots, kin, contacts, qpos, qvel, params, weights.dof, weights.body)
     solution = solve(mass, qacc_smooth, rows, tree.model.iterations, tree.model.tolerance, gradient)
