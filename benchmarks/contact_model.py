@@ -42,7 +42,7 @@ from torchrl_diffenvs.articulated.pipeline import invweight0  # noqa: E402
 PARITY_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "HumanoidStandup-v5", "Pusher-v5"]
 # the Ant's file steps RK4 (four constraint solves per physics step), the smooth option's default is implicit
 # Euler (one evaluation): "Ant-v5:implicit" times both models with one evaluation per physics step
-SPEED_TASKS = ["HalfCheetah-v5", "Ant-v5", "Ant-v5:implicit", "Pusher-v5"]
+SPEED_TASKS = ["HalfCheetah-v5", "Ant-v5", "Ant-v5:implicit", "Humanoid-v5", "Pusher-v5"]
 
 
 def _trajectory(mm, steps: int, seed: int, warmstart: bool = True):
