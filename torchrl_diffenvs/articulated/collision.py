@@ -3,7 +3,8 @@
 Every geom pair that MuJoCo's filter lets touch ([`colliding_pairs`][torchrl_diffenvs.articulated.collision.colliding_pairs]) is tested by the
 primitive of its two geom types ([`primitives`][torchrl_diffenvs.articulated.primitives]), which gives a fixed number of contacts
 per pair (a slot per possible contact); a slot holds a contact when MuJoCo's would: ``active``
-is where its distance is below the pair's margin. No data-dependent shape or Python branch: the
+is where its distance is below the pair's margin and the pair passes MuJoCo's bounding-sphere
+filter (``geom_rbound``, `bounding_radius`). No data-dependent shape or Python branch: the
 same ops run whatever touches. The eager CPU step first keeps the pairs that may touch in some env
 (`near_pairs`, MuJoCo's broad phase by bounding spheres) and collides those alone.
 
@@ -255,10 +256,12 @@ def _pair_solref(rows: list, npair: int) -> np.ndarray:
 class Contacts(NamedTuple):
     """The contacts at a batch of configurations, one per slot of [`ContactSlots`][torchrl_diffenvs.articulated.collision.ContactSlots]."""
 
-    dist: torch.Tensor  # [N, C] signed distance (negative: penetrating)
+    # [N, C] signed distance (negative: penetrating); where MuJoCo has no contact, a lower bound of the
+    # pair's distance (the primitive's, or the bounding spheres' gap where that is larger)
+    dist: torch.Tensor
     pos: torch.Tensor  # [N, C, 3] world position, midway between the surfaces
     frame: torch.Tensor  # [N, C, 3, 3] rows: the normal (from geom 1 to geom 2), then two tangents
-    active: torch.Tensor  # [N, C] bool: MuJoCo has this contact (found, and dist < includemargin)
+    active: torch.Tensor  # [N, C] bool: MuJoCo has this contact (found, dist < includemargin, bounding spheres within it)
     found: torch.Tensor  # [N, C] bool: the slot's points exist at any distance (capsule-capsule's second: parallel axes)
 
     def subset(self, index: torch.Tensor) -> Contacts:
@@ -295,7 +298,7 @@ def collide(slots: ContactSlots, kin) -> Contacts:
         kin: a [`Kinematics`][torchrl_diffenvs.articulated.Kinematics] (not imported here: the kinematics
             import the tree, which imports this module).
     """
-    dists, poss, frames, founds = [], [], [], []
+    dists, poss, frames, founds, bounds = [], [], [], [], []
     for kind, first, geom1, geom2 in slots.groups:
         primitive = PRIMITIVES[kind]
         pairs = geom1.body.numel()
@@ -305,8 +308,16 @@ def collide(slots: ContactSlots, kin) -> Contacts:
         poss.append(contacts.pos.flatten(1, 2))
         frames.append(_make_frame(contacts.normal, contacts.tangent).flatten(1, 2))
         founds.append(contacts.found.flatten(1))
-    dist, found = torch.cat(dists, dim=1), torch.cat(founds, dim=1)
-    return Contacts(dist, torch.cat(poss, dim=1), torch.cat(frames, dim=1), found & (dist < slots.margin), found)
+        bounds.append(_separation_bound(kind, kin, geom1, geom2).repeat_interleave(primitive.contacts, dim=1))
+    dist, found, bound = torch.cat(dists, dim=1), torch.cat(founds, dim=1), torch.cat(bounds, dim=1)
+    # MuJoCo collides a pair only where its bounding spheres come within the margin (mj_collideGeoms'
+    # filter): box-box's edge contacts measure the separation along an axis, below the pair's true
+    # distance, and would otherwise count within the margin where MuJoCo has no contact
+    active = found & (dist < slots.margin) & (bound <= slots.margin)
+    # where MuJoCo has no contact the distance is a gap for the cfd surrogate: the larger of the two
+    # lower bounds of the true distance (the same for every primitive but box-box)
+    dist = torch.where(active, dist, torch.maximum(dist, bound))
+    return Contacts(dist, torch.cat(poss, dim=1), torch.cat(frames, dim=1), active, found)
 
 
 def bounding_radius(kind: str, size: torch.Tensor) -> torch.Tensor:
@@ -341,17 +352,19 @@ def _separation_bound(kind: tuple[str, str], kin, geom1: _Geoms, geom2: _Geoms) 
         normal = small_matvec(kin.body_rot.index_select(1, geom1.body), geom1.rot[:, :, 2])
         return _dot(centre2 - centre(geom1), normal) - radius2
     gap = centre2 - centre(geom1)
-    return torch.sqrt(_dot(gap, gap)) - bounding_radius(kind[0], geom1.size) - radius2
+    # clamped inside the root: coincident centres would give sqrt(0), whose infinite derivative
+    # times the zero gradient of a branch not taken is NaN
+    return torch.sqrt(_dot(gap, gap).clamp_min(_MINVAL * _MINVAL)) - bounding_radius(kind[0], geom1.size) - radius2
 
 
 def near_pairs(slots: ContactSlots, kin, reach: float = 0.0) -> ContactSlots:
     """The slots of the geom pairs that may touch in some env of the batch: MuJoCo's broad phase,
     by bounding spheres (``geom_rbound``). A pair is left out only where, in every env, its
     bounding spheres are further apart than its margin plus ``reach`` (and a thousandth of their
-    radii, for rounding): its primitive would find no contact within the margin, nor within
-    ``reach`` beyond it. The pairs kept keep their order and their groups, so `collide` runs on
-    them alone and gives the same contacts for them; at least one pair is kept (the constraint
-    stage expects a slot).
+    radii, for rounding): `collide`, which applies MuJoCo's bounding-sphere filter itself, would
+    give it no contact within the margin, nor a gap within ``reach`` beyond it. The pairs kept
+    keep their order and their groups, so `collide` runs on them alone and gives the same contacts
+    for them; at least one pair is kept (the constraint stage expects a slot).
 
     For the eager CPU step, which reads the result on the host: on a GPU or under
     ``torch.compile`` every pair is collided (no data-dependent shape).
