@@ -303,12 +303,13 @@ def collide(slots: ContactSlots, kin) -> Contacts:
         primitive = PRIMITIVES[kind]
         pairs = geom1.body.numel()
         margin = slots.margin[first:first + primitive.contacts * pairs:primitive.contacts]
-        contacts = primitive.collide(_posed(kin, geom1), _posed(kin, geom2), margin)
+        posed1, posed2 = _posed(kin, geom1), _posed(kin, geom2)
+        contacts = primitive.collide(posed1, posed2, margin)
         dists.append(contacts.dist.flatten(1))
         poss.append(contacts.pos.flatten(1, 2))
         frames.append(_make_frame(contacts.normal, contacts.tangent).flatten(1, 2))
         founds.append(contacts.found.flatten(1))
-        bounds.append(_separation_bound(kind, kin, geom1, geom2).repeat_interleave(primitive.contacts, dim=1))
+        bounds.append(_separation_bound(kind, posed1, posed2).repeat_interleave(primitive.contacts, dim=1))
     dist, found, bound = torch.cat(dists, dim=1), torch.cat(founds, dim=1), torch.cat(bounds, dim=1)
     # MuJoCo collides a pair only where its bounding spheres come within the margin (mj_collideGeoms'
     # filter): box-box's edge contacts measure the separation along an axis, below the pair's true
@@ -341,17 +342,13 @@ def bounding_radius(kind: str, size: torch.Tensor) -> torch.Tensor:
     raise ValueError(f"geom type {kind!r} has no bounding sphere; valid: sphere, capsule, ellipsoid, cylinder, box")
 
 
-def _separation_bound(kind: tuple[str, str], kin, geom1: _Geoms, geom2: _Geoms) -> torch.Tensor:
+def _separation_bound(kind: tuple[str, str], geom1: PosedGeoms, geom2: PosedGeoms) -> torch.Tensor:
     """``[N, P]`` a lower bound of each pair's distance: its bounding spheres' gap, or for a plane
-    the height of the other geom's bounding sphere above it."""
-    def centre(geoms):
-        return kin.body_pos.index_select(1, geoms.body) + small_matvec(kin.body_rot.index_select(1, geoms.body), geoms.pos)
-
-    centre2, radius2 = centre(geom2), bounding_radius(kind[1], geom2.size)
+    the height of the other geom's bounding sphere above it (MuJoCo's filter in ``mj_collideGeoms``)."""
+    radius2 = bounding_radius(kind[1], geom2.size)
     if kind[0] == "plane":  # the plane's normal: its z axis
-        normal = small_matvec(kin.body_rot.index_select(1, geom1.body), geom1.rot[:, :, 2])
-        return _dot(centre2 - centre(geom1), normal) - radius2
-    gap = centre2 - centre(geom1)
+        return _dot(geom2.pos - geom1.pos, geom1.rot[..., :, 2]) - radius2
+    gap = geom2.pos - geom1.pos
     # clamped inside the root: coincident centres would give sqrt(0), whose infinite derivative
     # times the zero gradient of a branch not taken is NaN
     return torch.sqrt(_dot(gap, gap).clamp_min(_MINVAL * _MINVAL)) - bounding_radius(kind[0], geom1.size) - radius2
@@ -381,7 +378,7 @@ def near_pairs(slots: ContactSlots, kin, reach: float = 0.0) -> ContactSlots:
         pairs = geom1.body.numel()
         margin = slots.margin[start:start + per_pair * pairs:per_pair]
         with torch.no_grad():
-            bound = _separation_bound(kind, kin, geom1, geom2)
+            bound = _separation_bound(kind, _posed(kin, geom1), _posed(kin, geom2))
             slack = 1e-3 * (geom2.size.amax(-1) + (0 if kind[0] == "plane" else geom1.size.amax(-1)))
             near = (bound < margin + reach + slack).any(0).nonzero().squeeze(-1)
         if near.numel() == 0:
