@@ -157,6 +157,19 @@ def speedup(reference_s: float, time_s: float) -> float | None:
     return reference_s / time_s
 
 
+def gradient_health(run_dir: Path) -> dict | None:
+    """The actor's gradient over a whole run, from ``metrics.jsonl``: the median and largest pre-clip
+    norm of the logged updates and the updates the gradient guard skipped (its cumulative count at
+    the end); None for a learner that logs no actor gradient norm (PPO, SAC)."""
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    norms = [row["train/grad_norm_actor"] for row in rows if "train/grad_norm_actor" in row]
+    if not norms:
+        return None
+    skipped = [row["train/skipped_actor"] for row in rows if "train/skipped_actor" in row]
+    return {"actor_grad_norm_median": statistics.median(norms), "actor_grad_norm_max": max(norms),
+            "logged_updates": len(norms), "skipped_actor_updates": int(skipped[-1]) if skipped else 0}
+
+
 GYMNASIUM_RETURN = "eval/gymnasium_return"  # eval.gymnasium=true: the final policy's return in Gymnasium's env
 LEVELS = (1.0, 0.95, 0.9)  # fractions of PPO's final improvement over the random policy
 
@@ -219,6 +232,10 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
                    "wall_s": C.spread([r["wall_time_s"] for r in group]),
                    "env_steps": C.spread([r["env_steps"] for r in group]),
                    "random_return": statistics.median(r["eval/random_return"] for r in group), "levels": {}}
+            if all(r.get("gradient_health") for r in group):  # the gradient learners' whole runs
+                row["gradient_health"] = {
+                    key: C.spread([r["gradient_health"][key] for r in group])
+                    for key in ("actor_grad_norm_median", "actor_grad_norm_max", "skipped_actor_updates")}
             if all(GYMNASIUM_RETURN in r for r in group):  # eval.gymnasium=true: the same policy scored in MuJoCo
                 row["mujoco_return"] = C.spread([r[GYMNASIUM_RETURN] for r in group])
                 row["transfer"] = C.spread([r[GYMNASIUM_RETURN] / r["eval/return"] if r["eval/return"] else math.nan
@@ -276,6 +293,15 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
                    + (f" = {C.fmt_return(first['levels'][f]['return'])}" if len(envs) == 1 else own)
                    for f in ppo_levels]
     in_mujoco = any("mujoco_return" in r for r in summary)
+    with_health = any("gradient_health" in r for r in summary)
+
+    def health_cells(row):
+        if not with_health:
+            return []
+        health = row.get("gradient_health")
+        if health is None:
+            return ["-", "-"]
+        return [rng(health["actor_grad_norm_median"], C.fmt_error), rng(health["skipped_actor_updates"], "{:.0f}")]
 
     def mujoco_cells(row):
         if not in_mujoco:
@@ -286,9 +312,11 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
 
     table = C.print_table(
         ["env", "loss", "final eval return", *(["in Gymnasium's env", "kept there"] if in_mujoco else []),
-         "random policy", "wall s", "env steps", *level_names, *[f"return >= {level:g}" for level in fixed_levels]],
+         "random policy", "wall s", "env steps",
+         *(["actor grad norm (median)", "skipped actor updates"] if with_health else []),
+         *level_names, *[f"return >= {level:g}" for level in fixed_levels]],
         [[r["env"], r["loss"], rng(r["final_return"], C.fmt_return), *mujoco_cells(r), C.fmt_return(r["random_return"]),
-          rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}",
+          rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}", *health_cells(r),
           *[level_cell(r, f) for f in ppo_levels], *[fixed_cell(r, lv) for lv in fixed_levels]]
          for r in summary],
     )
@@ -505,6 +533,7 @@ def main(argv=None) -> dict:
         result = C.portable_run(runs[-1], runs_root)
         # process_*_s: this process's part of the run (wall_time_s, the run's, counts on across resumes)
         result.update({"overrides": overrides, "variant": variant, "curve": eval_curve(run_dir),
+                       "gradient_health": gradient_health(run_dir),
                        "process_wall_s": wall, "process_cpu_s": cpu,
                        "total_env_steps": int(cfg.train.total_env_steps),
                        "resumed_from_env_steps": resumed_at})

@@ -281,6 +281,39 @@ def test_time_to_solve_reports_the_return_in_gymnasiums_env():
     assert "in Gymnasium's env" in table and "0.90 [0.50, 1.00]" in table
 
 
+def test_time_to_solve_reports_each_runs_actor_gradient_health(tmp_path):
+    """A gradient learner's whole run: the median and largest pre-clip actor norm of its logged
+    updates and the updates its guard skipped (the cumulative count at the end), from
+    ``metrics.jsonl`` (hand-written); the summary gives their spread over seeds, PPO a dash."""
+    tts = load("time_to_solve")
+    rows = [{"env_steps": 0, "eval/return": 1.0}, {"env_steps": 10, "train/grad_norm_actor": 3.0, "train/skipped_actor": 0},
+            {"env_steps": 20, "train/grad_norm_actor": 1e9, "train/skipped_actor": 1},
+            {"env_steps": 30, "train/grad_norm_actor": 5.0, "train/skipped_actor": 1},
+            {"env_steps": 40, "train/grad_norm_actor": 4.0, "train/skipped_actor": 2}]
+    (tmp_path / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows))
+    health = tts.gradient_health(tmp_path)
+    assert health == {"actor_grad_norm_median": 4.5, "actor_grad_norm_max": 1e9, "logged_updates": 4,
+                      "skipped_actor_updates": 2}
+    (tmp_path / "metrics.jsonl").write_text(json.dumps({"env_steps": 10, "train/grad_norm": 2.0}))
+    assert tts.gradient_health(tmp_path) is None  # PPO logs no actor norm
+
+    def run(loss, seed, healthy):
+        r = {"env": "Walker2d-v5", "loss": loss, "seed": seed, "eval/return": 500.0, "eval/random_return": 1.0,
+             "wall_time_s": 100.0, "env_steps": 1000, "curve": [(0, 0.0, 1.0), (1000, 100.0, 500.0)],
+             "gradient_health": healthy}
+        return r
+
+    runs = [run("ppo", s, None) for s in range(2)]
+    runs += [run("sapo", s, {"actor_grad_norm_median": 10.0 ** s, "actor_grad_norm_max": 1e9, "logged_updates": 4,
+                             "skipped_actor_updates": 2 * s}) for s in range(3)]
+    summary, table = tts.summarise(runs, ["Walker2d-v5"], ["ppo", "sapo"])
+    ppo, sapo = summary
+    assert "gradient_health" not in ppo
+    assert sapo["gradient_health"]["actor_grad_norm_median"] == {"min": 1.0, "median": 10.0, "max": 100.0}
+    assert sapo["gradient_health"]["skipped_actor_updates"] == {"min": 0, "median": 2, "max": 4}
+    assert "skipped actor updates" in table and "10 [1, 100]" in table and "2 [0, 4]" in table
+
+
 def test_a_ppo_final_below_ppos_untrained_policy_gets_no_speed_up():
     """PPO's runs end below their first evaluation (the untrained policy): their final level is met
     at the start, so no learner gets a speed-up against it (a 0 s reference), and the cell says why."""
