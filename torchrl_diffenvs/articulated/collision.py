@@ -119,6 +119,16 @@ class _PrimitiveGroup(NamedTuple):
     geom1: _Geoms
     geom2: _Geoms
 
+    def margins(self, slots: "ContactSlots") -> torch.Tensor:
+        """``[P]`` each pair's margin (its slots share it)."""
+        per_pair = PRIMITIVES[self.kind].contacts
+        return slots.margin[self.first:self.first + per_pair * self.geom1.body.numel():per_pair]
+
+    def of_pairs(self, pairs: torch.Tensor, first: int) -> "_PrimitiveGroup":
+        """The group of the pairs ``pairs [K]`` only, its slots from ``first`` on."""
+        return _PrimitiveGroup(self.kind, first, _Geoms(*(x.index_select(0, pairs) for x in self.geom1)),
+                               _Geoms(*(x.index_select(0, pairs) for x in self.geom2)))
+
 
 def _geoms(model: ArticulatedModel, index: list[int], dtype, device) -> _Geoms:
     t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
@@ -299,17 +309,15 @@ def collide(slots: ContactSlots, kin) -> Contacts:
             import the tree, which imports this module).
     """
     dists, poss, frames, founds, bounds = [], [], [], [], []
-    for kind, first, geom1, geom2 in slots.groups:
-        primitive = PRIMITIVES[kind]
-        pairs = geom1.body.numel()
-        margin = slots.margin[first:first + primitive.contacts * pairs:primitive.contacts]
-        posed1, posed2 = _posed(kin, geom1), _posed(kin, geom2)
-        contacts = primitive.collide(posed1, posed2, margin)
+    for group in slots.groups:
+        primitive = PRIMITIVES[group.kind]
+        posed1, posed2 = _posed(kin, group.geom1), _posed(kin, group.geom2)
+        contacts = primitive.collide(posed1, posed2, group.margins(slots))
         dists.append(contacts.dist.flatten(1))
         poss.append(contacts.pos.flatten(1, 2))
         frames.append(_make_frame(contacts.normal, contacts.tangent).flatten(1, 2))
         founds.append(contacts.found.flatten(1))
-        bounds.append(_separation_bound(kind, posed1, posed2).repeat_interleave(primitive.contacts, dim=1))
+        bounds.append(_separation_bound(group.kind, posed1, posed2).repeat_interleave(primitive.contacts, dim=1))
     dist, found, bound = torch.cat(dists, dim=1), torch.cat(founds, dim=1), torch.cat(bounds, dim=1)
     # MuJoCo collides a pair only where its bounding spheres come within the margin (mj_collideGeoms'
     # filter): box-box's edge contacts measure the separation along an axis, below the pair's true
@@ -372,26 +380,23 @@ def near_pairs(slots: ContactSlots, kin, reach: float = 0.0) -> ContactSlots:
         reach: metres beyond the margin within which a pair counts as near (the ``cfd``
             gradient's distance, where it holds contacts that have not touched yet).
     """
-    index, groups, first = [], [], 0
-    for kind, start, geom1, geom2 in slots.groups:
-        per_pair = PRIMITIVES[kind].contacts
-        pairs = geom1.body.numel()
-        margin = slots.margin[start:start + per_pair * pairs:per_pair]
+    kept = []  # (group, its near pairs)
+    for group in slots.groups:
+        geom1, geom2 = group.geom1, group.geom2
         with torch.no_grad():
-            bound = _separation_bound(kind, _posed(kin, geom1), _posed(kin, geom2))
-            slack = 1e-3 * (geom2.size.amax(-1) + (0 if kind[0] == "plane" else geom1.size.amax(-1)))
-            near = (bound < margin + reach + slack).any(0).nonzero().squeeze(-1)
-        if near.numel() == 0:
-            continue
-        groups.append(_PrimitiveGroup(kind, first, _Geoms(*(x.index_select(0, near) for x in geom1)),
-                                      _Geoms(*(x.index_select(0, near) for x in geom2))))
-        index.append((start + per_pair * near[:, None] + torch.arange(per_pair, device=near.device)).flatten())
+            bound = _separation_bound(group.kind, _posed(kin, geom1), _posed(kin, geom2))
+            slack = 1e-3 * (geom2.size.amax(-1) + (0 if group.kind[0] == "plane" else geom1.size.amax(-1)))
+            near = (bound < group.margins(slots) + reach + slack).any(0).nonzero().squeeze(-1)
+        if near.numel():
+            kept.append((group, near))
+    if not kept:  # nothing near anywhere: the first pair, whose slots then hold no contact
+        kept = [(slots.groups[0], torch.zeros(1, dtype=torch.long, device=slots.geom.device))]
+    index, groups, first = [], [], 0
+    for group, near in kept:
+        per_pair = PRIMITIVES[group.kind].contacts
+        groups.append(group.of_pairs(near, first))
+        index.append((group.first + per_pair * near[:, None] + torch.arange(per_pair, device=near.device)).flatten())
         first += per_pair * near.numel()
-    if not groups:  # nothing near anywhere: the first pair, whose slots then hold no contact
-        kind, start, geom1, geom2 = slots.groups[0]
-        per_pair = PRIMITIVES[kind].contacts
-        groups = [_PrimitiveGroup(kind, 0, _Geoms(*(x[:1] for x in geom1)), _Geoms(*(x[:1] for x in geom2)))]
-        index = [torch.arange(start, start + per_pair, device=slots.geom.device)]
     index = torch.cat(index)
     if index.numel() == slots.count:
         return slots

@@ -17,8 +17,8 @@ __all__ = ["ConvergenceWatch", "reads_data_freely"]
 
 def reads_data_freely(device: torch.device) -> bool:
     """Whether the step may look at the data to skip work (converged envs, geom pairs too far apart
-    to touch, contact slots and rows no env needs): eagerly on the CPU, where it costs nothing; not on a GPU (a host-device
-    synchronisation) nor under ``torch.compile`` (a graph break).
+    to touch, contact slots and rows no env needs): eagerly on the CPU, where it costs nothing; not
+    on a GPU (a host-device synchronisation) nor under ``torch.compile`` (a graph break).
 
     Args:
         device: the device the step's tensors are on.
