@@ -29,7 +29,8 @@ __all__ = [
 #: Options of our tasks that choose how the physics is simulated or how the backward is shaped, not
 #: what the task is: Gymnasium's env has none of them (it is MuJoCo's own forward, without gradients).
 NOT_TASK_OPTIONS = frozenset({"contact", "integrator", "substeps", "contact_gradient", "cfrc_ext_gradient",
-                              "healthy_gradient_width", "healthy_gradient_scale", "posture_gradient_scale"})
+                              "healthy_gradient_width", "healthy_gradient_scale", "posture_gradient_scale",
+                              "recompute_in_backward", "gradient_outlier_clip"})
 
 
 def first_episode_mask(rollout: TensorDictBase) -> torch.Tensor:

@@ -34,6 +34,7 @@ from ...articulated.mjcf import ArticulatedModel, gymnasium_asset
 from ...articulated.pipeline import invweight0
 from ...articulated.tree import CONTACT_MODELS
 from ..gym_classic import GymnasiumClassicEnv
+from .outlier_gradient import check_outlier_clip, clip_outlier_gradients
 
 __all__ = ["MuJoCoModelEnv"]
 
@@ -92,6 +93,13 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             BPTT window's memory shrinks by about the physics' share (measured in
             ``benchmarks/gradient_throughput.py``) for one more forward of the physics per
             backward. Values and gradients are the same.
+        gradient_outlier_clip: ``None`` (default) or ``c >= 1``: at every env step, the backward
+            caps each env's gradient with respect to the step's ``qpos``, ``qvel`` and action at
+            ``c`` times the batch's median, and zeroes a NaN/inf one
+            ([`clip_outlier_gradients`][torchrl_diffenvs.envs.mujoco.outlier_gradient.clip_outlier_gradients]):
+            the few envs whose gradient explodes through contact then count in an update at the
+            size of the others, instead of making the learner skip it. The forward values are
+            the same; it needs a batch (one env is its own median).
         **kwargs: ``device``, ``dtype``, ``seed``, ``max_episode_steps`` and ``params``, as
             [`DiffEnv`][torchrl_diffenvs.DiffEnv]; and the task's own options.
     """
@@ -107,7 +115,8 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
     default_max_episode_steps = 1000
 
     def __init__(self, num_envs: int = 1, *, contact: str | None = None, integrator: str | None = None,
-                 substeps: int = 1, contact_gradient="exact", recompute_in_backward: bool = False, **kwargs):
+                 substeps: int = 1, contact_gradient="exact", recompute_in_backward: bool = False,
+                 gradient_outlier_clip: float | None = None, **kwargs):
         model = load_model(self.model_file)
         self.model = model
         contact = self.default_contact if contact is None else contact
@@ -132,6 +141,7 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         if not isinstance(recompute_in_backward, bool):
             raise ValueError(f"{self.name}: recompute_in_backward must be True or False, got {recompute_in_backward!r}")
         self.recompute_in_backward = recompute_in_backward
+        self.gradient_outlier_clip = check_outlier_clip(self.name, gradient_outlier_clip)
         self.action_dim = model.nu
         low, high = model.ctrl_range[:, 0], model.ctrl_range[:, 1]
         if not ((low == low[0]).all() and (high == high[0]).all()):
@@ -225,6 +235,8 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
         its ``contact_force`` is the largest contact normal force over all the physics steps, its
         ``solver_converged`` whether every constraint solve of them converged.
         """
+        qpos, qvel = state["qpos"], state["qvel"]
+        qpos, qvel, action = clip_outlier_gradients(self.gradient_outlier_clip, qpos, qvel, action)
         if self.recompute_in_backward and torch.is_grad_enabled():
             stepper = physics_stepper(self.tree)  # compile_physics' step, if a compiled rollout runs this
 
@@ -233,9 +245,8 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
                 with stepping_with(self.tree, stepper):
                     return self._simulate(qpos, qvel, action, params)
 
-            return torch.utils.checkpoint.checkpoint(physics, state["qpos"], state["qvel"], action, params,
-                                                     use_reentrant=False)
-        return self._simulate(state["qpos"], state["qvel"], action, params)
+            return torch.utils.checkpoint.checkpoint(physics, qpos, qvel, action, params, use_reentrant=False)
+        return self._simulate(qpos, qvel, action, params)
 
     def _simulate(self, qpos, qvel, action, params) -> StepResult:
         weights = self._regulariser_scales(params)

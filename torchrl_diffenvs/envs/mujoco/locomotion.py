@@ -20,9 +20,9 @@ class PlanarLocomotionEnv(HealthySurrogate, MuJoCoModelEnv):
     bonus; ``posture_gradient_scale``: the gradient of dense height and uprightness terms (both
     straight-through: reward values stay Gymnasium's; `HealthySurrogate`).
 
-    Dynamics: MuJoCo's model and integrator, with a smooth penalty contact instead of MuJoCo's
-    soft-constraint solver (see the docs, "The simulator and its fidelity"): trajectories differ from
-    Gymnasium's once a foot touches the ground.
+    Dynamics: MuJoCo's own (its collision, constraint solve and the model file's integrator:
+    `MuJoCoModelEnv`); ``contact="smooth"`` swaps in a smooth penalty contact, an approximation
+    whose trajectories differ from Gymnasium's once a foot touches the ground.
     """
 
     velocity_noise = "uniform"
