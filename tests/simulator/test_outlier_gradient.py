@@ -18,7 +18,7 @@ def test_cap_by_hand_one_outlier_a_nan_env_and_envs_without_gradient():
     b = torch.ones(6, 1, requires_grad=True)
     ya, yb = clip_outlier_gradients(3.0, a, b)
     assert torch.equal(ya, a) and torch.equal(yb, b)
-    # per-env cotangents: envs 0-2 of norm sqrt(3) (a: [1, 1], b: [1]); env 3 x100; env 4 NaN; env 5 none
+    # per-env cotangents: envs 0-2 of norm sqrt(3) (a: [1, 1], b: [1]); env 3 x100; env 4 NaN; env 5 zero
     weight = torch.tensor([1.0, 1.0, 1.0, 100.0, float("nan"), 0.0]).unsqueeze(-1)
     ((ya * weight).sum() + (yb * weight).sum()).backward()
     # median over the finite, nonzero envs (0-3): sqrt(3); env 3's norm 100 sqrt(3) is capped at 3 sqrt(3)
@@ -27,14 +27,37 @@ def test_cap_by_hand_one_outlier_a_nan_env_and_envs_without_gradient():
     torch.testing.assert_close(b.grad, expected, rtol=1e-6, atol=0)
 
 
-def test_no_env_with_a_gradient_and_off_leave_the_backward_alone():
+def test_no_env_with_a_gradient_one_env_and_off_leave_the_backward_alone():
     x = torch.ones(3, 2, requires_grad=True)
     (y,) = clip_outlier_gradients(2.0, x)
     (y * 0).sum().backward()
     assert torch.equal(x.grad, torch.zeros(3, 2))
+    x.grad = None
+    (y,) = clip_outlier_gradients(1.0, x)
+    (y * torch.tensor([[0.0], [7.0], [0.0]])).sum().backward()  # one env with a gradient: its own median
+    assert torch.equal(x.grad, torch.tensor([[0.0, 0.0], [7.0, 7.0], [0.0, 0.0]]))
+    x.grad = None
+    (y,) = clip_outlier_gradients(1.0, x)
+    (y * torch.tensor([[0.0], [float("inf")], [0.0]])).sum().backward()  # a NaN/inf env is zeroed even then
+    assert torch.equal(x.grad, torch.zeros(3, 2))
     assert clip_outlier_gradients(None, x)[0] is x  # off: the very tensors
     with torch.no_grad():
         assert clip_outlier_gradients(2.0, x)[0] is x
+
+
+def test_a_float32_outlier_beyond_float32s_squares_is_capped_not_zeroed():
+    x = torch.ones(4, 2, requires_grad=True)
+    (y,) = clip_outlier_gradients(2.0, x)
+    (y * torch.tensor([[1.0], [1.0], [1.0], [1e20]])).sum().backward()  # |g|^2 = 2e40: inf in float32
+    torch.testing.assert_close(x.grad[:, 0], torch.tensor([1.0, 1.0, 1.0, 2.0]))
+
+
+def test_a_second_derivative_through_the_cap_raises():
+    x = torch.ones(3, 1, requires_grad=True)
+    (y,) = clip_outlier_gradients(2.0, x)
+    (g,) = torch.autograd.grad((y ** 3).sum(), x, create_graph=True)
+    with pytest.raises(RuntimeError, match="once_differentiable|trying to differentiate twice"):
+        g.sum().backward()
 
 
 def _walker_step(clip, weight):
@@ -72,24 +95,56 @@ def test_env_step_keeps_its_values_and_caps_the_outlier_env_against_the_unclippe
         assert torch.equal(plain_g, loose_g)
 
 
-def test_rollout_values_are_the_same_with_the_clip():
-    def rollout(clip):
-        env = make_env("Hopper-v5", num_envs=3, seed=2, dtype=torch.float64, gradient_outlier_clip=clip)
-        actions = torch.rand(10, 3, env.action_dim, dtype=torch.float64,
-                             generator=torch.Generator().manual_seed(0)).mul(2).sub(1).requires_grad_(True)
-        td, rewards = env.reset(), []
-        for a in actions:
-            td["action"] = a
-            td = env.step(td)
-            rewards.append(td["next", "reward"])
-            td = env.step_mdp(td)
-        rewards = torch.stack(rewards)
-        (grad,) = torch.autograd.grad(rewards.sum(), actions)
-        return rewards.detach(), td["observation"].detach(), grad
+def _hopper_rollout(clip, recompute=False, steps=10):
+    """``steps`` Hopper env steps (3 envs, float64) under fixed actions: rewards, last observation,
+    the gradient of the return w.r.t. the actions, and the last step's physics inputs."""
+    env = make_env("Hopper-v5", num_envs=3, seed=2, dtype=torch.float64, gradient_outlier_clip=clip,
+                   recompute_in_backward=recompute)
+    actions = torch.rand(steps, 3, env.action_dim, dtype=torch.float64,
+                         generator=torch.Generator().manual_seed(0)).mul(2).sub(1).requires_grad_(True)
+    td, rewards = env.reset(), []
+    for a in actions:
+        td["action"] = a
+        last = (td["state", "qpos"], td["state", "qvel"])
+        td = env.step(td)
+        rewards.append(td["next", "reward"])
+        td = env.step_mdp(td)
+    rewards = torch.stack(rewards)
+    return rewards, td["observation"].detach(), actions, last, env
 
-    plain, clipped = rollout(None), rollout(1.0)
-    assert torch.equal(plain[0], clipped[0]) and torch.equal(plain[1], clipped[1])
-    assert torch.isfinite(clipped[2]).all() and not torch.equal(plain[2], clipped[2])  # factor 1 caps half the envs
+
+def test_rollout_keeps_its_values_and_the_last_step_is_capped_as_by_hand():
+    plain_r, plain_obs, plain_a, plain_last, env = _hopper_rollout(None)
+    clip_r, clip_obs, clip_a, _, _ = _hopper_rollout(1.0)
+    assert torch.equal(plain_r, clip_r) and torch.equal(plain_obs, clip_obs)
+    # the last action's gradient through the physics passes one cap: its cotangent there is the
+    # last reward's gradient w.r.t. the physics inputs (qpos, qvel, action), by autograd without the cap
+    plain_inputs = (*plain_last, plain_a)
+    through_physics = list(torch.autograd.grad(plain_r[-1].sum(), plain_inputs, retain_graph=True))
+    # outside the physics the reward reads the step's start x (x velocity: -w / dt there) and the
+    # action (control cost: -2 c a); what is left went through the physics, and through the cap
+    ctrl = -2 * env.params["ctrl_cost_weight"].unsqueeze(-1) * plain_a[-1].detach()
+    through_physics[0] = through_physics[0].clone()
+    through_physics[0][:, 0] += env.params["forward_reward_weight"] / env.dt
+    action_physics = through_physics[2][-1] - ctrl
+    norm = torch.stack([through_physics[0].square().sum(-1), through_physics[1].square().sum(-1),
+                        action_physics.square().sum(-1)]).sum(0).sqrt()
+    cap = norm.median()  # factor 1, three envs: the middle one
+    assert (norm > cap).sum() == 1
+    (clip_last_action,) = torch.autograd.grad(clip_r[-1].sum(), clip_a)
+    expected = ctrl + action_physics * torch.clamp(cap / norm, max=1.0).unsqueeze(-1)
+    torch.testing.assert_close(clip_last_action[-1], expected, rtol=1e-10, atol=1e-12)
+    assert not torch.allclose(clip_last_action[-1], through_physics[2][-1], rtol=1e-6, atol=0)
+
+
+def test_with_recompute_in_backward_the_same_values_and_gradients():
+    rewards, obs, actions, _, _ = _hopper_rollout(1.5, steps=5)
+    rewards_r, obs_r, actions_r, _, _ = _hopper_rollout(1.5, recompute=True, steps=5)
+    assert torch.equal(rewards, rewards_r) and torch.equal(obs, obs_r)
+    (grad,) = torch.autograd.grad(rewards.sum(), actions)
+    (grad_r,) = torch.autograd.grad(rewards_r.sum(), actions_r)
+    torch.testing.assert_close(grad, grad_r, rtol=1e-12, atol=1e-12)
+    assert grad.abs().sum() > 0
 
 
 @pytest.mark.parametrize("bad", [0.5, -1.0, float("inf"), True, "10"])

@@ -93,13 +93,15 @@ class MuJoCoModelEnv(GymnasiumClassicEnv):
             BPTT window's memory shrinks by about the physics' share (measured in
             ``benchmarks/gradient_throughput.py``) for one more forward of the physics per
             backward. Values and gradients are the same.
-        gradient_outlier_clip: ``None`` (default) or ``c >= 1``: at every env step, the backward
-            caps each env's gradient with respect to the step's ``qpos``, ``qvel`` and action at
-            ``c`` times the batch's median, and zeroes a NaN/inf one
+        gradient_outlier_clip: ``None`` (default) or ``c >= 1``: at every env step (its
+            ``frame_skip x substeps`` physics steps), the backward caps the norm of each env's
+            gradient with respect to the step's ``qpos``, ``qvel`` and action together at ``c``
+            times the median over the envs with a finite, nonzero one, and zeroes a NaN/inf one
             ([`clip_outlier_gradients`][torchrl_diffenvs.envs.mujoco.outlier_gradient.clip_outlier_gradients]):
             the few envs whose gradient explodes through contact then count in an update at the
-            size of the others, instead of making the learner skip it. The forward values are
-            the same; it needs a batch (one env is its own median).
+            size of the others, instead of making the learner skip it. Applied again at every
+            step of a window. The forward values are the same; it needs a batch (one env is its
+            own median).
         **kwargs: ``device``, ``dtype``, ``seed``, ``max_episode_steps`` and ``params``, as
             [`DiffEnv`][torchrl_diffenvs.DiffEnv]; and the task's own options.
     """

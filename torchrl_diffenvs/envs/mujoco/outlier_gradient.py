@@ -35,24 +35,19 @@ class _ClipOutlierGradients(torch.autograd.Function):
         return tuple(t.view_as(t) for t in tensors)
 
     @staticmethod
+    @torch.autograd.function.once_differentiable  # a second derivative through the cap is not defined here
     def backward(ctx, *grads):
-        present = [g for g in grads if g is not None]
-        if not present:
-            return (None, *grads)
-        squared = sum(g.reshape(g.shape[0], -1).square().sum(-1) for g in present)
-        norm = squared.sqrt()  # [N]
+        # float64: a float32 outlier of norm above ~1.8e19 (seen in training) would square to inf
+        norm = sum(g.reshape(g.shape[0], -1).double().square().sum(-1) for g in grads).sqrt()  # [N]
         finite = torch.isfinite(norm)
         # envs with no gradient (reset this step, or outside the loss) do not set the scale
         median = torch.nanmedian(torch.where(finite & (norm > 0), norm, torch.nan))
         cap = ctx.factor * median  # NaN when no env has a gradient: then nothing is scaled
         scale = torch.where(norm > cap, cap / norm, torch.ones_like(norm))
-        keep = finite.reshape(-1, *([1] * (present[0].ndim - 1)))
 
         def shaped(g):
-            if g is None:
-                return None
-            s = scale.reshape(-1, *([1] * (g.ndim - 1))).to(g.dtype)
-            return torch.where(keep.reshape(-1, *([1] * (g.ndim - 1))), g * s, torch.zeros_like(g))
+            per_env = (-1, *([1] * (g.ndim - 1)))
+            return torch.where(finite.reshape(per_env), g * scale.reshape(per_env).to(g.dtype), torch.zeros_like(g))
 
         return (None, *(shaped(g) for g in grads))
 
@@ -61,11 +56,14 @@ def clip_outlier_gradients(factor: float | None, *tensors: torch.Tensor) -> tupl
     """The same ``tensors`` (each ``[N, ...]``, the envs first), whose backward caps each env's
     cotangent at ``factor`` times the batch's median.
 
-    The forward returns the values unchanged (views of the inputs). In the backward, env ``i``'s
-    cotangent ``g_i`` (over all ``tensors`` together) becomes ``g_i * min(1, c / |g_i|)`` with
-    ``c = factor * median_j |g_j|``, the median over the envs whose cotangent is finite and
-    nonzero; an env with a NaN/inf cotangent gets zero (it is the extreme outlier). A batch with
-    no such env, or ``factor=None``, is left as it is. No host-device synchronisation.
+    The forward returns the values unchanged, as views of the inputs (not to be modified in
+    place). In the backward, env ``i``'s cotangent ``g_i`` (the Euclidean norm over all
+    ``tensors`` together) becomes ``g_i * min(1, c / |g_i|)`` with ``c = factor * median_j
+    |g_j|``, the median over the envs whose cotangent is finite and nonzero (for an even count,
+    the lower of the two middle ones); an env with a NaN/inf cotangent gets zero (it is the
+    extreme outlier), whether or not any other env has a gradient. ``factor=None``, or no tensor
+    requiring grad, returns the tensors themselves. No host-device synchronisation. First order
+    only: a double backward through it raises.
 
     >>> x = torch.ones(4, 2, requires_grad=True)
     >>> (y,) = clip_outlier_gradients(2.0, x)
