@@ -402,7 +402,22 @@ def _surrogate_share(gradient: ContactGradient, jacobian, aref, exists, found, p
 
 def _solve_with(mass, qacc_smooth, jacobian, aref, row_weight):
     """The solve with fixed row weights: ``(M + J' W J) qacc = M qacc_smooth + J' W aref``, and the
-    rows' forces ``-W (J qacc - aref)``."""
+    rows' forces ``-W (J qacc - aref)``. On the CPU, where reading the data is free, the products
+    run over each env's rows of nonzero weight only (the batch's largest count of them; rows of
+    zero weight add nothing): the Ant's active rows are about 3 of 60."""
+    if convergence.reads_data_freely(row_weight.device) and row_weight.shape[-1]:
+        weighted = row_weight != 0
+        count = int(weighted.sum(-1).max())
+        if count < row_weight.shape[-1]:
+            order = torch.argsort((~weighted).to(torch.int8), dim=-1, stable=True)[:, :count]
+            qacc, force = _solve_with_rows(mass, qacc_smooth, jacobian.gather(1, order.unsqueeze(-1).expand(
+                -1, -1, jacobian.shape[-1])), aref.gather(1, order), row_weight.gather(1, order))
+            return qacc, force.new_zeros(aref.shape).scatter(1, order, force)
+    return _solve_with_rows(mass, qacc_smooth, jacobian, aref, row_weight)
+
+
+def _solve_with_rows(mass, qacc_smooth, jacobian, aref, row_weight):
+    """`_solve_with` over all the rows given."""
     jt = jacobian.transpose(-1, -2)
     hessian = mass + jt @ (row_weight.unsqueeze(-1) * jacobian)
     rhs = (mass @ qacc_smooth.unsqueeze(-1)).squeeze(-1) + (jt @ (row_weight * aref).unsqueeze(-1)).squeeze(-1)
