@@ -335,6 +335,12 @@ def _rounds_driver(device: torch.device):
     return _while_rounds
 
 
+def _rows_first(mask):
+    """``[N, K]`` each env's row positions with its ``mask`` rows first (in order), ``K`` the
+    batch's largest count of them (read on the host: CPU only)."""
+    return torch.argsort((~mask).to(torch.int8), dim=-1, stable=True)[:, :int(mask.sum(-1).max())]
+
+
 def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
     """Newton's rounds on the CPU, where reading the data costs nothing: envs without rows keep
     ``qacc_smooth``, the others iterate on their existing rows only (the batch's largest count of
@@ -348,7 +354,7 @@ def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance:
         return qacc, used, converged
     # index_select and index_copy_, not x[envs]: advanced indexing is several times slower on the CPU
     of_envs = lambda x: x.index_select(0, envs)  # noqa: E731
-    order = torch.argsort((~of_envs(exists)).to(torch.int8), dim=-1, stable=True)[:, :int(count.max())]
+    order = _rows_first(of_envs(exists))
     rows_of = lambda x: of_envs(x).gather(1, order)  # noqa: E731  (existing rows first)
     args = (of_envs(m), of_envs(j).gather(1, order.unsqueeze(-1).expand(-1, -1, j.shape[-1])), rows_of(w))
     smooth_c = of_envs(smooth)
@@ -402,14 +408,11 @@ def _surrogate_share(gradient: ContactGradient, jacobian, aref, exists, found, p
 
 def _solve_with(mass, qacc_smooth, jacobian, aref, row_weight):
     """The solve with fixed row weights: ``(M + J' W J) qacc = M qacc_smooth + J' W aref``, and the
-    rows' forces ``-W (J qacc - aref)``. On the CPU, where reading the data is free, the products
-    run over each env's rows of nonzero weight only (the batch's largest count of them; rows of
-    zero weight add nothing): the Ant's active rows are about 3 of 60."""
+    rows' forces ``-W (J qacc - aref)``. On the CPU (reading the data is free) the products run
+    over each env's rows of nonzero weight only, which add all there is: the Ant's are ~3 of 60."""
     if convergence.reads_data_freely(row_weight.device) and row_weight.shape[-1]:
-        weighted = row_weight != 0
-        count = int(weighted.sum(-1).max())
-        if count < row_weight.shape[-1]:
-            order = torch.argsort((~weighted).to(torch.int8), dim=-1, stable=True)[:, :count]
+        order = _rows_first(row_weight != 0)
+        if order.shape[1] < row_weight.shape[-1]:
             qacc, force = _solve_with_rows(mass, qacc_smooth, jacobian.gather(1, order.unsqueeze(-1).expand(
                 -1, -1, jacobian.shape[-1])), aref.gather(1, order), row_weight.gather(1, order))
             return qacc, force.new_zeros(aref.shape).scatter(1, order, force)
