@@ -155,18 +155,18 @@ def test_an_env_step_and_a_partial_reset_never_synchronise_host_and_device(name,
 def test_the_cuda_solve_stops_once_the_host_sees_every_env_converged(monkeypatch):
     """MuJoCo's Newton solve on CUDA: the host stops issuing rounds a few rounds after every env
     converged (read without waiting), with the result of all the model's rounds."""
-    from torchrl_diffenvs.articulated import constraint
+    from torchrl_diffenvs.articulated import newton
 
     env = make_env("HalfCheetah-v5", num_envs=256, seed=0, dtype=torch.float64, device="cuda")
     state = env.rollout(20)[:, -1]["next", "state"]  # on the floor: contacts active
     rounds = []
-    original = constraint._newton_round
+    original = newton.newton_round
 
     def counted(*args):
         rounds.append(1)
         return original(*args)
 
-    monkeypatch.setattr(constraint, "_newton_round", counted)
+    monkeypatch.setattr(newton, "newton_round", counted)
 
     def one_step():
         from torchrl_diffenvs.articulated import step
@@ -179,7 +179,7 @@ def test_the_cuda_solve_stops_once_the_host_sees_every_env_converged(monkeypatch
         return result, len(rounds)
 
     watched, watched_rounds = one_step()
-    monkeypatch.setattr(constraint.ConvergenceWatch, "for_device", classmethod(lambda cls, device: None))
+    monkeypatch.setattr(newton.ConvergenceWatch, "for_device", classmethod(lambda cls, device: None))
     fixed, fixed_rounds = one_step()
     assert fixed_rounds == env.tree.model.iterations and watched_rounds < fixed_rounds / 4, (watched_rounds,
                                                                                              fixed_rounds)

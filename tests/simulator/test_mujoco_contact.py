@@ -14,7 +14,8 @@ mujoco = pytest.importorskip("mujoco")
 
 from torchrl_diffenvs.articulated import RigidBodyTree, default_params, forward_kinematics, gymnasium_asset, load_mjcf, step  # noqa: E402
 from torchrl_diffenvs.articulated.collision import collide  # noqa: E402
-from torchrl_diffenvs.articulated.constraint import _line_search, constraint_rows, solve  # noqa: E402
+from torchrl_diffenvs.articulated.constraint import constraint_rows, solve  # noqa: E402
+from torchrl_diffenvs.articulated.newton import line_search  # noqa: E402
 from torchrl_diffenvs.articulated.inertia import body_invweight0, mass_matrix_and_bias  # noqa: E402
 from torchrl_diffenvs.articulated.pipeline import accelerations, body_contact_wrenches, invweight0  # noqa: E402
 from torchrl_diffenvs.envs import make_env  # noqa: E402
@@ -965,7 +966,7 @@ def test_line_search_returns_the_minimiser_along_the_direction():
         uphill = slope(mid) >= 0
         low, high = torch.where(uphill, low, mid), torch.where(uphill, mid, high)
     expected = torch.where(slope(torch.zeros(n, dtype=torch.float64)) >= 0, 0.0, high)
-    torch.testing.assert_close(_line_search(jar, jd, w, s0, c0), expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(line_search(jar, jd, w, s0, c0), expected, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.filterwarnings("ignore")

@@ -18,10 +18,11 @@ with pyramidal cones drops the rows that exist in no env.
 
 The solve minimises MuJoCo's convex primal over ``qacc``,
 ``1/2 (qacc - qacc_smooth)' M (qacc - qacc_smooth) + sum_i 1/2 D_i min(0, J_i qacc - aref_i)^2``,
-whose unique minimiser is what MuJoCo's Newton solver converges to. [`solve`][torchrl_diffenvs.articulated.constraint.solve] finds it by
-Newton's method with an exact line search (the cost is piecewise quadratic along a line, so the
-search sorts the rows' breakpoints) without autograd, then takes one differentiable solve with
-the active set it found: the value is the minimiser, and the gradient is the implicit gradient of
+whose unique minimiser is what MuJoCo's Newton solver converges to.
+[`solve`][torchrl_diffenvs.articulated.constraint.solve] finds it by Newton's method with an exact
+line search (the cost is piecewise quadratic along a line, so the search sorts the rows'
+breakpoints) without autograd ([`newton`][torchrl_diffenvs.articulated.newton]), then takes one
+differentiable solve with the active set it found: the value is the minimiser, and the gradient is the implicit gradient of
 the solution (exact wherever the active set does not change). With elliptic cones the cost has a third
 piece per contact, ``D_0 / (mu^2 (1 + mu^2)) (N - mu T)^2 / 2`` in the cone's middle zone
 (`elliptic._cone_state`, MuJoCo's ``mj_constraintUpdate``): Newton's method with a line search by Newton
@@ -43,10 +44,10 @@ import torch
 from .collision import MIN_FRICTION, Contacts, ContactSlots
 from .contact_gradient import ContactGradient
 from . import convergence
-from .convergence import ConvergenceWatch
 from .elliptic import EllipticCones, _cone_curvature, _cone_state, _elliptic_round, _elliptic_rows
 from .kinematics import Kinematics
 from .limits import _reference
+from .newton import active_set, rounds_driver, rows_first
 from .spatial import _MINVAL, Params, _cross, small_matmul, small_matvec
 from .tree import RigidBodyTree
 
@@ -219,177 +220,6 @@ class SolverResult(NamedTuple):
     converged: torch.Tensor  # [N] bool
 
 
-def _line_search(jar, jd, weight, slope0, curvature0):
-    """The exact minimiser ``alpha >= 0`` of the cost along a direction: ``f'(alpha) = slope0 +
-    alpha curvature0 + sum_i w_i jd_i min(0, jar_i + alpha jd_i)``, piecewise linear and
-    increasing. Rows switch at ``t_i = -jar_i / jd_i``; sorted, their running sums give ``f'`` at
-    each breakpoint, and the root lies on the piece after the last breakpoint where ``f' < 0``."""
-    # rows whose sign changes at some alpha > 0 (a row on the boundary, jar = 0, is inside from 0+
-    # on if it moves in and outside if not: it never switches)
-    switching = jar * jd < 0
-    t = torch.where(switching, -jar / jd, torch.inf)
-    active0 = (jar < 0) | ((jar == 0) & (jd < 0))  # the rows inside at alpha = 0+
-    wjd = weight * jd
-    c1 = curvature0 + (wjd * jd * active0).sum(-1)  # f' = c0 + alpha c1 on the first piece
-    c0 = slope0 + (wjd * jar * active0).sum(-1)
-    t_sorted, order = t.sort(-1)
-    # a switching row enters (moving in) or leaves (moving out) at its t: the coefficients' steps, sorted
-    enter = torch.where(jd < 0, wjd, -wjd) * switching
-    step1, step0 = (enter * jd).gather(-1, order), (enter * jar).gather(-1, order)
-    slope_at = c0.unsqueeze(-1) + step0.cumsum(-1) + t_sorted * (c1.unsqueeze(-1) + step1.cumsum(-1))  # f'(t_k)
-    # the breakpoints before the root: a prefix of the sorted ones (f' increases; the cumprod keeps
-    # it one where rounding would not)
-    passed = (torch.isfinite(t_sorted) & (slope_at < 0)).to(step1.dtype).cumprod(-1)
-    a1, a0 = c1 + (step1 * passed).sum(-1), c0 + (step0 * passed).sum(-1)  # f' on the root's piece
-    return (-a0 / a1.clamp_min(_MINVAL)).clamp_min(0.0)
-
-
-def _newton_start(qacc, m, smooth, j, w, aref):
-    """Newton's state at ``qacc``: ``(qacc, jar = J qacc - aref, inertial = M (qacc - qacc_smooth),
-    the cost's gradient)`` (rows that do not exist have weight 0)."""
-    jar = (j @ qacc.unsqueeze(-1)).squeeze(-1) - aref
-    inertial = (m @ (qacc - smooth).unsqueeze(-1)).squeeze(-1)
-    gradient = inertial + (j.transpose(-1, -2) @ (w * (jar < 0) * jar).unsqueeze(-1)).squeeze(-1)
-    return qacc, jar, inertial, gradient
-
-
-def _newton_round(state, m, j, w, tolerance: float):
-    """One Newton step with the exact line search on the primal from ``state`` (`_newton_start`):
-    ``(new state, converged)``. Along the step ``jar`` and the inertial term move linearly and are
-    updated so, as MuJoCo's solver updates them. Converged: the cost's gradient at the new point is
-    below ``tolerance`` relative to the size of its two terms (MuJoCo's test is on a scaled
-    gradient; float32 rounding sets a floor)."""
-    qacc, jar, inertial, gradient = state
-    jt = j.transpose(-1, -2)
-    direction = -torch.linalg.solve_ex(m + jt @ ((w * (jar < 0)).unsqueeze(-1) * j), gradient)[0]
-    jd = (j @ direction.unsqueeze(-1)).squeeze(-1)
-    md = (m @ direction.unsqueeze(-1)).squeeze(-1)
-    alpha = _line_search(jar, jd, w, (direction * inertial).sum(-1), (md * direction).sum(-1)).unsqueeze(-1)
-    step = alpha * direction
-    jar, inertial = jar + alpha * jd, inertial + alpha * md
-    constraint = (jt @ (w * (jar < 0) * jar).unsqueeze(-1)).squeeze(-1)
-    new = (qacc + step, jar, inertial, inertial + constraint)
-    size = inertial.norm(dim=-1) + constraint.norm(dim=-1) + _MINVAL
-    finite = torch.isfinite(new[0]).all(-1)
-    # or: the step is down to rounding (float32 can stall above the gradient test's floor)
-    stalled = step.norm(dim=-1) <= 100 * torch.finfo(qacc.dtype).eps * (qacc.norm(dim=-1) + 1)
-    settled = (new[3].norm(dim=-1) <= tolerance * size) | stalled | ~finite
-    return tuple(torch.where(finite.unsqueeze(-1), a, b) for a, b in zip(new, state)), settled
-
-
-def _masked_rounds(round_, start, iterations: int):
-    """Newton rounds ``round_(state) -> (new state, settled)`` from the ``start`` state (a tuple of
-    ``[N, ..]`` tensors, no autograd), at most ``iterations``, with converged envs held (a mask: no
-    host-device synchronisation): ``(state, iterations [N], converged [N])``. They stop once every
-    env has converged: on the CPU by reading the flags (free there), on CUDA once the host sees it
-    without waiting ([`ConvergenceWatch`][torchrl_diffenvs.articulated.convergence.ConvergenceWatch])."""
-    state = start
-    converged = torch.zeros(state[0].shape[0], dtype=torch.bool, device=state[0].device)
-    used = torch.zeros(state[0].shape[0], dtype=torch.long, device=state[0].device)
-    watch = ConvergenceWatch.for_device(state[0].device)
-    reads_data = convergence.reads_data_freely(state[0].device)
-    for _ in range(iterations):
-        new, settled = round_(state)
-        state = tuple(torch.where(converged.unsqueeze(-1), a, b) for a, b in zip(state, new))
-        used = used + (~converged).long()
-        converged = converged | settled
-        if (watch is not None and watch.all_done(converged)) or (reads_data and bool(converged.all())):
-            break
-    return state, used, converged
-
-
-def _while_rounds(round_, start, iterations: int):
-    """`_masked_rounds` as one ``torch.while_loop`` for ``torch.compile``: the round is traced once
-    (an unrolled loop would make a step's graph hundreds of times larger) and the loop ends once
-    every env has converged or ``iterations`` rounds have run."""
-    n, size = start[0].shape[0], len(start)
-
-    def unfinished(round_index, *carried):
-        return (round_index < iterations) & ~carried[-1].all()
-
-    def one_round(round_index, *carried):
-        state, used, converged = carried[:size], carried[size], carried[size + 1]
-        new, settled = round_(state)
-        held = tuple(torch.where(converged.unsqueeze(-1), a, b) for a, b in zip(state, new))
-        return (round_index + 1, *held, used + (~converged).long(), converged | settled)
-
-    begin = (torch.zeros((), dtype=torch.long, device=start[0].device), *(x.clone() for x in start),
-             torch.zeros(n, dtype=torch.long, device=start[0].device),
-             torch.zeros(n, dtype=torch.bool, device=start[0].device))
-    carried = torch.while_loop(unfinished, one_round, begin)
-    return tuple(carried[1:size + 1]), carried[size + 1], carried[size + 2]
-
-
-_masked_rounds_outside_the_graph = torch.compiler.disable(_masked_rounds)
-
-
-def _rounds_driver(device: torch.device):
-    """How Newton's rounds run: eagerly `_masked_rounds`; under ``torch.compile`` one
-    ``while_loop`` (`_while_rounds`), except on CUDA and on a torch without ``torch.while_loop``,
-    where they are a graph break (inductor runs a while_loop's condition on the host, a
-    synchronisation per round, and leaves it out of CUDA graphs; the eager rounds stop without one)."""
-    if not torch.compiler.is_compiling():
-        return _masked_rounds
-    if device.type == "cuda" or not hasattr(torch, "while_loop"):
-        return _masked_rounds_outside_the_graph
-    return _while_rounds
-
-
-def _rows_first(mask):
-    """``[N, K]`` each env's row positions with its ``mask`` rows first (in order), ``K`` the
-    batch's largest count of them (read on the host: CPU only)."""
-    return torch.argsort((~mask).to(torch.int8), dim=-1, stable=True)[:, :int(mask.sum(-1).max())]
-
-
-def _newton_compacted(m, smooth, j, w, aref, exists, iterations: int, tolerance: float):
-    """Newton's rounds on the CPU, where reading the data costs nothing: envs without rows keep
-    ``qacc_smooth``, the others iterate on their existing rows only (the batch's largest count of
-    them), each round on the envs that have not converged yet."""
-    n = smooth.shape[0]
-    count = exists.sum(-1)
-    envs = (count > 0).nonzero().squeeze(-1)
-    qacc, used = smooth.clone(), torch.zeros(n, dtype=torch.long, device=smooth.device)
-    converged = torch.ones(n, dtype=torch.bool, device=smooth.device)
-    if envs.numel() == 0:
-        return qacc, used, converged
-    # index_select and index_copy_, not x[envs]: advanced indexing is several times slower on the CPU
-    of_envs = lambda x: x.index_select(0, envs)  # noqa: E731
-    order = _rows_first(of_envs(exists))
-    rows_of = lambda x: of_envs(x).gather(1, order)  # noqa: E731  (existing rows first)
-    args = (of_envs(m), of_envs(j).gather(1, order.unsqueeze(-1).expand(-1, -1, j.shape[-1])), rows_of(w))
-    smooth_c = of_envs(smooth)
-    state = _newton_start(smooth_c.clone(), args[0], smooth_c, args[1], args[2], rows_of(aref))
-    left = torch.arange(envs.numel(), device=smooth.device)
-    used_c, converged_c = torch.zeros_like(left), torch.zeros_like(left, dtype=torch.bool)
-    for _ in range(iterations):
-        new, settled = _newton_round(tuple(x.index_select(0, left) for x in state),
-                                     *(a.index_select(0, left) for a in args), tolerance)
-        for x, y in zip(state, new):
-            x.index_copy_(0, left, y)
-        used_c.index_add_(0, left, torch.ones_like(left))
-        converged_c.index_copy_(0, left, settled)
-        left = left[~settled]
-        if not left.numel():
-            break
-    return qacc.index_copy(0, envs, state[0]), used.index_copy(0, envs, used_c), converged.index_copy(0, envs, converged_c)
-
-
-@torch.no_grad()
-def _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations: int, tolerance: float):
-    """The Newton search (no autograd): ``(qacc, iterations, converged, active rows)``: eagerly on
-    the CPU on the compacted rows and envs (`_newton_compacted`), elsewhere the rounds of
-    `_rounds_driver`."""
-    m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
-    if convergence.reads_data_freely(smooth.device):
-        qacc, used, converged = _newton_compacted(m, smooth, j, w, ar, exists, iterations, tolerance)
-    else:
-        state, used, converged = _rounds_driver(smooth.device)(
-            lambda state: _newton_round(state, m, j, w, tolerance), _newton_start(smooth, m, smooth, j, w, ar), iterations)
-        qacc = state[0]
-    active = (((j @ qacc.unsqueeze(-1)).squeeze(-1) - ar) < 0) & exists
-    return qacc, used, converged, active
-
-
 def _surrogate_share(gradient: ContactGradient, jacobian, aref, exists, found, pos, margin, regulariser, active, qacc):
     """The share ``[N, R]`` in ``[0, 1]`` of each row's weight ``1 / R`` in the surrogate solve of a
     gradient mode (detached: the weights keep their own gradient, as the exact solve's do)."""
@@ -411,7 +241,7 @@ def _solve_with(mass, qacc_smooth, jacobian, aref, row_weight):
     rows' forces ``-W (J qacc - aref)``. On the CPU (reading the data is free) the products run
     over each env's rows of nonzero weight only, which add all there is: the Ant's are ~3 of 60."""
     if convergence.reads_data_freely(row_weight.device) and row_weight.shape[-1]:
-        order = _rows_first(row_weight != 0)
+        order = rows_first(row_weight != 0)
         if order.shape[1] < row_weight.shape[-1]:
             qacc, force = _solve_with_rows(mass, qacc_smooth, jacobian.gather(1, order.unsqueeze(-1).expand(
                 -1, -1, jacobian.shape[-1])), aref.gather(1, order), row_weight.gather(1, order))
@@ -436,14 +266,14 @@ _ELLIPTIC_LINE_ITERATIONS = 20
 def _elliptic_minimiser(mass, qacc_smooth, jacobian, weight, aref, exists, cones, iterations: int,
                         tolerance: float):
     """The minimiser of the primal with elliptic cones (no autograd), by the rounds of
-    `_rounds_driver`: ``(qacc, iterations, converged)``."""
+    [`rounds_driver`][torchrl_diffenvs.articulated.newton.rounds_driver]: ``(qacc, iterations, converged)``."""
     m, smooth, j, w, ar = mass.detach(), qacc_smooth.detach(), jacobian.detach(), weight.detach(), aref.detach()
     cones = tuple(c._replace(mu=c.mu.detach(), friction=c.friction.detach()) for c in cones)
     def one_round(state):
         new, settled = _elliptic_round(state[0], m, smooth, j, w, ar, exists, cones, tolerance, _ELLIPTIC_LINE_ITERATIONS)
         return (new,), settled
 
-    (qacc,), used, converged = _rounds_driver(smooth.device)(one_round, (smooth,), iterations)
+    (qacc,), used, converged = rounds_driver(smooth.device)(one_round, (smooth,), iterations)
     return qacc, used, converged
 
 
@@ -521,7 +351,7 @@ def solve(mass: torch.Tensor, qacc_smooth: torch.Tensor, rows: ConstraintRows, i
         return x if keep is None else x.new_zeros(rows.aref.shape).index_copy(1, keep, x)
 
     (jacobian, aref, exists, weight), keep = rows_where(rows.exists, rows.jacobian, rows.aref, rows.exists, rows.weight)
-    qacc, used, converged, active = _active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations,
+    qacc, used, converged, active = active_set(mass, qacc_smooth, jacobian, weight, aref, exists, iterations,
                                                 tolerance)
     # one differentiable solve with the active set: the value, and in the exact mode the gradient
     aw = weight * active
