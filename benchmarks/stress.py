@@ -22,7 +22,10 @@ has it). A healthy simulator has 0 non-finite envs everywhere.
 
 A task and policy take minutes to hours at 1024 envs; the data file is rewritten after each row, and
 ``resume=true`` keeps its rows and runs only the (task, contact, integrator, policy, size) rows it
-does not hold yet.
+does not hold yet. A row longer than a sitting is resumable too: every ``checkpoint_every`` steps
+it saves where it is (the envs' tensordict and random streams, the policy's state, the counters)
+under ``benchmarks/stress_partial/<data file>/``, and ``resume=true`` continues it from there, to
+the same result as a row run in one go; the file is removed once the row is done.
 
     OMP_NUM_THREADS=1 python benchmarks/stress.py
     OMP_NUM_THREADS=1 python benchmarks/stress.py tasks=[HalfCheetah-v5] num_envs=1024 steps=1000
@@ -44,7 +47,7 @@ from _common import BenchmarkSettings, print_table  # noqa: E402
 
 from torchrl_diffenvs import make_env  # noqa: E402
 from torchrl_diffenvs.envs.mujoco.base import MuJoCoModelEnv  # noqa: E402
-from torchrl_diffenvs.checks import boolean, checked, each, one_of, parse_cli  # noqa: E402
+from torchrl_diffenvs.checks import boolean, checked, each, one_of, parse_cli, positive_int  # noqa: E402
 
 CONTACT_TASKS = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "HumanoidStandup-v5", "Pusher-v5"]
 POLICIES = ["random", "bang-bang", "resonant", "greedy", "far"]
@@ -61,15 +64,21 @@ class StressSettings(BenchmarkSettings):
     num_envs: int = 1024
     steps: int = 1000
     seed: int = 0
-    resume: bool = checked(False, boolean)  # keep the data file's rows; run only the missing ones
+    resume: bool = checked(False, boolean)  # keep the data file's rows (and partial rows); run only the missing ones
+    checkpoint_every: int = checked(50, positive_int)  # steps between a partial row's saves
     # None: each task's default
     integrator: str | None = checked(None, lambda v: None if v is None else one_of(MuJoCoModelEnv.INTEGRATORS)(v))
 
 
+PARTIAL_DIR = Path(__file__).resolve().parent / "stress_partial"
+
+
 def make_policy(kind: str, env, gen: torch.Generator):
+    """``(policy(td, t) -> action, state)``: ``state`` is the dict of tensors the policy keeps
+    between steps (saved with a partial row, and loaded back into the same dict)."""
     n, m = env.batch_size[0], env.action_dim
     if kind in ("random", "far"):
-        return lambda td, t: torch.rand(n, m, generator=gen) * 2 - 1
+        return (lambda td, t: torch.rand(n, m, generator=gen) * 2 - 1), {}
     if kind == "bang-bang":
         state = {"action": torch.sign(torch.rand(n, m, generator=gen) - 0.5),
                  "switch": torch.randint(1, 21, (n, m), generator=gen)}
@@ -78,11 +87,12 @@ def make_policy(kind: str, env, gen: torch.Generator):
             flip = (t % state["switch"]) == 0
             state["action"] = torch.where(flip, torch.sign(torch.rand(n, m, generator=gen) - 0.5), state["action"])
             return state["action"]
-        return bang
+        return bang, state
     if kind == "resonant":
-        period = torch.randint(2, 41, (n, 1), generator=gen)
-        phase = torch.randint(0, 40, (n, m), generator=gen)
-        return lambda td, t: torch.where(((t + phase) % period) < period / 2, 1.0, -1.0)
+        state = {"period": torch.randint(2, 41, (n, 1), generator=gen),
+                 "phase": torch.randint(0, 40, (n, m), generator=gen)}
+        return (lambda td, t: torch.where(((t + state["phase"]) % state["period"]) < state["period"] / 2, 1.0, -1.0),
+                state)
 
     def greedy(td, t):  # sign of d(forward velocity)/d(action), through one env step
         action = torch.zeros(n, m, requires_grad=True)
@@ -91,7 +101,7 @@ def make_policy(kind: str, env, gen: torch.Generator):
         qvel = env.step(probe)["next", "state", "qvel"]
         (grad,) = torch.autograd.grad(qvel[:, 0].sum(), action)
         return torch.where(grad >= 0, 1.0, -1.0)
-    return greedy
+    return greedy, {}
 
 
 def travels(env) -> bool:
@@ -100,7 +110,10 @@ def travels(env) -> bool:
     return env.tree.joint_type[0] in ("free", "slide")
 
 
-def stress(task: str, kind: str, s: StressSettings) -> dict:
+def stress(task: str, kind: str, s: StressSettings, partial: Path | None = None) -> dict:
+    """One row: ``task`` under the policy ``kind``. ``partial``: where the row saves itself every
+    ``s.checkpoint_every`` steps and, if the file is there, what it continues from (removed once
+    the row is done); None: it runs in one go."""
     options = {"integrator": s.integrator} if s.integrator else {}
     falls = "terminate_when_unhealthy" in make_env(task, num_envs=1, **options).params.keys()
     env = make_env(task, num_envs=s.num_envs, seed=s.seed, max_episode_steps=None,
@@ -113,13 +126,36 @@ def stress(task: str, kind: str, s: StressSettings) -> dict:
         td.set("state", state)
         td = env.reset(td, set_state=True)
     start_x = td["state", "qpos"][:, 0].clone()
-    policy = make_policy(kind, env, gen)
+    policy, policy_state = make_policy(kind, env, gen)
     bad = torch.zeros(s.num_envs, dtype=torch.bool)
     # MuJoCo's contact flags the env steps whose constraint solve stopped short; the smooth option has no solve
     unconverged = 0 if "solver_unconverged" in td["state"].keys() else None
-    speed, travel = 0.0, 0.0
-    began = time.perf_counter()
-    for t in range(s.steps):
+    speed, travel, first, elapsed = 0.0, 0.0, 0, 0.0
+    row = {"task": task, "policy": kind, "num_envs": s.num_envs, "steps": s.steps, "seed": s.seed,
+           "contact": env.contact, "integrator": env.integrator}
+    if partial is not None and partial.exists():
+        saved = torch.load(partial, weights_only=False)
+        if saved["row"] != row:
+            raise SystemExit(f"stress: {partial} is a partial row of {saved['row']}, not of {row}; "
+                             "remove it to run this row from its start")
+        td = td.update(saved["td"])  # the params are the reset's (the row never changes them)
+        start_x, bad, unconverged = saved["start_x"], saved["bad"], saved["unconverged"]
+        speed, travel, first, elapsed = saved["speed"], saved["travel"], saved["t"], saved["elapsed"]
+        env.rng.set_state(saved["env_rng"])
+        gen.set_state(saved["gen"])
+        policy_state.update(saved["policy_state"])
+        print(f"# {task} {kind}: continuing a partial row from step {first} of {s.steps}", flush=True)
+    began = time.perf_counter() - elapsed
+    for t in range(first, s.steps):
+        if partial is not None and t > first and t % s.checkpoint_every == 0:
+            partial.parent.mkdir(parents=True, exist_ok=True)
+            written = partial.with_suffix(".tmp")  # then renamed: a kill mid-write leaves the last good file
+            # without the params and observation, which the next step does not read: a smaller file
+            torch.save({"row": row, "t": t, "td": td.exclude("params", "observation"), "start_x": start_x, "bad": bad, "unconverged": unconverged,
+                        "speed": speed, "travel": travel, "elapsed": time.perf_counter() - began,
+                        "env_rng": env.rng.get_state(), "gen": gen.get_state(), "policy_state": dict(policy_state)},
+                       written)
+            written.replace(partial)
         with torch.no_grad() if kind != "greedy" else torch.enable_grad():
             action = policy(td, t)
         with torch.no_grad():
@@ -133,6 +169,8 @@ def stress(task: str, kind: str, s: StressSettings) -> dict:
             if finite.any():
                 speed = max(speed, float(qvel[finite].abs().max()))
                 travel = max(travel, float((td["state", "qpos"][finite, 0] - start_x[finite]).abs().max()))
+    if partial is not None:
+        partial.unlink(missing_ok=True)
     return {"nonfinite": int(bad.sum()), "unconverged": unconverged, "max_qvel": speed,
             "travel": travel if travels(env) else None,
             "contact": env.contact, "integrator": env.integrator,
@@ -164,6 +202,19 @@ def resumed(settings: StressSettings) -> tuple[list[list[str]], dict | None]:
     return rows, merged
 
 
+def partial_path(settings: StressSettings, task: str, kind: str) -> Path | None:
+    """Where a row of this data file saves its progress (None: no data file, nothing to resume
+    into); without ``resume=true`` a partial row left there is started over."""
+    data = C.data_path(settings, "stress")
+    if data is None:
+        return None
+    path = PARTIAL_DIR / data.stem / (f"{task}_{kind}_{settings.integrator or 'default'}_"
+                                         f"{settings.num_envs}x{settings.steps}_seed{settings.seed}.pt")
+    if not settings.resume:
+        path.unlink(missing_ok=True)
+    return path
+
+
 def physics_of(task: str, s: StressSettings) -> tuple[str, str, bool]:
     """The ``(contact, integrator)`` a row of ``task`` steps with under these settings, and whether
     its root travels (`travels`)."""
@@ -188,7 +239,7 @@ def main(argv=None):
             if kind == "far" and not rooted:
                 print(f"# {task}: no far row (its base is fixed to the world: no track to go down)", flush=True)
                 continue
-            r = stress(task, kind, settings)
+            r = stress(task, kind, settings, partial_path(settings, task, kind))
             unconverged = "-" if r["unconverged"] is None else str(r["unconverged"])  # "-": no solve to count
             travel = "-" if r["travel"] is None else f"{r['travel']:.3g}"  # "-": a fixed base
             row = [task, r["contact"], r["integrator"], kind, size,

@@ -670,7 +670,7 @@ def test_stress_resume_keeps_the_data_files_rows_and_runs_only_the_missing_pairs
     stress = load("stress")
     ran = []
 
-    def fake(task, kind, settings):
+    def fake(task, kind, settings, partial=None):
         ran.append((task, kind))
         return {"nonfinite": 0, "unconverged": 0, "max_qvel": 1.0, "travel": 2.0, "contact": "mujoco",
                 "integrator": "euler"}
@@ -701,6 +701,49 @@ def test_stress_resume_keeps_the_data_files_rows_and_runs_only_the_missing_pairs
     data.write_text("{}")
     with pytest.raises(SystemExit, match="is not a stress data file"):
         stress.main([*args, "resume=true"])
+
+
+def test_stress_row_stopped_midway_resumes_to_the_result_of_one_sitting(monkeypatch, tmp_path):
+    """A row killed after its last save continues there with resume=true (the envs, their random
+    streams, the policy's state and the counters), to the same numbers as a row run in one go."""
+    stress = load("stress")
+    monkeypatch.setattr(stress, "PARTIAL_DIR", tmp_path / "partial")
+    settings = stress.StressSettings(tasks=("Hopper-v5",), num_envs=6, steps=24, checkpoint_every=8,
+                                     data=str(tmp_path / "stress_hopper.json"), resume=True)
+    keys = ("nonfinite", "unconverged", "max_qvel", "travel")
+    for kind in ("bang-bang", "resonant"):
+        whole = stress.stress("Hopper-v5", kind, settings)
+        path = stress.partial_path(settings, "Hopper-v5", kind)
+        make_policy = stress.make_policy
+
+        def stopping(kind_, env, gen):  # the sitting ends (a kill) at step 19: the save at step 16 is kept
+            policy, state = make_policy(kind_, env, gen)
+
+            def stopped(td, t):
+                if t == 19:
+                    raise KeyboardInterrupt
+                return policy(td, t)
+            return stopped, state
+
+        monkeypatch.setattr(stress, "make_policy", stopping)
+        with pytest.raises(KeyboardInterrupt):
+            stress.stress("Hopper-v5", kind, settings, path)
+        assert torch.load(path, weights_only=False)["t"] == 16
+        monkeypatch.setattr(stress, "make_policy", make_policy)
+        resumed = stress.stress("Hopper-v5", kind, settings, path)
+        assert {k: resumed[k] for k in keys} == {k: whole[k] for k in keys}, kind
+        assert not path.exists()  # done: nothing left to resume
+    stress.stress("Hopper-v5", "random", settings, path := stress.partial_path(settings, "Hopper-v5", "random"))
+    other = stress.StressSettings(tasks=("Hopper-v5",), num_envs=6, steps=24, data=settings.data, resume=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"row": {"task": "Ant-v5"}}, path)
+    with pytest.raises(SystemExit, match="is a partial row of .*Ant-v5.*remove it"):
+        stress.stress("Hopper-v5", "random", other, path)
+    stress.partial_path(stress.StressSettings(tasks=("Hopper-v5",), num_envs=6, steps=24, data=settings.data),
+                        "Hopper-v5", "random")
+    assert not path.exists()  # without resume=true a partial row starts over
+    with pytest.raises(SystemExit, match="checkpoint_every"):
+        stress.main(["quick=true", "checkpoint_every=0"])
 
 
 def test_gradient_health_quick(tmp_path):
