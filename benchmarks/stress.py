@@ -24,8 +24,9 @@ A task and policy take minutes to hours at 1024 envs; the data file is rewritten
 ``resume=true`` keeps its rows and runs only the (task, contact, integrator, policy, size) rows it
 does not hold yet. A row longer than a sitting is resumable too: every ``checkpoint_every`` steps
 it saves where it is (the envs' tensordict and random streams, the policy's state, the counters)
-under ``benchmarks/stress_partial/<data file>/``, and ``resume=true`` continues it from there, to
-the same result as a row run in one go; the file is removed once the row is done.
+under ``benchmarks/stress_partial/<data file>/`` (commit it to continue from another checkout),
+and ``resume=true`` continues it from there, to the same result as a row run in one go; the file
+is removed once the row is in the data file.
 
     OMP_NUM_THREADS=1 python benchmarks/stress.py
     OMP_NUM_THREADS=1 python benchmarks/stress.py tasks=[HalfCheetah-v5] num_envs=1024 steps=1000
@@ -33,6 +34,7 @@ the same result as a row run in one go; the file is removed once the row is done
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 import warnings
@@ -112,8 +114,9 @@ def travels(env) -> bool:
 
 def stress(task: str, kind: str, s: StressSettings, partial: Path | None = None) -> dict:
     """One row: ``task`` under the policy ``kind``. ``partial``: where the row saves itself every
-    ``s.checkpoint_every`` steps and, if the file is there, what it continues from (removed once
-    the row is done); None: it runs in one go."""
+    ``s.checkpoint_every`` steps and, if the file is there, what it continues from (`main`
+    removes it once the row is in the data file); None: it runs in one go. Returns the row's
+    numbers and the envs' last ``state``."""
     options = {"integrator": s.integrator} if s.integrator else {}
     falls = "terminate_when_unhealthy" in make_env(task, num_envs=1, **options).params.keys()
     env = make_env(task, num_envs=s.num_envs, seed=s.seed, max_episode_steps=None,
@@ -134,10 +137,15 @@ def stress(task: str, kind: str, s: StressSettings, partial: Path | None = None)
     row = {"task": task, "policy": kind, "num_envs": s.num_envs, "steps": s.steps, "seed": s.seed,
            "contact": env.contact, "integrator": env.integrator}
     if partial is not None and partial.exists():
-        saved = torch.load(partial, weights_only=False)
-        if saved["row"] != row:
-            raise SystemExit(f"stress: {partial} is a partial row of {saved['row']}, not of {row}; "
-                             "remove it to run this row from its start")
+        try:
+            saved = torch.load(partial, weights_only=False)
+            saved_row = saved.get("row")
+        except Exception as error:  # a truncated or foreign file
+            raise SystemExit(f"stress: {partial} is not a partial stress row ({error!r}); remove it to run this "
+                             "row from its start") from None
+        if saved_row != row:
+            raise SystemExit(f"stress: {partial} is a partial row of {saved_row}, not of {row}; remove it (or run "
+                             "without resume=true) to run this row from its start")
         td = td.update(saved["td"])  # the params are the reset's (the row never changes them)
         start_x, bad, unconverged = saved["start_x"], saved["bad"], saved["unconverged"]
         speed, travel, first, elapsed = saved["speed"], saved["travel"], saved["t"], saved["elapsed"]
@@ -150,11 +158,13 @@ def stress(task: str, kind: str, s: StressSettings, partial: Path | None = None)
         if partial is not None and t > first and t % s.checkpoint_every == 0:
             partial.parent.mkdir(parents=True, exist_ok=True)
             written = partial.with_suffix(".tmp")  # then renamed: a kill mid-write leaves the last good file
-            # without the params and observation, which the next step does not read: a smaller file
-            torch.save({"row": row, "t": t, "td": td.exclude("params", "observation"), "start_x": start_x, "bad": bad, "unconverged": unconverged,
-                        "speed": speed, "travel": travel, "elapsed": time.perf_counter() - began,
-                        "env_rng": env.rng.get_state(), "gen": gen.get_state(), "policy_state": dict(policy_state)},
-                       written)
+            with open(written, "wb") as file:  # without the params, the reset's: a smaller file
+                torch.save({"row": row, "t": t, "td": td.exclude("params"), "start_x": start_x, "bad": bad,
+                            "unconverged": unconverged, "speed": speed, "travel": travel,
+                            "elapsed": time.perf_counter() - began, "env_rng": env.rng.get_state(),
+                            "gen": gen.get_state(), "policy_state": dict(policy_state)}, file)
+                file.flush()
+                os.fsync(file.fileno())
             written.replace(partial)
         with torch.no_grad() if kind != "greedy" else torch.enable_grad():
             action = policy(td, t)
@@ -169,12 +179,10 @@ def stress(task: str, kind: str, s: StressSettings, partial: Path | None = None)
             if finite.any():
                 speed = max(speed, float(qvel[finite].abs().max()))
                 travel = max(travel, float((td["state", "qpos"][finite, 0] - start_x[finite]).abs().max()))
-    if partial is not None:
-        partial.unlink(missing_ok=True)
     return {"nonfinite": int(bad.sum()), "unconverged": unconverged, "max_qvel": speed,
             "travel": travel if travels(env) else None,
             "contact": env.contact, "integrator": env.integrator,
-            "env_steps_per_s": s.num_envs * s.steps / (time.perf_counter() - began)}
+            "env_steps_per_s": s.num_envs * s.steps / (time.perf_counter() - began), "state": td["state"]}
 
 
 def resumed(settings: StressSettings) -> tuple[list[list[str]], dict | None]:
@@ -204,15 +212,12 @@ def resumed(settings: StressSettings) -> tuple[list[list[str]], dict | None]:
 
 def partial_path(settings: StressSettings, task: str, kind: str) -> Path | None:
     """Where a row of this data file saves its progress (None: no data file, nothing to resume
-    into); without ``resume=true`` a partial row left there is started over."""
+    into)."""
     data = C.data_path(settings, "stress")
     if data is None:
         return None
-    path = PARTIAL_DIR / data.stem / (f"{task}_{kind}_{settings.integrator or 'default'}_"
-                                         f"{settings.num_envs}x{settings.steps}_seed{settings.seed}.pt")
-    if not settings.resume:
-        path.unlink(missing_ok=True)
-    return path
+    return PARTIAL_DIR / data.stem / (f"{task}_{kind}_{settings.integrator or 'default'}_"
+                                      f"{settings.num_envs}x{settings.steps}_seed{settings.seed}.pt")
 
 
 def physics_of(task: str, s: StressSettings) -> tuple[str, str, bool]:
@@ -239,7 +244,12 @@ def main(argv=None):
             if kind == "far" and not rooted:
                 print(f"# {task}: no far row (its base is fixed to the world: no track to go down)", flush=True)
                 continue
-            r = stress(task, kind, settings, partial_path(settings, task, kind))
+            partial = partial_path(settings, task, kind)
+            if partial is not None and partial.exists() and not settings.resume:
+                print(f"# {task} {kind}: starting over, discarding the partial row {partial} (resume=true "
+                      "continues it)", flush=True)
+                partial.unlink()
+            r = stress(task, kind, settings, partial)
             unconverged = "-" if r["unconverged"] is None else str(r["unconverged"])  # "-": no solve to count
             travel = "-" if r["travel"] is None else f"{r['travel']:.3g}"  # "-": a fixed base
             row = [task, r["contact"], r["integrator"], kind, size,
@@ -249,6 +259,8 @@ def main(argv=None):
             # rewritten after every row: a long run that is stopped still leaves what it measured
             C.write_data(settings, "stress", {"stress": C.data_table(
                 "Long episodes under the policies that break simulators (float32)", HEADERS, rows)}, measured=measured)
+            if partial is not None:  # the row is in the data file: nothing left to resume
+                partial.unlink(missing_ok=True)
     print_table(HEADERS, rows)
     return rows
 

@@ -703,28 +703,30 @@ def test_stress_resume_keeps_the_data_files_rows_and_runs_only_the_missing_pairs
         stress.main([*args, "resume=true"])
 
 
-def test_stress_row_stopped_midway_resumes_to_the_result_of_one_sitting(monkeypatch, tmp_path):
+def test_stress_row_stopped_midway_resumes_to_the_result_of_one_sitting(monkeypatch, tmp_path, capsys):
     """A row killed after its last save continues there with resume=true (the envs, their random
-    streams, the policy's state and the counters), to the same numbers as a row run in one go."""
+    streams, the policy's state and the counters), to the same numbers and the same last state,
+    bit for bit, as a row run in one go; the partial row is removed once the row is written."""
     stress = load("stress")
     monkeypatch.setattr(stress, "PARTIAL_DIR", tmp_path / "partial")
-    settings = stress.StressSettings(tasks=("Hopper-v5",), num_envs=6, steps=24, checkpoint_every=8,
-                                     data=str(tmp_path / "stress_hopper.json"), resume=True)
+    data = tmp_path / "stress_hopper.json"
+    settings = stress.StressSettings(tasks=("Hopper-v5",), num_envs=6, steps=24, checkpoint_every=8, data=str(data),
+                                     resume=True)
     keys = ("nonfinite", "unconverged", "max_qvel", "travel")
-    for kind in ("bang-bang", "resonant"):
+    make_policy = stress.make_policy
+
+    def stopping(kind_, env, gen):  # the sitting ends (a kill) at step 19: the save at step 16 is kept
+        policy, state = make_policy(kind_, env, gen)
+
+        def stopped(td, t):
+            if t == 19:
+                raise KeyboardInterrupt
+            return policy(td, t)
+        return stopped, state
+
+    for kind in ("random", "bang-bang", "resonant", "far", "greedy"):
         whole = stress.stress("Hopper-v5", kind, settings)
         path = stress.partial_path(settings, "Hopper-v5", kind)
-        make_policy = stress.make_policy
-
-        def stopping(kind_, env, gen):  # the sitting ends (a kill) at step 19: the save at step 16 is kept
-            policy, state = make_policy(kind_, env, gen)
-
-            def stopped(td, t):
-                if t == 19:
-                    raise KeyboardInterrupt
-                return policy(td, t)
-            return stopped, state
-
         monkeypatch.setattr(stress, "make_policy", stopping)
         with pytest.raises(KeyboardInterrupt):
             stress.stress("Hopper-v5", kind, settings, path)
@@ -732,16 +734,31 @@ def test_stress_row_stopped_midway_resumes_to_the_result_of_one_sitting(monkeypa
         monkeypatch.setattr(stress, "make_policy", make_policy)
         resumed = stress.stress("Hopper-v5", kind, settings, path)
         assert {k: resumed[k] for k in keys} == {k: whole[k] for k in keys}, kind
-        assert not path.exists()  # done: nothing left to resume
-    stress.stress("Hopper-v5", "random", settings, path := stress.partial_path(settings, "Hopper-v5", "random"))
-    other = stress.StressSettings(tasks=("Hopper-v5",), num_envs=6, steps=24, data=settings.data, resume=True)
+        for key in ("qpos", "qvel"):
+            assert torch.equal(resumed["state"][key], whole["state"][key]), (kind, key)
+    # through the script: a partial row is continued, and removed once its row is in the data file
+    monkeypatch.setattr(stress, "make_policy", stopping)
+    args = ["tasks=[Hopper-v5]", "policies=[bang-bang]", "num_envs=6", "steps=24", "checkpoint_every=8",
+            f"data={data}", f"out={tmp_path / 's.json'}"]
+    with pytest.raises(KeyboardInterrupt):
+        stress.main(args)
+    path = stress.partial_path(settings, "Hopper-v5", "bang-bang")
+    assert path.exists() and not data.exists()
+    monkeypatch.setattr(stress, "make_policy", make_policy)
+    rows = stress.main([*args, "resume=true"])
+    assert "continuing a partial row from step 16" in capsys.readouterr().out
+    assert not path.exists() and json.loads(data.read_text())["tables"]["stress"]["rows"] == rows
+    # without resume=true a partial row starts over, and says so
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"row": {"task": "Ant-v5"}}, path)
+    stress.main([*args, "policies=[bang-bang]"])
+    assert "discarding the partial row" in capsys.readouterr().out and not path.exists()
+    torch.save({"row": {"task": "Ant-v5"}}, path)
     with pytest.raises(SystemExit, match="is a partial row of .*Ant-v5.*remove it"):
-        stress.stress("Hopper-v5", "random", other, path)
-    stress.partial_path(stress.StressSettings(tasks=("Hopper-v5",), num_envs=6, steps=24, data=settings.data),
-                        "Hopper-v5", "random")
-    assert not path.exists()  # without resume=true a partial row starts over
+        stress.stress("Hopper-v5", "bang-bang", settings, path)
+    path.write_bytes(b"not a checkpoint")
+    with pytest.raises(SystemExit, match="is not a partial stress row"):
+        stress.stress("Hopper-v5", "bang-bang", settings, path)
     with pytest.raises(SystemExit, match="checkpoint_every"):
         stress.main(["quick=true", "checkpoint_every=0"])
 

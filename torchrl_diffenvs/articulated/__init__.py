@@ -11,6 +11,7 @@ One module per stage of the simulator, in the order a physics step runs them:
 * [`collision`][torchrl_diffenvs.articulated.collision]: MuJoCo's collision detection (contacts between geoms),
   one function per pair of geom types in `primitives` (their types in `primitive_types`; the larger ones in `sphere_box`, `capsule_cylinder`, `capsule_box`, `box_box`);
 * [`constraint`][torchrl_diffenvs.articulated.constraint]: MuJoCo's constraint rows (joint limits, contacts) and their solve;
+  [`newton`][torchrl_diffenvs.articulated.newton] the solve's Newton search,
   [`elliptic`][torchrl_diffenvs.articulated.elliptic] the rows and cost of elliptic friction cones;
 * `contact` and `limits`: the smooth contact option's penalty contact and its joint limits;
 * `pipeline`: [`accelerations`][torchrl_diffenvs.articulated.accelerations], the forward dynamics on one screen;

@@ -22,15 +22,16 @@ whose unique minimiser is what MuJoCo's Newton solver converges to.
 [`solve`][torchrl_diffenvs.articulated.constraint.solve] finds it by Newton's method with an exact
 line search (the cost is piecewise quadratic along a line, so the search sorts the rows'
 breakpoints) without autograd ([`newton`][torchrl_diffenvs.articulated.newton]), then takes one
-differentiable solve with the active set it found: the value is the minimiser, and the gradient is the implicit gradient of
-the solution (exact wherever the active set does not change). With elliptic cones the cost has a third
+differentiable solve with the active set it found: the value is the minimiser, and the gradient
+is the implicit gradient of the solution (exact wherever the active set does not change). With elliptic cones the cost has a third
 piece per contact, ``D_0 / (mu^2 (1 + mu^2)) (N - mu T)^2 / 2`` in the cone's middle zone
 (`elliptic._cone_state`, MuJoCo's ``mj_constraintUpdate``): Newton's method with a line search by Newton
 steps finds the minimiser, and one Newton step from it with the Hessian held carries the implicit
 gradient (`_solve_elliptic`). Differentiating through the
 iterations instead would cost a backward pass per iteration and carry the line search's
 breakpoints into the gradient; at the solution, one solve gives the same gradient. Under
-``torch.compile`` the Newton search is one ``torch.while_loop`` that ends once every env has
+``torch.compile`` the Newton search is one ``torch.while_loop``
+([`rounds_driver`][torchrl_diffenvs.articulated.newton.rounds_driver]) that ends once every env has
 converged: a step compiles into one graph. On CUDA it stays eager (a graph break): inductor reads
 a while_loop's condition on the host every round and keeps it out of CUDA graphs, while the eager
 rounds stop without a synchronisation.

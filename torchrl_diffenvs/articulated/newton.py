@@ -1,9 +1,10 @@
-"""Newton's method on MuJoCo's convex primal with pyramidal cones, without autograd: the search
-for the active set that [`solve`][torchrl_diffenvs.articulated.constraint.solve] then solves with
+"""Newton's method on MuJoCo's convex primal, without autograd: the search for the active set
+(pyramidal cones) that [`solve`][torchrl_diffenvs.articulated.constraint.solve] then solves with
 once, differentiably. An exact line search (the cost is piecewise quadratic along a line), rounds
-with converged envs held by a mask (no host-device synchronisation), and their drivers: eager
-rounds, one ``torch.while_loop`` under ``torch.compile``, and on the CPU rounds over the envs and
-rows that still need them (`newton_compacted`)."""
+with converged envs held by a mask (no host-device synchronisation), and their drivers, which the
+elliptic cones' solve runs its rounds with too: eager rounds, one ``torch.while_loop`` under
+``torch.compile``, and on the CPU rounds over the envs and rows that still need them
+(`newton_compacted`; `rows_first` also orders the final solve's rows there)."""
 from __future__ import annotations
 
 import torch
@@ -12,7 +13,8 @@ from . import convergence
 from .convergence import ConvergenceWatch
 from .spatial import _MINVAL
 
-__all__ = ["active_set", "line_search", "masked_rounds", "newton_round", "newton_start", "rounds_driver", "rows_first"]
+__all__ = ["active_set", "line_search", "masked_rounds", "newton_compacted", "newton_round", "newton_start",
+           "rounds_driver", "rows_first", "while_rounds"]
 
 
 def line_search(jar, jd, weight, slope0, curvature0):
