@@ -23,7 +23,7 @@ from .envs.multi_agent import reward_per_env
 
 __all__ = [
     "episode_returns", "evaluate", "evaluate_in_gymnasium", "evaluate_random", "first_episode_ends", "first_episode_mask",
-    "gymnasium_kwargs", "record_video", "uniform_random_policy",
+    "gymnasium_kwargs", "record_video", "start_states", "uniform_random_policy",
 ]
 
 #: Options of our tasks that choose how the physics is simulated or how the backward is shaped, not
@@ -100,7 +100,7 @@ def _rollout(env, policy, steps: int | None, seed: int | None, exploration: Expl
 
 
 def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, tail_steps: int = 20,
-             exploration_type: ExplorationType = ExplorationType.DETERMINISTIC) -> dict[str, float]:
+             exploration_type: ExplorationType = ExplorationType.DETERMINISTIC, per_env: bool = False) -> dict:
     """Scores ``policy`` on every env of ``env`` for one episode of ``steps`` steps (default: the
     env's ``max_episode_steps``), in deterministic mode (the mean action) by default.
 
@@ -112,6 +112,7 @@ def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, 
             start states.
         tail_steps: the number of last steps ``tail_reward_mean`` averages over.
         exploration_type: the exploration mode the policy runs in (default: deterministic, the mean action).
+        per_env: also return each env's ``returns`` and ``lengths`` (lists, env order).
 
     Returns:
         ``return`` (mean over envs of the first episode's return), ``return_std``,
@@ -137,6 +138,8 @@ def evaluate(env, policy, steps: int | None = None, seed: int | None = None, *, 
     length, terminated = first_episode_ends(rollout)
     scores["episode_length"] = length.double().mean().item()
     scores["terminated"] = terminated.double().mean().item()
+    if per_env:
+        scores["returns"], scores["lengths"] = returns.tolist(), length.tolist()
     if hasattr(env, "player_wins"):  # a two-player env: did the policy beat the opponent in its first episode?
         last = in_first.sum(-1).long() - 1  # each env's last step of its first episode
         end = rollout.get("next")[torch.arange(rollout.shape[0]), last]
@@ -176,13 +179,47 @@ def gymnasium_kwargs(env_id: str, options: dict | None = None) -> dict:
     return out
 
 
+def start_states(env, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(qpos [E, nq], qvel [E, nv])``, float64 on the CPU: the start states that
+    [`evaluate`][torchrl_diffenvs.evaluation.evaluate] plays ``env``'s ``E`` episodes from with this
+    ``seed``, for [`evaluate_in_gymnasium`][torchrl_diffenvs.evaluation.evaluate_in_gymnasium]'s
+    ``start_states``: both envs then play every episode from the same state.
+
+    Args:
+        env: a MuJoCo task's (batched) evaluation env: its state holds ``qpos`` and ``qvel``.
+        seed: the seed `evaluate` is given (it reseeds the env with it before its reset); ``None``
+            takes the env's next reset as it stands (and consumes it).
+
+    Raises:
+        ValueError: ``env``'s state has no ``qpos`` and ``qvel`` (not a MuJoCo task).
+    """
+    if seed is not None:
+        env.set_seed(seed)
+    state = env.reset().get("state")
+    if "qpos" not in state.keys() or "qvel" not in state.keys():
+        raise ValueError(f"start_states: {type(env).__name__}'s state holds {sorted(state.keys())}, not MuJoCo's "
+                         "qpos and qvel: the same start states can be set in Gymnasium's MuJoCo envs only")
+    return state.get("qpos").detach().double().cpu(), state.get("qvel").detach().double().cpu()
+
+
+def _start_from(env, qpos, qvel):
+    """Gymnasium's MuJoCo env ``env`` (just reset) moved to ``(qpos, qvel)``: its observation there.
+    ``_get_obs`` is the observation every Gymnasium MuJoCo env's ``reset_model`` returns after its
+    own ``set_state``."""
+    model = env.unwrapped
+    model.set_state(qpos, qvel)
+    return model._get_obs()
+
+
 def evaluate_in_gymnasium(policy, env_id: str, episodes: int = 16, seed: int = 0, steps: int | None = None, *,
                           options: dict | None = None, dtype: torch.dtype = torch.float32, device="cpu",
                           observation_key: NestedKey = "observation", action_key: NestedKey = "action",
-                          exploration_type: ExplorationType = ExplorationType.DETERMINISTIC) -> dict:
+                          exploration_type: ExplorationType = ExplorationType.DETERMINISTIC,
+                          start_states: tuple | None = None) -> dict:
     """Scores ``policy`` in Gymnasium's own env ``env_id`` (for a MuJoCo task: MuJoCo itself; needs
-    the ``mujoco`` extra): ``episodes`` full episodes, episode ``i`` reset with seed ``seed + i``,
-    each played to its termination or to its time limit (``steps``, else the env's).
+    the ``mujoco`` extra): ``episodes`` full episodes, episode ``i`` reset with seed ``seed + i``
+    (or started from ``start_states``), each played to its termination or to its time limit
+    (``steps``, else the env's).
 
     Args:
         policy: the policy; it reads ``observation_key`` from a TensorDict of the still-running
@@ -197,6 +234,11 @@ def evaluate_in_gymnasium(policy, env_id: str, episodes: int = 16, seed: int = 0
         observation_key: where the policy reads the observation.
         action_key: where the policy writes the action.
         exploration_type: the exploration mode the policy runs in (default: deterministic, the mean action).
+        start_states: ``(qpos [episodes, nq], qvel [episodes, nv])``: episode ``i`` starts from
+            state ``i`` (set after its reset, as Gymnasium's own reset sets its random start) instead
+            of Gymnasium's random start: with [`start_states`][torchrl_diffenvs.evaluation.start_states]
+            of our env, both envs play the same episodes, and the returns differ by the dynamics
+            only, not by the draw of start states. MuJoCo tasks only.
 
     Returns:
         [`evaluate`][torchrl_diffenvs.evaluation.evaluate]'s ``return``, ``return_std``, ``return_min``,
@@ -219,6 +261,17 @@ def evaluate_in_gymnasium(policy, env_id: str, episodes: int = 16, seed: int = 0
                          "like this library's task of the same name: its policy cannot be played there")
     try:
         observations = [env.reset(seed=seed + i)[0] for i, env in enumerate(envs)]
+        if start_states is not None:
+            qpos, qvel = (np.asarray(torch.as_tensor(x, dtype=torch.float64).cpu()) for x in start_states)
+            model = envs[0].unwrapped
+            if not hasattr(model, "set_state"):
+                raise ValueError(f"evaluate_in_gymnasium: start_states are MuJoCo's qpos and qvel, and {env_id} is not "
+                                 "a MuJoCo env")
+            expected = ((episodes, model.model.nq), (episodes, model.model.nv))
+            if (qpos.shape, qvel.shape) != expected:
+                raise ValueError(f"evaluate_in_gymnasium: start_states of {env_id} for {episodes} episodes are qpos "
+                                 f"{expected[0]} and qvel {expected[1]}, got {qpos.shape} and {qvel.shape}")
+            observations = [_start_from(env, qpos[i], qvel[i]) for i, env in enumerate(envs)]
         returns, lengths = np.zeros(episodes), np.zeros(episodes, dtype=np.int64)
         terminated = np.zeros(episodes, dtype=bool)
         running = list(range(episodes))

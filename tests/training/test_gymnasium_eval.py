@@ -16,7 +16,8 @@ pytest.importorskip("mujoco")
 from _env_helpers import REPO, load_script  # noqa: E402
 from _train_helpers import make_cfg, results_table, tiny_cfg, train_script  # noqa: E402
 
-from torchrl_diffenvs.evaluation import evaluate_in_gymnasium, gymnasium_kwargs  # noqa: E402
+from torchrl_diffenvs import make_env  # noqa: E402
+from torchrl_diffenvs.evaluation import evaluate, evaluate_in_gymnasium, gymnasium_kwargs, start_states  # noqa: E402
 from torchrl_diffenvs.training.config import ConfigError  # noqa: E402
 
 
@@ -51,6 +52,60 @@ def test_evaluate_in_gymnasium_matches_a_hand_run_gymnasium_loop():
     assert scores["returns"] == pytest.approx(returns, rel=1e-12) and scores["lengths"] == lengths
     assert scores["return"] == pytest.approx(np.mean(returns), rel=1e-12)
     assert min(lengths) < 120 and scores["terminated"] > 0
+
+
+def test_paired_start_states_play_the_same_episodes_in_both_envs():
+    # Hopper in float64: MuJoCo's forward here, so from the same start both envs play the same episode
+    env = make_env("Hopper-v5", num_envs=2, dtype=torch.float64, seed=0)
+    policy = _linear_policy(11, 3, seed=2)
+    policy.module[0].weight.data *= 3  # a policy whose hopper falls after about 20 steps
+    qpos, qvel = start_states(env, seed=11)
+    assert qpos.shape == (2, 6) and qvel.shape == (2, 6) and qpos.dtype == torch.float64
+    ours = evaluate(env, policy, 30, seed=11, per_env=True)
+    paired = evaluate_in_gymnasium(policy, "Hopper-v5", 2, seed=11, steps=30, dtype=torch.float64,
+                                   start_states=(qpos, qvel))
+    assert paired["lengths"] == ours["lengths"] and min(ours["lengths"]) < 30  # a fall, at the same step
+    assert paired["returns"] == pytest.approx(ours["returns"], rel=1e-9)
+    # ... which Gymnasium's own start states are not: the pairing is what makes them equal
+    own = evaluate_in_gymnasium(policy, "Hopper-v5", 2, seed=11, steps=30, dtype=torch.float64)
+    assert max(abs(a - b) for a, b in zip(own["returns"], ours["returns"])) > 1e-3
+    # a hand-run loop that sets each start state after its reset, as Gymnasium's reset_model does
+    for i in range(2):
+        gym_env = gym.make("Hopper-v5", max_episode_steps=30)
+        gym_env.reset(seed=11 + i)
+        gym_env.unwrapped.set_state(qpos[i].numpy(), qvel[i].numpy())
+        obs, total, done = gym_env.unwrapped._get_obs(), 0.0, False
+        while not done:
+            with torch.no_grad():
+                action = policy.module(torch.as_tensor(obs, dtype=torch.float64)).numpy()
+            obs, reward, terminated, truncated, _ = gym_env.step(action)
+            total, done = total + reward, terminated or truncated
+        assert paired["returns"][i] == pytest.approx(total, rel=1e-12)
+
+
+def test_paired_start_states_refuse_what_is_not_a_mujoco_state():
+    policy = _linear_policy(11, 3)
+    with pytest.raises(ValueError, match=r"start_states of Hopper-v5 for 2 episodes are qpos \(2, 6\) and qvel "
+                                         r"\(2, 6\), got \(3, 6\) and \(3, 6\)"):
+        evaluate_in_gymnasium(policy, "Hopper-v5", 2, steps=5, start_states=(np.zeros((3, 6)), np.zeros((3, 6))))
+    with pytest.raises(ValueError, match="Pendulum-v1 is not a MuJoCo env"):
+        evaluate_in_gymnasium(_linear_policy(3, 1), "Pendulum-v1", 1, steps=5,
+                              start_states=(np.zeros((1, 1)), np.zeros((1, 1))))
+    with pytest.raises(ValueError, match="not MuJoCo's qpos and qvel"):
+        start_states(make_env("Pendulum-v1", num_envs=2, seed=0), seed=0)
+
+
+def test_transfer_rows_of_paired_episodes_give_the_per_episode_ratios():
+    transfer = load_script("transfer_bench", REPO / "benchmarks" / "transfer.py")
+    cfg = make_cfg("env=Hopper-v5", "loss=shac")
+    ours = {"return": 200.0, "return_min": 100.0, "return_max": 300.0, "episode_length": 50.0, "returns": [100.0, 300.0]}
+    theirs = {"return": 190.0, "return_min": 80.0, "return_max": 300.0, "episode_length": 48.0,
+              "returns": [80.0, 300.0]}
+    row = transfer.row(cfg, 1000, {"ours": ours, "gymnasium": theirs, "ratio": 0.95, "contact": "mujoco",
+                                   "paired": True})
+    assert len(row) == len(transfer.PAIRED_HEADERS)
+    # per episode 0.8 and 1.0: median (torch's, the lower middle) 0.8; the largest gap 20
+    assert row[6:] == ["0.95", "50", "48", "0.80 [0.80, 1.00]", "20"]
 
 
 def test_gymnasium_kwargs_keep_the_task_options_and_refuse_unknown_ones():
