@@ -12,7 +12,7 @@ for _ in range(100):
 
 Adding a learner
 ----------------
-One file plus one registration line:
+One file plus its import and registration here:
 
 1. ``torchrl_diffenvs/learners/<name>.py``: a frozen settings dataclass (a [`LearnerConfig`][torchrl_diffenvs.learners.LearnerConfig]
    whose fields are ``checked(default, check)``: the defaults live there and nowhere else) and a
@@ -23,7 +23,8 @@ One file plus one registration line:
    (its budget: ``train.total_env_steps`` etc.), and where it differs from the defaults
    ``needs_stochastic_policy``, ``policy_log_prob``, ``supports_multi_agent``,
    ``compiles_windows``, ``unsupported_settings``;
-2. ``register_learner(MyLearner)`` at the end of this file.
+2. its import in this file, and ``MyLearner`` in the tuple of the registration loop at its end
+   (``register_learner``: the training script knows the learners this module registers).
 
 A learner of SHAC's family (a differentiable window, an actor step, critic passes) subclasses
 [`ShortHorizonLearner`][torchrl_diffenvs.learners.ShortHorizonLearner] and fills in its hooks, as
