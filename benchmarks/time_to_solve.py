@@ -6,7 +6,9 @@ defaults of configs/ (loss settings and budgets), the per-pair files of configs/
 Runs are interleaved (seed by seed, loss by loss) so that load from other processes spreads
 over all learners. Each run logs deterministic evaluations (``eval/return``, the mean return of
 ``eval.num_envs`` fixed start states) against env steps; the wall time of an evaluation is the
-run's ``time/wall_s`` at that env step (training time, earlier evaluations included).
+run's ``time/wall_s`` at that env step (training time, earlier evaluations included); the
+column "of which evaluating s" says how much of a run's wall time its evaluations took (for runs
+that logged it, ``eval_time_s``), the same protocol for every learner of a table.
 
 Reported per env and loss, over seeds (median, min-max): the final evaluation return, the wall
 time and env steps of the run, and the wall time at which the evaluation return first reached
@@ -232,6 +234,9 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
                    "wall_s": C.spread([r["wall_time_s"] for r in group]),
                    "env_steps": C.spread([r["env_steps"] for r in group]),
                    "random_return": statistics.median(r["eval/random_return"] for r in group), "levels": {}}
+            evaluating = [r.get("eval_time_s") for r in group]
+            if all(t is not None and math.isfinite(t) for t in evaluating):  # runs that counted their evaluations
+                row["eval_s"] = C.spread(evaluating)
             if all(r.get("gradient_health") for r in group):  # the gradient learners' whole runs
                 row["gradient_health"] = {
                     key: C.spread([r["gradient_health"][key] for r in group])
@@ -294,6 +299,7 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
                    for f in ppo_levels]
     in_mujoco = any("mujoco_return" in r for r in summary)
     with_health = any("gradient_health" in r for r in summary)
+    with_eval_time = any("eval_s" in r for r in summary)
 
     def health_cells(row):
         if not with_health:
@@ -312,11 +318,12 @@ def summarise(runs: list[dict], envs: list[str], losses: list[str],
 
     table = C.print_table(
         ["env", "loss", "final eval return", *(["in Gymnasium's env", "kept there"] if in_mujoco else []),
-         "random policy", "wall s", "env steps",
+         "random policy", "wall s", *(["of which evaluating s"] if with_eval_time else []), "env steps",
          *(["actor grad norm (median)", "skipped actor updates"] if with_health else []),
          *level_names, *[f"return >= {level:g}" for level in fixed_levels]],
         [[r["env"], r["loss"], rng(r["final_return"], C.fmt_return), *mujoco_cells(r), C.fmt_return(r["random_return"]),
-          rng(r["wall_s"], "{:.0f}"), f"{r['env_steps']['median']:,.0f}", *health_cells(r),
+          rng(r["wall_s"], "{:.0f}"), *([rng(r["eval_s"], "{:.0f}") if "eval_s" in r else "-"] if with_eval_time else []),
+          f"{r['env_steps']['median']:,.0f}", *health_cells(r),
           *[level_cell(r, f) for f in ppo_levels], *[fixed_cell(r, lv) for lv in fixed_levels]]
          for r in summary],
     )

@@ -281,6 +281,27 @@ def test_time_to_solve_reports_the_return_in_gymnasiums_env():
     assert "in Gymnasium's env" in table and "0.90 [0.50, 1.00]" in table
 
 
+def test_time_to_solve_reports_how_much_of_the_wall_time_the_evaluations_took():
+    """Runs that counted their evaluations (``eval_time_s``) get its spread in the column "of
+    which evaluating s"; a loss with a run that did not (an older run, or one resumed from such a
+    checkpoint: NaN) gets a dash."""
+    tts = load("time_to_solve")
+
+    def run(loss, seed, evaluating):
+        r = {"env": "Hopper-v5", "loss": loss, "seed": seed, "eval/return": 100.0, "eval/random_return": 10.0,
+             "wall_time_s": 1000.0, "env_steps": 1000, "curve": [(0, 0.0, 10.0), (1000, 1000.0, 100.0)]}
+        return r if evaluating is None else {**r, "eval_time_s": evaluating}
+
+    runs = [run("ppo", 0, 300.0), run("ppo", 1, 100.0), run("ppo", 2, 200.0),
+            run("shac", 0, 250.0), run("shac", 1, math.nan), run("sapo", 0, None)]
+    summary, table = tts.summarise(runs, ["Hopper-v5"], ["ppo", "shac", "sapo"])
+    assert summary[0]["eval_s"] == {"min": 100.0, "median": 200.0, "max": 300.0}
+    assert "eval_s" not in summary[1] and "eval_s" not in summary[2]
+    assert "of which evaluating s" in table and "200 [100, 300]" in table
+    # runs none of which counted it: no column
+    assert "of which evaluating s" not in tts.summarise([run("ppo", 0, None)], ["Hopper-v5"], ["ppo"])[1]
+
+
 def test_time_to_solve_reports_each_runs_actor_gradient_health(tmp_path):
     """A gradient learner's whole run: the median and largest pre-clip actor norm of its logged
     updates and the updates its guard skipped (the cumulative count at the end), from

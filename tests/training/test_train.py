@@ -424,6 +424,38 @@ def test_resumed_run_continues_exactly_where_the_stopped_run_was(loss, tmp_path)
     assert result_b["eval/return"] == result_a["eval/return"]
 
 
+def test_the_wall_time_says_how_much_of_it_the_evaluations_took(tmp_path, monkeypatch):
+    """Evaluations at env steps 0, 32 and 64 (the last after the final iteration, outside the wall
+    time), each made 0.3 s slower: the two inside the wall time count, the final one does not."""
+    from torchrl_diffenvs.training import loop
+
+    original = loop.Trainer.evaluate
+
+    def slow(self):
+        time.sleep(0.3)
+        return original(self)
+
+    monkeypatch.setattr(loop.Trainer, "evaluate", slow)
+    result = train_script.run(tiny_cfg("pendulum", "bptt", 4, "eval.interval=32", "train.log_interval=1",
+                                       "train.checkpoint_interval=32"),
+                              tmp_path / "a")
+    assert 0.6 <= result["eval_time_s"] < result["wall_time_s"]
+    rows = [r for r in read_jsonl(tmp_path / "a" / "metrics.jsonl") if "time/eval_s" in r]
+    counted = [r["time/eval_s"] for r in rows]
+    # after iterations 1-2 the evaluation at step 0 counts, from iteration 3 on also the one at 32
+    assert [r["env_steps"] for r in rows] == [16, 32, 48, 64] and counted[0] == counted[1] < counted[2] == counted[3]
+    assert 0.3 <= counted[0] < 0.6 <= counted[2] == result["eval_time_s"]
+    # a resume from a checkpoint that did not count the evaluations: unknown, not zero
+    stopped = tmp_path / "a" / "checkpoints" / f"ckpt_{32:012d}.pt"
+    state = load_checkpoint(stopped)
+    del state["progress"]["eval_time_s"]
+    torch.save(state, tmp_path / "old.pt")
+    monkeypatch.setattr(loop, "load_checkpoint", lambda path, **kw: state)
+    resumed = train_script.run(tiny_cfg("pendulum", "bptt", 4, "eval.interval=32", f"resume={tmp_path / 'old.pt'}"),
+                               tmp_path / "b")
+    assert math.isnan(resumed["eval_time_s"]) and resumed["env_steps"] == 64
+
+
 def test_ctrl_c_keeps_the_last_checkpoint_and_closes_the_run(tmp_path, monkeypatch, caplog):
     from torchrl_diffenvs.learners import BPTTLearner
 

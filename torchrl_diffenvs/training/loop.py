@@ -189,7 +189,9 @@ class Trainer:
                      f"{self.learner.env_steps_per_iteration:,} env steps per iteration")
 
         # ------------------------------------------------------------ counters (saved in checkpoints)
-        self.progress = {"iteration": 0, "env_steps": 0, "wall_time_s": 0.0, "next_eval": 0,
+        # wall_time_s: the run's time to its last iteration, its evaluations included, of which
+        # eval_time_s was spent evaluating (the final evaluation, after the last iteration, in neither)
+        self.progress = {"iteration": 0, "env_steps": 0, "wall_time_s": 0.0, "eval_time_s": 0.0, "next_eval": 0,
                          "next_checkpoint": run.train.checkpoint_interval, "logged_rows": 0,
                          "last": {"eval/return": math.nan, "train/return": math.nan}}
         history, wandb_run_id = [], None
@@ -214,11 +216,14 @@ class Trainer:
                    dynamic_ncols=True, disable=not (run.train.progress_bar and self.world.is_main),
                    desc=f"{run.env_name} {run.loss_name}")
         start = time.perf_counter() - progress["wall_time_s"]
+        evaluating = 0.0  # the latest evaluation's seconds, counted once an iteration follows it
         with StopRequests() as stop, bar:
             try:
                 while True:
                     if progress["env_steps"] >= progress["next_eval"]:
+                        tic = time.perf_counter()
                         self.evaluate()
+                        evaluating = time.perf_counter() - tic
                         while progress["next_eval"] <= progress["env_steps"]:
                             progress["next_eval"] += run.eval.interval
                     if progress["env_steps"] >= progress["next_checkpoint"]:
@@ -233,11 +238,14 @@ class Trainer:
                     tic = time.perf_counter()
                     metrics, logging_now = self.iteration()
                     progress["wall_time_s"] = time.perf_counter() - start
+                    progress["eval_time_s"] = progress.get("eval_time_s", 0.0) + evaluating
+                    evaluating = 0.0
                     if "return" in metrics:
                         last["train/return"] = metrics["return"]
                     if self.world.is_main and logging_now:
                         row = {f"train/{k}": v for k, v in metrics.items()}
                         row.update({"time/iteration": progress["iteration"], "time/wall_s": progress["wall_time_s"],
+                                    "time/eval_s": progress["eval_time_s"],
                                     "time/steps_per_s": self.learner.env_steps_per_iteration
                                     / (time.perf_counter() - tic), **memory_in_use(self.env.device)})
                         self.log(row)
@@ -372,7 +380,7 @@ class Trainer:
         result = {
             "env": run.env_name, "loss": run.loss_name, "seed": run.seed, "world_size": world.size,
             "env_steps": progress["env_steps"], "iterations": progress["iteration"],
-            "wall_time_s": progress["wall_time_s"],
+            "wall_time_s": progress["wall_time_s"], "eval_time_s": progress.get("eval_time_s"),
             "steps_per_s": progress["env_steps"] / max(progress["wall_time_s"], 1e-9),
             "eval/return": last["eval/return"], "eval/random_return": last.get("eval/random_return"),
             "eval/episode_length": last.get("eval/episode_length"), "eval/terminated": last.get("eval/terminated"),
@@ -422,6 +430,8 @@ class Trainer:
         if self.selfplay is not None:
             self.selfplay.load_state_dict(mine["selfplay"])
         self.progress.update(ckpt["progress"])
+        if "eval_time_s" not in ckpt["progress"]:  # a checkpoint that did not count it: unknown before the resume
+            self.progress["eval_time_s"] = math.nan
         self.progress.pop("won", None)  # a resumed run trains on, even past an earlier score_to_win
         restore_rng_state(mine["rng"], {"env": self.env.rng})  # last: building the learner drew numbers
         history = []
