@@ -9,7 +9,8 @@ device (`torchrl_diffenvs.articulated.spatial.small_matmul`, whose two forms thi
 a matrix-vector product is a product with a ``k x 1`` matrix), at the step's shapes, interleaved,
 so that the choice rests on numbers: the median of ``repeats`` rounds, each call timed until the
 device is done. Also the step's solves: ``linalg.solve_ex`` against a Cholesky factorisation and
-solve, and ``argsort`` of the line search's row breakpoints against ``sort``.
+solve at each task's ``nv`` (`torchrl_diffenvs.articulated.spatial.solve_spd` picks the faster per
+device), and ``argsort`` of the line search's row breakpoints against ``sort``.
 
     python benchmarks/batched_products.py                       # device=cuda, N = 65536
     python benchmarks/batched_products.py device=cpu n=1024     # the CPU's side
@@ -25,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
 from torchrl_diffenvs import checks  # noqa: E402
-from torchrl_diffenvs.articulated.spatial import small_matmul  # noqa: E402
+from torchrl_diffenvs.articulated.spatial import solve_spd, small_matmul  # noqa: E402
 from torchrl_diffenvs.checks import checked, parse_cli  # noqa: E402
 
 
@@ -72,20 +73,24 @@ def main(argv=None) -> dict:
         us = {k: 1e6 * statistics.median(v["wall"]) for k, v in timings.items()}
         rows.append({"op": name, "matmul_us": us["matmul"], "broadcast_us": us["broadcast"]})
         print(rows[-1], flush=True)
-    spd = rand(n, 9, 9)
-    spd = spd @ spd.transpose(-1, -2) + 9 * torch.eye(9, device=device, dtype=dtype)
-    rhs = rand(n, 9)
-
-    def cholesky():
-        factor = torch.linalg.cholesky_ex(spd)[0]
-        return torch.cholesky_solve(rhs.unsqueeze(-1), factor).squeeze(-1)
+    solves = []
+    for size, task in ((9, "HalfCheetah"), (14, "the Ant"), (27, "the humanoids")):  # each task's nv
+        spd = rand(n, size, size)
+        spd = spd @ spd.transpose(-1, -2) + size * torch.eye(size, device=device, dtype=dtype)
+        rhs = rand(n, size)
+        timings = C.interleaved({"solve_ex": lambda: torch.linalg.solve_ex(spd, rhs)[0],
+                                 "cholesky": lambda: solve_spd(spd, rhs, by_cholesky=True)}, rounds)
+        assert torch.allclose(torch.linalg.solve_ex(spd, rhs)[0], solve_spd(spd, rhs, by_cholesky=True),
+                              rtol=1e-3, atol=1e-4)
+        us = {k: 1e6 * statistics.median(v["wall"]) for k, v in timings.items()}
+        solves.append({"op": f"{size}x{size} solve ({task})", "solve_ex_us": us["solve_ex"], "cholesky_us": us["cholesky"]})
+        print(solves[-1], flush=True)
     breakpoints = rand(n, 30)
-    timings = C.interleaved({"solve_ex": lambda: torch.linalg.solve_ex(spd, rhs)[0], "cholesky": cholesky,
-                             "argsort": lambda: breakpoints.argsort(-1), "sort": lambda: breakpoints.sort(-1)}, rounds)
+    timings = C.interleaved({"argsort": lambda: breakpoints.argsort(-1), "sort": lambda: breakpoints.sort(-1)}, rounds)
     us = {k: 1e6 * statistics.median(v["wall"]) for k, v in timings.items()}
-    rows.append({"op": "9x9 solve", "solve_ex_us": us["solve_ex"], "cholesky_us": us["cholesky"]})
+    rows += solves
     rows.append({"op": "argsort of 30 breakpoints", "argsort_us": us["argsort"], "sort_us": us["sort"]})
-    print(rows[-2:], flush=True)
+    print(rows[-1], flush=True)
     info = C.versions()
     info["machine"] = C.machine_name(device)
     C.write_json("batched_products", {"benchmark": "batched_products", "date": C.today(), "info": info, "n": n,
@@ -96,7 +101,15 @@ def main(argv=None) -> dict:
         ["product (per env)", "@", "broadcast and sum", "broadcast / @"],
         [[r["op"], f"{r['matmul_us']:.0f}", f"{r['broadcast_us']:.0f}", C.fmt_ratio(r["broadcast_us"] / r["matmul_us"])]
          for r in rows if "matmul_us" in r])
-    C.write_data(args, f"batched_products_{'cpu' if device == 'cpu' else 'gpu'}", {"products": table}, device)
+    solve_table = C.data_table(
+        f"Microseconds per call at N = {n} ({args.dtype}) on {info['machine']}: the solves of symmetric "
+        "positive definite matrices (mass matrices, the constraint solver's Hessians) by the general solve "
+        "and by a Cholesky factor",
+        ["solve (per env)", "linalg.solve_ex", "cholesky_ex + cholesky_solve", "Cholesky / general"],
+        [[r["op"], f"{r['solve_ex_us']:.0f}", f"{r['cholesky_us']:.0f}", C.fmt_ratio(r["cholesky_us"] / r["solve_ex_us"])]
+         for r in solves])
+    C.write_data(args, f"batched_products_{'cpu' if device == 'cpu' else 'gpu'}",
+                 {"products": table, "solves": solve_table}, device)
     return {"rows": rows}
 
 

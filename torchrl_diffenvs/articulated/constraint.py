@@ -49,7 +49,7 @@ from .elliptic import EllipticCones, _cone_curvature, _cone_state, _elliptic_rou
 from .kinematics import Kinematics
 from .limits import _reference
 from .newton import active_set, rounds_driver, rows_first
-from .spatial import _MINVAL, Params, _cross, small_matmul, small_matvec
+from .spatial import _MINVAL, Params, _cross, solve_spd, small_matmul, small_matvec
 from .tree import RigidBodyTree
 
 __all__ = ["ConstraintRows", "constraint_rows", "contact_frame_forces", "contact_normal_forces", "contact_row_blocks",
@@ -255,7 +255,7 @@ def _solve_with_rows(mass, qacc_smooth, jacobian, aref, row_weight):
     jt = jacobian.transpose(-1, -2)
     hessian = mass + jt @ (row_weight.unsqueeze(-1) * jacobian)
     rhs = (mass @ qacc_smooth.unsqueeze(-1)).squeeze(-1) + (jt @ (row_weight * aref).unsqueeze(-1)).squeeze(-1)
-    qacc = torch.linalg.solve_ex(hessian, rhs)[0]
+    qacc = solve_spd(hessian, rhs)
     return qacc, -row_weight * ((jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - aref)
 
 
@@ -297,7 +297,7 @@ def _solve_elliptic(mass, qacc_smooth, rows: ConstraintRows, iterations: int, to
     jar = (rows.jacobian @ found.unsqueeze(-1)).squeeze(-1) - rows.aref
     force, _, _ = _cone_state(jar, weight, rows.exists, rows.cones, with_hessians=False)
     gradient = (mass @ (found - qacc_smooth).unsqueeze(-1)).squeeze(-1) - (jt @ force.unsqueeze(-1)).squeeze(-1)
-    qacc = found - torch.linalg.solve_ex(hessian, gradient)[0]
+    qacc = found - solve_spd(hessian, gradient)
     jar = (rows.jacobian @ qacc.unsqueeze(-1)).squeeze(-1) - rows.aref
     force, _, _ = _cone_state(jar, weight, rows.exists, rows.cones, with_hessians=False)
     return SolverResult(qacc, force, (force != 0) & rows.exists, used, converged)

@@ -11,7 +11,7 @@ import torch
 
 from .collision import Contacts, ContactSlots
 from .limits import _reference
-from .spatial import _MINVAL
+from .spatial import _MINVAL, solve_spd
 from .tree import RigidBodyTree
 
 __all__ = ["EllipticCones"]
@@ -139,7 +139,7 @@ def _elliptic_round(qacc, m, smooth, j, w, aref, exists, cones, tolerance: float
     force, quadratic, hessians = _cone_state(jar, w, exists, cones)
     gradient = (m @ (qacc - smooth).unsqueeze(-1)).squeeze(-1) - (jt @ force.unsqueeze(-1)).squeeze(-1)
     hessian = m + jt @ (quadratic.unsqueeze(-1) * j) + _cone_curvature(cones, hessians, j)
-    direction = -torch.linalg.solve_ex(hessian, gradient)[0]
+    direction = -solve_spd(hessian, gradient)
     jd = (j @ direction.unsqueeze(-1)).squeeze(-1)
     md = (m @ direction.unsqueeze(-1)).squeeze(-1)
     slope0, curvature0 = (md * (qacc - smooth)).sum(-1), (md * direction).sum(-1)

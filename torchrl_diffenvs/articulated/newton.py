@@ -11,7 +11,7 @@ import torch
 
 from . import convergence
 from .convergence import ConvergenceWatch
-from .spatial import _MINVAL
+from .spatial import _MINVAL, solve_spd
 
 __all__ = ["active_set", "line_search", "masked_rounds", "newton_compacted", "newton_round", "newton_start",
            "rounds_driver", "rows_first", "while_rounds"]
@@ -59,7 +59,7 @@ def newton_round(state, m, j, w, tolerance: float):
     gradient; float32 rounding sets a floor)."""
     qacc, jar, inertial, gradient = state
     jt = j.transpose(-1, -2)
-    direction = -torch.linalg.solve_ex(m + jt @ ((w * (jar < 0)).unsqueeze(-1) * j), gradient)[0]
+    direction = -solve_spd(m + jt @ ((w * (jar < 0)).unsqueeze(-1) * j), gradient)
     jd = (j @ direction.unsqueeze(-1)).squeeze(-1)
     md = (m @ direction.unsqueeze(-1)).squeeze(-1)
     alpha = line_search(jar, jd, w, (direction * inertial).sum(-1), (md * direction).sum(-1)).unsqueeze(-1)

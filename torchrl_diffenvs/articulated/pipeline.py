@@ -21,7 +21,7 @@ from .forces import actuator_force, passive_force
 from .inertia import body_invweight0, dof_invweight0, mass_matrix_and_bias
 from .kinematics import Kinematics, forward_kinematics
 from .limits import limit_force
-from .spatial import Params, _cross, _inverse, _solve
+from .spatial import Params, _cross, _inverse, _solve, solve_spd
 from .tree import RigidBodyTree
 
 __all__ = ['ForwardReport', 'SolvedContacts', 'accelerations', 'body_contact_wrenches', 'constraint_force', 'invweight0',
@@ -191,8 +191,10 @@ def _smooth_accelerations(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params,
         invweight0 = dof_invweight0(tree, params) if invweight0 is None else invweight0
         force = force + limit_force(tree, qpos, qvel, smooth_acc, mass_inv, invweight0)
     if implicit:
-        mass = mass + implicit_damping_dt * damping
-    qacc = _solve(mass, force)
+        # the velocity damping's bias part is not symmetric: the general solve
+        qacc = _solve(mass + implicit_damping_dt * damping, force)
+    else:
+        qacc = solve_spd(mass, force)
     return (qacc, ForwardReport(largest, None)) if with_contact_force else qacc
 
 
@@ -243,7 +245,7 @@ def _mujoco_forward(tree: RigidBodyTree, qpos, qvel, ctrl, params: Params, weigh
         inertial = _inertial(tree, qpos, qvel, params, with_bias_jacobian)
     kin, mass, bias = inertial.kin, inertial.mass, inertial.bias
     smooth_force = actuator_force(tree, ctrl, tree.nv) + passive_force(tree, kin, qpos, qvel, params) - bias
-    qacc_smooth = _solve(mass, smooth_force)
+    qacc_smooth = solve_spd(mass, smooth_force)
     gradient = tree.contact_gradient if tree.contact_gradient.shapes_solve else ContactGradient()
     compact = slots.count and convergence.reads_data_freely(qpos.device)
     if compact:  # the broad phase: only the pairs near enough to touch in some env

@@ -12,7 +12,8 @@ from collections.abc import Mapping
 
 import torch
 
-__all__ = ['cross_motion', 'cross_force', 'quaternion_to_matrix', 'integrate_quaternion', 'small_matmul', 'small_matvec']
+__all__ = ['cross_motion', 'cross_force', 'quaternion_to_matrix', 'integrate_quaternion', 'small_matmul', 'small_matvec',
+           'solve_spd']
 
 
 Params = Mapping[str, torch.Tensor]
@@ -24,6 +25,22 @@ _MINVAL = 1e-15  # MuJoCo's mjMINVAL
 # flags and resets it.
 def _solve(matrix: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
     return torch.linalg.solve_ex(matrix, rhs)[0]
+
+
+def solve_spd(matrix: torch.Tensor, rhs: torch.Tensor, by_cholesky: bool | None = None) -> torch.Tensor:
+    """``matrix^-1 rhs`` for symmetric positive definite ``matrix`` (mass matrices and the solver's
+    Hessians ``M + J' W J``). On the CPU by its Cholesky factor, as MuJoCo factors them (faster
+    than the general solve there at the steps' sizes); on CUDA by the general solve, which is the
+    faster there (both measured by ``benchmarks/batched_products.py``). An env whose matrix is not
+    positive definite gets NaN on the CPU (the general solve's inf or NaN on a singular one):
+    the env base class flags and resets it. ``by_cholesky`` forces one way (by default: not on CUDA)."""
+    if by_cholesky is None:
+        by_cholesky = matrix.device.type != "cuda"
+    if not by_cholesky:
+        return _solve(matrix, rhs)
+    factor, info = torch.linalg.cholesky_ex(matrix)
+    solution = torch.cholesky_solve(rhs.unsqueeze(-1), factor).squeeze(-1)
+    return torch.where((info == 0).unsqueeze(-1), solution, torch.full_like(solution, math.nan))
 
 
 def _inverse(matrix: torch.Tensor) -> torch.Tensor:
