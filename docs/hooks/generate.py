@@ -14,6 +14,10 @@
   tasks) becomes a log-log figure of the rate columns ``COLUMNS`` (comma-separated) of table
   ``TABLE`` of ``docs/data/NAME.json`` against its ``N`` column (the number of envs), one line per
   task and column: an inline SVG, drawn from the data file.
+* ``{{ value NAME:TABLE[ROW][COLUMN] }}`` (or ``{{ value NAME[ROW][COLUMN] }}`` for a file with one
+  table) becomes one cell of a data file's table, inline: the row whose leading cells are
+  ``ROW``'s comma-separated values (``[Ant-v5,sapo]``), in the column named ``COLUMN``. Prose
+  cites measurements this way, so a re-run updates the sentence with the table.
 * ``{{ config_reference }}`` becomes the reference of every learner's settings, read from the
   settings dataclasses themselves (field, default, accepted values, description).
 
@@ -33,6 +37,7 @@ DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 TABLE = re.compile(r"\{\{\s*table\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?(?:\s+without=([^}]+?))?\s*\}\}")
 CURVES = re.compile(r"\{\{\s*curves\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?\s*\}\}")
 SCALING = re.compile(r"\{\{\s*scaling\s+([A-Za-z0-9_.-]+):([A-Za-z0-9_.-]+):([^}]+?)\s*\}\}")
+VALUE = re.compile(r"\{\{\s*value\s+([A-Za-z0-9_.-]+)(?::([A-Za-z0-9_.-]+))?\[([^\]]+)\]\[([^\]]+)\]\s*\}\}")
 CONFIG_REFERENCE = re.compile(r"\{\{\s*config_reference\s*\}\}")
 DATA_FIELDS = ("measured", "machine", "command", "tables")
 TABLE_FIELDS = ("title", "columns", "rows")
@@ -83,7 +88,7 @@ def load_data(name: str) -> dict:
     path = DATA_DIR / f"{name}.json"
     if not path.is_file():
         valid = ", ".join(sorted(p.stem for p in DATA_DIR.glob("*.json")))
-        raise ValueError(f"{{{{ table {name} }}}}: no data file {path}; valid: {valid}")
+        raise ValueError(f"data file {name!r}: no {path}; valid: {valid}")
     data = json.loads(path.read_text())
     missing = [key for key in DATA_FIELDS if key not in data]
     if missing:
@@ -143,6 +148,28 @@ def render_table(name: str, key: str | None, data_link: str, without: str | None
                + (f" with `{command}`" if command else "") + f" ([data]({data_link}{name}.json)"
                + (f"; also there: {', '.join(left_out)}" if left_out else "") + ").*")
     return note + "\n".join(lines) + "\n\n" + caption + "\n"
+
+
+def render_value(name: str, key: str | None, row_key: str, column: str) -> str:
+    """``{{ value name:key[row][column] }}``: the cell of table ``key`` (the file's only table when
+    ``key`` is None) in the row whose leading cells are ``row``'s comma-separated values and the
+    column named ``column``, as the table shows it."""
+    tag = f"{{{{ value {name}{':' + key if key else ''}[{row_key}][{column}] }}}}"
+    tables = load_data(name)["tables"]
+    if key is None and len(tables) != 1:
+        raise ValueError(f"{tag}: the file holds {len(tables)} tables; name one: " + ", ".join(f"{name}:{k}" for k in tables))
+    if key is not None and key not in tables:
+        raise ValueError(f"{tag}: no table {key!r}; valid: {', '.join(tables)}")
+    table = tables[key] if key is not None else next(iter(tables.values()))
+    columns = [str(c) for c in table["columns"]]
+    if column.strip() not in columns:
+        raise ValueError(f"{tag}: no column {column.strip()!r}; valid: {', '.join(columns)}")
+    wanted = [cell.strip() for cell in row_key.split(",")]
+    rows = [row for row in table["rows"] if [str(c) for c in row[:len(wanted)]] == wanted]
+    if len(rows) != 1:
+        leading = ", ".join(f"[{','.join(str(c) for c in row[:len(wanted)])}]" for row in table["rows"])
+        raise ValueError(f"{tag}: {len(rows)} rows start with [{','.join(wanted)}], not one; the rows start with: {leading}")
+    return _cell(rows[0][columns.index(column.strip())])
 
 
 # --------------------------------------------------------------------------- learning curves
@@ -450,6 +477,7 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
     data_link = "../" * page.file.src_uri.count("/") + "data/"
     markdown = TABLE.sub(lambda m: render_table(m.group(1), m.group(2), data_link, m.group(3)), markdown)
     markdown = CURVES.sub(lambda m: render_curves(m.group(1), m.group(2)), markdown)
+    markdown = VALUE.sub(lambda m: render_value(m.group(1), m.group(2), m.group(3), m.group(4)), markdown)
     markdown = SCALING.sub(lambda m: render_scaling(m.group(1), m.group(2), m.group(3), data_link), markdown)
     if CONFIG_REFERENCE.search(markdown):
         markdown = CONFIG_REFERENCE.sub(lambda m: render_config_reference(), markdown)
