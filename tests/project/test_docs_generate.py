@@ -1,5 +1,8 @@
-"""The docs hook's learning-curve figures (``{{ curves DIR }}``): one polyline per run, at the
-coordinates its evaluations map to (hand-computed), one colour per learner, clear errors."""
+"""The docs hook that fills the pages from the data files (``docs/hooks/generate.py``): the
+learning-curve figures (``{{ curves DIR }}``: one polyline per run, at the coordinates its
+evaluations map to, hand-computed, one colour per learner), the scaling figures, the inline values
+(``{{ value NAME:TABLE[ROW][COLUMN] }}``: the one cell a row's leading cells and a column name
+pick), and errors that name what is valid."""
 from __future__ import annotations
 
 import importlib.util
@@ -107,3 +110,40 @@ def test_table_cells_write_numbers_as_people_read_them(hook):
     assert cell("1.3e+09") == "1.3e9" and cell("4.2e-05") == "4.2e-5" and cell("2e+19") == "2e19"
     assert cell("`x=1e+09` or 1e+05") == "`x=1e+09` or 1e5"  # code stays as written
     assert cell("ratio 0.5x | 12") == "ratio 0.5x \\| 12"
+
+
+@pytest.fixture
+def tables(hook, tmp_path):
+    race = {"title": "race", "columns": ["env", "loss", "in Gymnasium's env", "wall s"],
+            "rows": [["Ant-v5", "ppo", "378 [218, 473]", 2.23e3], ["Ant-v5", "sapo", "1194 [1173, 1299]", "a|b"]]}
+    data = {"measured": "2026-01-01", "machine": "m", "command": "c", "tables": {"Ant-v5": race, "levels": race}}
+    (tmp_path / "race.json").write_text(json.dumps(data))
+    single = dict(data, tables={"speed": {"title": "t", "columns": ["task", "ratio"], "rows": [["Ant-v5", "0.351x"]]}})
+    (tmp_path / "speed.json").write_text(json.dumps(single))
+    return hook
+
+
+def test_a_value_is_the_cell_of_its_row_and_column(tables):
+    text = ("SAPO ends at {{ value race:Ant-v5[Ant-v5, sapo][in Gymnasium's env] }}, PPO at "
+                       "{{ value race:Ant-v5[Ant-v5,ppo][in Gymnasium's env] }}; the Ant runs at "
+                       "{{ value speed[Ant-v5][ratio] }}.")
+    assert tables.on_page_markdown(text, _page("results.md"), None, None) == (
+        "SAPO ends at 1194 [1173, 1299], PPO at 378 [218, 473]; the Ant runs at 0.351x.")
+    # as the table shows it: thousands written out, pipes escaped
+    assert tables.render_value("race", "Ant-v5", "Ant-v5,ppo", "wall s") == "2230.0"
+    assert tables.render_value("race", "Ant-v5", "Ant-v5,sapo", "wall s") == "a\\|b"
+
+
+def test_value_errors_name_what_is_valid(tables):
+    with pytest.raises(ValueError, match="holds 2 tables; name one: race:Ant-v5, race:levels"):
+        tables.render_value("race", None, "Ant-v5,ppo", "wall s")
+    with pytest.raises(ValueError, match="no table 'Hopper-v5'; valid: Ant-v5, levels"):
+        tables.render_value("race", "Hopper-v5", "Ant-v5,ppo", "wall s")
+    with pytest.raises(ValueError, match="no column 'wall'; valid: env, loss, in Gymnasium's env, wall s"):
+        tables.render_value("race", "Ant-v5", "Ant-v5,ppo", "wall")
+    with pytest.raises(ValueError, match=r"2 rows start with \[Ant-v5\], not one; the rows start with: \[Ant-v5\], \[Ant-v5\]"):
+        tables.render_value("race", "Ant-v5", "Ant-v5", "wall s")
+    with pytest.raises(ValueError, match=r"0 rows start with \[Ant-v5,shac\]"):
+        tables.render_value("race", "Ant-v5", "Ant-v5,shac", "wall s")
+    with pytest.raises(ValueError, match="data file .missing.: no .*missing.json; valid: race, speed"):
+        tables.render_value("missing", None, "Ant-v5", "ratio")
