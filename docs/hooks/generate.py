@@ -16,7 +16,8 @@
   task and column: an inline SVG, drawn from the data file.
 * ``{{ value NAME:TABLE[ROW][COLUMN] }}`` (or ``{{ value NAME[ROW][COLUMN] }}`` for a file with one
   table) becomes one cell of a data file's table, inline: the row whose leading cells are
-  ``ROW``'s comma-separated values (``[Ant-v5,sapo]``), in the column named ``COLUMN``. Prose
+  ``ROW``'s comma-separated values (``[Ant-v5,sapo]``; ``\\,`` for a comma inside a cell), in the
+  column named ``COLUMN``. Prose
   cites measurements this way, so a re-run updates the sentence with the table.
 * ``{{ config_reference }}`` becomes the reference of every learner's settings, read from the
   settings dataclasses themselves (field, default, accepted values, description).
@@ -152,8 +153,8 @@ def render_table(name: str, key: str | None, data_link: str, without: str | None
 
 def render_value(name: str, key: str | None, row_key: str, column: str) -> str:
     """``{{ value name:key[row][column] }}``: the cell of table ``key`` (the file's only table when
-    ``key`` is None) in the row whose leading cells are ``row``'s comma-separated values and the
-    column named ``column``, as the table shows it."""
+    ``key`` is None) in the row whose leading cells are ``row``'s comma-separated values (``\\,``
+    for a comma inside a cell) and the column named ``column``, as the table shows it."""
     tag = f"{{{{ value {name}{':' + key if key else ''}[{row_key}][{column}] }}}}"
     tables = load_data(name)["tables"]
     if key is None and len(tables) != 1:
@@ -164,7 +165,7 @@ def render_value(name: str, key: str | None, row_key: str, column: str) -> str:
     columns = [str(c) for c in table["columns"]]
     if column.strip() not in columns:
         raise ValueError(f"{tag}: no column {column.strip()!r}; valid: {', '.join(columns)}")
-    wanted = [cell.strip() for cell in row_key.split(",")]
+    wanted = [cell.replace("\\,", ",").strip() for cell in re.split(r"(?<!\\),", row_key)]
     rows = [row for row in table["rows"] if [str(c) for c in row[:len(wanted)]] == wanted]
     if len(rows) != 1:
         leading = ", ".join(f"[{','.join(str(c) for c in row[:len(wanted)])}]" for row in table["rows"])

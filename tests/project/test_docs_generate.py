@@ -116,7 +116,8 @@ def test_table_cells_write_numbers_as_people_read_them(hook):
 def tables(hook, tmp_path):
     race = {"title": "race", "columns": ["env", "loss", "in Gymnasium's env", "wall s"],
             "rows": [["Ant-v5", "ppo", "378 [218, 473]", 2.23e3], ["Ant-v5", "sapo", "1194 [1173, 1299]", "a|b"]]}
-    data = {"measured": "2026-01-01", "machine": "m", "command": "c", "tables": {"Ant-v5": race, "levels": race}}
+    levels = dict(race, rows=race["rows"] + [["Ant-v5", "sapo, seed 1", "1173", 12]])
+    data = {"measured": "2026-01-01", "machine": "m", "command": "c", "tables": {"Ant-v5": race, "levels": levels}}
     (tmp_path / "race.json").write_text(json.dumps(data))
     single = dict(data, tables={"speed": {"title": "t", "columns": ["task", "ratio"], "rows": [["Ant-v5", "0.351x"]]}})
     (tmp_path / "speed.json").write_text(json.dumps(single))
@@ -132,6 +133,8 @@ def test_a_value_is_the_cell_of_its_row_and_column(tables):
     # as the table shows it: thousands written out, pipes escaped
     assert tables.render_value("race", "Ant-v5", "Ant-v5,ppo", "wall s") == "2230.0"
     assert tables.render_value("race", "Ant-v5", "Ant-v5,sapo", "wall s") == "a\\|b"
+    # a comma inside a leading cell is written \,
+    assert tables.render_value("race", "levels", "Ant-v5,sapo\\, seed 1", "wall s") == "12"
 
 
 def test_value_errors_name_what_is_valid(tables):
