@@ -175,6 +175,16 @@ def timed(fn: Callable[[], object]) -> tuple[float, float]:
     return wall, cpu
 
 
+def aten_ops(fn: Callable[[], object]) -> int:
+    """The aten ops one call of ``fn`` dispatches on the CPU (the profiler's count of ``aten::``
+    events, nested ones included): the CPU proxy of the kernels it would launch on a GPU."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    return sum(e.count for e in prof.key_averages() if e.key.startswith("aten::"))
+
+
 def interleaved(candidates: dict[str, Callable[[], object]], rounds: int, warmup: int = 1) -> dict[str, dict]:
     """Times each candidate ``rounds`` times, round-robin; returns per-candidate lists."""
     for fn in candidates.values():

@@ -1,5 +1,5 @@
 """``compile_physics`` against eager: cold compile time, steady-state throughput and the
-difference of the values, per task and batch size, in two modes.
+difference of the values and the aten ops per env step, per task and batch size, in two modes.
 
 * ``rollout``: ``env.rollout(steps)`` without gradient, random actions (torch's generator seeded
   the same for both paths), ``compile_physics(env, steps_per_chunk=chunk)``;
@@ -18,7 +18,9 @@ over the whole rollout (and, for ``bptt``, of the policy's gradient relative to 
 element). Beside it, ``eager at start x (1 +- 6e-8)``: the same gradient difference between eager
 windows whose start states differ by float32's rounding (every float under ``"state"`` times
 ``1 + 6e-8 z``, 3 draws, the largest): how much rounding alone moves this window's gradient.
-``dtype=float64`` runs both paths in float64, where the compiled math must equal eager's to
+``aten ops per env step``: the profiler's count over one run (its backward included for
+``bptt``) divided by its env steps, the CPU proxy of the kernels a GPU would launch: fused
+kernels replace most of eager's. ``dtype=float64`` runs both paths in float64, where the compiled math must equal eager's to
 rounding (1e-10), however sensitive the window. Fused kernels round differently, and the contact tasks amplify rounding: on
 HalfCheetah-v5 eager float32 and float64 rollouts from one start with the same random actions
 are themselves 0.8 apart (max over 1024 envs; median 6e-6) after 32 steps. Articulated tasks (the MuJoCo ones) compile
@@ -123,6 +125,7 @@ def measure(task: str, n: int, mode: str, args) -> dict:
     diff = max(float(d.max()) for d in diffs)
     first_diff = max(float(d[:, 0].max()) for d in diffs)  # [N, T, ...]: after the first env step
     report = compile_report(envs["compiled"])
+    ops = {name: C.aten_ops(run) / length for name, (run, _) in runs.items()}
     return {"task": task, "N": n, "mode": mode, "length": length, "eager_steps_per_s": rate["eager"],
             "compiled_steps_per_s": rate["compiled"], "ratio": C.median_ratio(cpu["eager"], cpu["compiled"]),
             "first_call_s": first, "steady_call_s": steady, "compile_s": first - steady,
@@ -130,6 +133,7 @@ def measure(task: str, n: int, mode: str, args) -> dict:
             "granularity": report["granularity"],
             "max_abs_diff": diff, "max_abs_diff_first_step": first_diff, "grad_rel_diff": grad_diff,
             "grad_rel_diff_rounding": rounding_grad_diff, "dtype": args.dtype, "rounds": rounds,
+            "aten_ops_per_env_step": ops,
             "cpu_s": {name: C.spread(cpu[name]) for name in cpu}}
 
 
@@ -170,7 +174,7 @@ def docs_tables(results: list[dict]) -> dict:
     for r in results:
         dtype = r.get("dtype", "float32")
         if "error" in r:
-            rows.append([r["task"], r["N"], r["mode"], dtype, "-", "-", "-", "-", "-", r["error"], "-"])
+            rows.append([r["task"], r["N"], r["mode"], dtype, "-", "-", "-", "-", "-", r["error"], "-", "-"])
             continue
         diff = f"{r['max_abs_diff_first_step']:.2g} / {r['max_abs_diff']:.2g}"
         grads = "-"
@@ -178,13 +182,16 @@ def docs_tables(results: list[dict]) -> dict:
             grads = f"{r['grad_rel_diff']:.2g}"
             if r.get("grad_rel_diff_rounding") is not None:
                 grads += f" / {r['grad_rel_diff_rounding']:.2g}"
+        ops = r.get("aten_ops_per_env_step")
+        ops = f"{ops['eager']:.0f} / {ops['compiled']:.0f}" if ops else "-"
         rows.append([r["task"], r["N"], {"rollout": "no-grad rollout", "bptt": "BPTT window"}[r["mode"]], dtype,
                      C.fmt_rate(r["eager_steps_per_s"]), C.fmt_rate(r["compiled_steps_per_s"]),
-                     C.fmt_ratio(r["ratio"]), f"{r['compile_s']:.0f}", r["granularity"], diff, grads])
+                     C.fmt_ratio(r["ratio"]), f"{r['compile_s']:.0f}", r["granularity"], diff, grads, ops])
     return {"compile_physics": C.data_table(
         "compile_physics against eager: env-steps/s from CPU time, cold compile seconds, max abs difference",
         ["task", "N", "mode", "dtype", "eager", "compiled", "compiled/eager", "compile s", "compiled unit",
-         "max abs diff (step 1 / all)", "policy grad vs eager, rel: compiled / eager at start x (1 +- 6e-8)"],
+         "max abs diff (step 1 / all)", "policy grad vs eager, rel: compiled / eager at start x (1 +- 6e-8)",
+         "aten ops per env step (eager / compiled)"],
         rows)}
 
 
