@@ -18,8 +18,8 @@ over the whole rollout (and, for ``bptt``, of the policy's gradient relative to 
 element). Beside it, ``eager at start x (1 +- 6e-8)``: the same gradient difference between eager
 windows whose start states differ by float32's rounding (every float under ``"state"`` times
 ``1 + 6e-8 z``, 3 draws, the largest): how much rounding alone moves this window's gradient.
-``aten ops per env step``: the profiler's count over one run (its backward included for
-``bptt``) divided by its env steps, the CPU proxy of the kernels a GPU would launch: fused
+``aten ops per env step``: the profiler's count over a run of ``ops_steps`` env steps from the
+same start (its backward included for ``bptt``) divided by them, the CPU proxy of the kernels a GPU would launch: fused
 kernels replace most of eager's. ``dtype=float64`` runs both paths in float64, where the compiled math must equal eager's to
 rounding (1e-10), however sensitive the window. Fused kernels round differently, and the contact tasks amplify rounding: on
 HalfCheetah-v5 eager float32 and float64 rollouts from one start with the same random actions
@@ -59,11 +59,23 @@ class CompilePhysicsSettings(C.BenchmarkSettings):
     steps: int | None = None  # rollout length (default 32; quick: 8)
     window: int | None = None  # BPTT window length (default 16; quick: 8)
     chunk: int = checked(8, checks.positive_int)  # steps_per_chunk
+    # env steps of the run whose aten ops are counted (default: one chunk; a multiple of it, since steps
+    # beyond whole chunks run eagerly). Not the whole run: the profiler keeps every op it records, about
+    # 3 KB each, which with a 16-step window of the Ant and its backward at N=1024 outgrew 24 GiB
+    ops_steps: int | None = None
     dtype: str = checked("float32", checks.one_of(("float32", "float64")))  # of the envs and the policy
     timeout: int = checked(900, checks.positive_int)  # seconds per (task, N, mode) process
     worker: str | None = None  # internal: "task,N,mode" measured in this process
     # the raw results (out=) of earlier runs, e.g. float32 and float64: write one data file from their rows
     from_results: list[str] | None = None
+
+    @classmethod
+    def relation_problems(cls, values, where=""):
+        ops, chunk = values["ops_steps"], values["chunk"]
+        if ops is not None and not (checks.is_int(ops) and ops >= chunk and ops % chunk == 0):
+            return [f"{where}ops_steps={ops!r}: expected a multiple of chunk={chunk} (steps beyond whole "
+                    "chunks run eagerly, so their ops would be counted as the compiled path's), or null for one chunk"]
+        return []
 
 
 def measure(task: str, n: int, mode: str, args) -> dict:
@@ -76,27 +88,31 @@ def measure(task: str, n: int, mode: str, args) -> dict:
     quick = args.quick
     steps = args.steps or (8 if quick else 32)
     window = args.window or (8 if quick else 16)
+    ops_steps = args.ops_steps or args.chunk
     dtype = getattr(torch, args.dtype)
     envs = {name: make_env(task, num_envs=n, seed=0, dtype=dtype) for name in ("eager", "compiled")}
     compile_physics(envs["compiled"], steps_per_chunk=args.chunk)
     start = envs["eager"].reset()
     net, policy = C.tanh_mlp_policy(envs["eager"], dtype)
 
-    def runner(name: str, start=start):
+    def runner(name: str, start=start, length: int | None = None):
         env = envs[name]
         if mode == "rollout":
+            rollout_steps = length or steps
+
             def run():
                 torch.manual_seed(1)
                 with torch.no_grad():
-                    return env.rollout(steps, auto_reset=False, tensordict=start.clone())
-            return run, steps
+                    return env.rollout(rollout_steps, auto_reset=False, tensordict=start.clone())
+            return run, rollout_steps
+        window_steps = length or window
 
         def run():
             net.zero_grad(set_to_none=True)
-            out = env.rollout(window, policy, auto_reset=False, tensordict=start.clone())
+            out = env.rollout(window_steps, policy, auto_reset=False, tensordict=start.clone())
             (-out["next", "reward"].mean()).backward()
             return out.detach(), [p.grad.clone() for p in net.parameters()]
-        return run, window
+        return run, window_steps
 
     runs = {name: runner(name) for name in envs}
     length = runs["eager"][1]
@@ -125,7 +141,7 @@ def measure(task: str, n: int, mode: str, args) -> dict:
     diff = max(float(d.max()) for d in diffs)
     first_diff = max(float(d[:, 0].max()) for d in diffs)  # [N, T, ...]: after the first env step
     report = compile_report(envs["compiled"])
-    ops = {name: C.aten_ops(run) / length for name, (run, _) in runs.items()}
+    ops = {name: C.aten_ops(runner(name, length=ops_steps)[0]) / ops_steps for name in runs}
     return {"task": task, "N": n, "mode": mode, "length": length, "eager_steps_per_s": rate["eager"],
             "compiled_steps_per_s": rate["compiled"], "ratio": C.median_ratio(cpu["eager"], cpu["compiled"]),
             "first_call_s": first, "steady_call_s": steady, "compile_s": first - steady,
@@ -133,7 +149,7 @@ def measure(task: str, n: int, mode: str, args) -> dict:
             "granularity": report["granularity"],
             "max_abs_diff": diff, "max_abs_diff_first_step": first_diff, "grad_rel_diff": grad_diff,
             "grad_rel_diff_rounding": rounding_grad_diff, "dtype": args.dtype, "rounds": rounds,
-            "aten_ops_per_env_step": ops,
+            "aten_ops_per_env_step": ops, "ops_steps": ops_steps,
             "cpu_s": {name: C.spread(cpu[name]) for name in cpu}}
 
 

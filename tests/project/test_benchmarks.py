@@ -849,6 +849,13 @@ def test_compile_physics_renders_one_data_file_from_earlier_runs(tmp_path):
     assert rows[1][-2:] == ["9.1e-12 / 0.091", "30962 / 2076"]
 
 
+@pytest.mark.parametrize("ops_steps", [3, 0, -8])
+def test_compile_physics_counts_ops_over_whole_chunks_only(ops_steps):
+    """Steps beyond whole chunks run eagerly, so an op count over them would be eager's."""
+    with pytest.raises(SystemExit, match=rf"ops_steps={ops_steps}: expected a multiple of chunk=8"):
+        load("compile_physics").main([f"ops_steps={ops_steps}"])
+
+
 def test_gymnasium_baseline_quick_trains_on_both_backends(tmp_path):
     """Tuned PPO on our env and on Gymnasium's own, back to back: the gymnasium-backed run's
     evaluation is Gymnasium's return, so its ``eval/gymnasium_return`` is its ``eval/return``."""
