@@ -96,23 +96,22 @@ def measure(task: str, n: int, mode: str, args) -> dict:
     net, policy = C.tanh_mlp_policy(envs["eager"], dtype)
 
     def runner(name: str, start=start, length: int | None = None):
+        """The timed run of ``name``'s env and its env steps (the rollout's or window's, or ``length``)."""
         env = envs[name]
+        length = length or (steps if mode == "rollout" else window)
         if mode == "rollout":
-            rollout_steps = length or steps
-
             def run():
                 torch.manual_seed(1)
                 with torch.no_grad():
-                    return env.rollout(rollout_steps, auto_reset=False, tensordict=start.clone())
-            return run, rollout_steps
-        window_steps = length or window
+                    return env.rollout(length, auto_reset=False, tensordict=start.clone())
+            return run, length
 
         def run():
             net.zero_grad(set_to_none=True)
-            out = env.rollout(window_steps, policy, auto_reset=False, tensordict=start.clone())
+            out = env.rollout(length, policy, auto_reset=False, tensordict=start.clone())
             (-out["next", "reward"].mean()).backward()
             return out.detach(), [p.grad.clone() for p in net.parameters()]
-        return run, window_steps
+        return run, length
 
     runs = {name: runner(name) for name in envs}
     length = runs["eager"][1]
